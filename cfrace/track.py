@@ -1,0 +1,191 @@
+"""Race tracks: gates in race order, gate geometry, obstacles, arena and spawn parameters.
+
+Pure geometry on numpy arrays; the simulator and the flight stack convert to torch as needed.
+Conventions (facts.md): a gate pose is [x, y, z, yaw]; the gate normal is
+n = (cos yaw, sin yaw, 0); a gate is passed flying from the +n side to the -n side.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cfrace.errors import ConfigError
+from cfrace.paths import TRACKS_DIR, resolve_named
+from cfrace.yamlcfg import Reader, load_yaml
+
+
+@dataclass(frozen=True)
+class GateGeometry:
+    opening: float = 1.0     #: m, inner square opening side
+    border: float = 0.2      #: m, frame width (outer side = opening + 2 border)
+    thickness: float = 0.04  #: m, along the gate normal
+
+    @property
+    def outer(self) -> float:
+        return self.opening + 2.0 * self.border
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    center: tuple[float, float]         #: m, box centre in the xy plane (stands on the floor)
+    size: tuple[float, float, float]    #: m, box extent along its own x, y, z
+    yaw: float                          #: rad
+
+
+@dataclass(frozen=True)
+class Arena:
+    x: tuple[float, float]   #: m, allowed x range
+    y: tuple[float, float]   #: m, allowed y range
+    z_max: float             #: m, ceiling
+
+
+@dataclass(frozen=True)
+class Spawn:
+    gate_distance: tuple[float, float] = (0.6, 1.6)  #: m, start distance before a gate
+    lateral: float = 0.3                             #: m, start jitter
+    opponent_offset: float = 0.4                     #: m, side-by-side distance of two drones
+    ground_start_prob: float = 0.25                  #: share of ground starts
+    ground_distance: float = 1.5                     #: m, ground start distance before gate 0
+
+
+@dataclass(frozen=True)
+class Track:
+    name: str
+    gates: tuple[tuple[float, float, float, float], ...]  #: race order, [x, y, z, yaw]
+    gate: GateGeometry
+    obstacles: tuple[Obstacle, ...]
+    arena: Arena
+    spawn: Spawn
+    source: str = ""
+
+    @property
+    def num_gates(self) -> int:
+        return len(self.gates)
+
+    def gate_array(self) -> np.ndarray:
+        """(G, 4) float64 [x, y, z, yaw]."""
+        return np.asarray(self.gates, dtype=np.float64)
+
+    def gate_rotations(self) -> np.ndarray:
+        """(G, 3, 3) world-from-gate rotations (yaw about z)."""
+        yaw = self.gate_array()[:, 3]
+        c, s = np.cos(yaw), np.sin(yaw)
+        rot = np.zeros((len(yaw), 3, 3))
+        rot[:, 0, 0], rot[:, 0, 1] = c, -s
+        rot[:, 1, 0], rot[:, 1, 1] = s, c
+        rot[:, 2, 2] = 1.0
+        return rot
+
+    def gate_corners(self) -> np.ndarray:
+        """(G, 4, 3) world positions of the opening corners in the observation order
+        (0,+d,+d), (0,-d,+d), (0,-d,-d), (0,+d,-d), d = opening / 2."""
+        d = self.gate.opening / 2.0
+        local = np.array([[0, d, d], [0, -d, d], [0, -d, -d], [0, d, -d]], dtype=np.float64)
+        return self.gate_array()[:, None, :3] + np.einsum("gij,cj->gci", self.gate_rotations(), local)
+
+    def gate_bars(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The frames as boxes: centres (G*4, 3), half extents (G*4, 3), yaw (G*4,).
+
+        Bars per gate in the gate frame: top, bottom (full outer width), left, right."""
+        o, b, t = self.gate.opening / 2.0, self.gate.border, self.gate.thickness / 2.0
+        outer = o + b
+        local_c = np.array([[0, 0, o + b / 2], [0, 0, -o - b / 2], [0, o + b / 2, 0], [0, -o - b / 2, 0]])
+        half = np.array([[t, outer, b / 2], [t, outer, b / 2], [t, b / 2, o], [t, b / 2, o]])
+        rot = self.gate_rotations()
+        centres = self.gate_array()[:, None, :3] + np.einsum("gij,cj->gci", rot, local_c)
+        g = self.num_gates
+        yaw = np.repeat(self.gate_array()[:, 3], 4)
+        return centres.reshape(g * 4, 3), np.tile(half, (g, 1)), yaw
+
+    def obstacle_boxes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Obstacles as boxes: centres (K, 3), half extents (K, 3), yaw (K,)."""
+        if not self.obstacles:
+            return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,))
+        c = np.array([[o.center[0], o.center[1], o.size[2] / 2] for o in self.obstacles])
+        h = np.array([o.size for o in self.obstacles]) / 2.0
+        y = np.array([o.yaw for o in self.obstacles])
+        return c, h, y
+
+    def without_obstacles(self) -> "Track":
+        return Track(self.name, self.gates, self.gate, (), self.arena, self.spawn, self.source)
+
+
+def _point_in_box(points: np.ndarray, centre, half, yaw, margin: float = 0.0) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = points - np.asarray(centre)
+    lx = c * d[:, 0] + s * d[:, 1]
+    ly = -s * d[:, 0] + c * d[:, 1]
+    lz = d[:, 2]
+    return ((np.abs(lx) <= half[0] + margin) & (np.abs(ly) <= half[1] + margin)
+            & (np.abs(lz) <= half[2] + margin))
+
+
+def _validate(track: Track, r: Reader) -> None:
+    a = track.arena
+    if a.x[0] >= a.x[1] or a.y[0] >= a.y[1]:
+        raise r.fail("arena", "ranges must be [low, high] with low < high")
+    half_outer = track.gate.outer / 2.0
+    if track.gate.border <= 0 or track.gate.opening <= 0:
+        raise r.fail("gate", "opening and border must be > 0")
+    for i, (x, y, z, yaw) in enumerate(track.gates):
+        if not (a.x[0] <= x <= a.x[1] and a.y[0] <= y <= a.y[1]):
+            raise r.fail(f"gates[{i}]", f"gate centre ({x}, {y}) is outside the arena x {list(a.x)}, y {list(a.y)}")
+        if z - half_outer < 0.0 or z + half_outer > a.z_max:
+            raise r.fail(f"gates[{i}]", f"gate frame z [{z - half_outer:.2f}, {z + half_outer:.2f}] m "
+                         f"is outside floor 0 .. ceiling {a.z_max}")
+    # obstacles must not block a gate opening: sample the opening square
+    u = np.linspace(-0.5, 0.5, 11) * track.gate.opening * 0.98
+    grid = np.stack(np.meshgrid(u, u), -1).reshape(-1, 2)
+    local = np.concatenate([np.zeros((len(grid), 1)), grid], axis=1)
+    rot = track.gate_rotations()
+    for i, gate in enumerate(track.gates):
+        pts = np.asarray(gate[:3]) + local @ rot[i].T
+        for k, (c, h, yaw) in enumerate(zip(*track.obstacle_boxes())):
+            if _point_in_box(pts, c, h, yaw).any():
+                raise r.fail(f"obstacles[{k}]", f"obstacle passes through the opening of gate {i}")
+    if len(track.gates) < 2:
+        raise r.fail("gates", "a track needs at least 2 gates")
+
+
+def load_track(name_or_path: str | Path) -> Track:
+    """Load a track by name (tracks/NAME.yaml) or path; strict, ConfigError on any problem."""
+    path = resolve_named(name_or_path, TRACKS_DIR, ".yaml")
+    if not path.exists():
+        known = ", ".join(sorted(p.stem for p in TRACKS_DIR.glob("*.yaml")))
+        raise ConfigError(f"{path}: no such track file (known tracks: {known})")
+    r = Reader(path, load_yaml(path))
+    name = r.string("name")
+    g = r.mapping("gate", {})
+    gate = GateGeometry(g.number("opening", 1.0, positive=True), g.number("border", 0.2, positive=True),
+                        g.number("thickness", 0.04, positive=True))
+    g.done()
+    raw_gates = r.sequence("gates")
+    gates = tuple(r.check_vector(f"gates[{i}]", v, 4) for i, v in enumerate(raw_gates))
+    obstacles = []
+    for i, item in enumerate(r.sequence("obstacles", [])):
+        o = r.child(f"obstacles[{i}]", item)
+        obstacles.append(Obstacle(o.vector("center", 2), o.vector("size", 3, positive=True), o.number("yaw", 0.0)))
+        o.done()
+    ar = r.mapping("arena")
+    arena = Arena(ar.vector("x", 2), ar.vector("y", 2), ar.number("z_max", positive=True))
+    ar.done()
+    sp = r.mapping("spawn", {})
+    d = Spawn()
+    spawn = Spawn(sp.vector("gate_distance", 2, d.gate_distance, positive=True),
+                  sp.number("lateral", d.lateral, min=0.0),
+                  sp.number("opponent_offset", d.opponent_offset, min=0.0),
+                  sp.number("ground_start_prob", d.ground_start_prob, min=0.0, max=1.0),
+                  sp.number("ground_distance", d.ground_distance, positive=True))
+    sp.done()
+    r.done()
+    track = Track(name, gates, gate, tuple(obstacles), arena, spawn, source=str(path))
+    _validate(track, r)
+    return track
+
+
+def list_tracks() -> list[Path]:
+    return sorted(TRACKS_DIR.glob("*.yaml"))
