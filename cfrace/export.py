@@ -1,0 +1,226 @@
+"""Actor (+ its observation normaliser) -> ONNX with metadata, parity-checked.
+
+The graph is written by hand with ``onnx.helper`` (no tracing, no exporter dependency), opset 17:
+
+    obs [batch, D] float32
+      -> (obs - mean) / sqrt(var + eps), clipped to +-10     (the training normaliser, folded in)
+      -> Gemm -> ELU -> ... -> Gemm                          (the actor's mean network)
+      -> clip(-1, 1)                                         (evaluation uses the mean action)
+    action [batch, 4] float32
+
+Metadata (common.md contract) is stored as ONNX metadata_props: strings as they are, every other
+value as JSON. ``cfrace.policy.OnnxPolicy`` reads it back and validates it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import onnx
+import torch
+from onnx import TensorProto, helper, numpy_helper
+
+from cfrace.env.observations import LAYOUTS
+from cfrace.errors import PolicyError
+
+OPSET = 17
+NORM_EPS = 1e-4   #: added to the running variance before the square root (std floor 0.01)
+NORM_CLIP = 10.0  #: normalised observations are clipped to +-NORM_CLIP
+ACTION_DIM = 4
+
+#: metadata key -> expected Python type after parsing (the common.md contract)
+META_SCHEMA: dict[str, type | tuple] = {
+    "method": str, "track": str, "obstacles": bool, "obs_layout": str, "obs_dim": int,
+    "max_thrust_weights": float, "max_rates_deg": list, "policy_hz": float, "drone_profile": str,
+    "train_steps": int, "seed": int, "cfrace_version": str,
+}
+METHODS = ("ours", "ds", "ss", "dm")
+MULTI_AGENT_METHODS = ("ours", "dm")
+
+# A layer of the mean network: ("linear", W (out, in), b (out,)) or ("elu"|"relu"|"tanh", None, None)
+Layer = tuple[str, "np.ndarray | None", "np.ndarray | None"]
+
+
+def encode_meta(meta: dict) -> dict[str, str]:
+    """Metadata values -> strings (str unchanged, everything else JSON)."""
+    return {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
+
+
+def validate_meta(meta: dict, where: str) -> dict:
+    """Check a parsed metadata dict against the contract; returns it normalised (float/int types).
+    Raises PolicyError naming ``where`` and the first problem."""
+    missing = [k for k in META_SCHEMA if k not in meta]
+    if missing:
+        raise PolicyError(f"{where}: metadata is missing key(s) {', '.join(missing)}")
+    out = dict(meta)
+    for key, kind in META_SCHEMA.items():
+        value = meta[key]
+        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[key] = float(value)
+        elif kind is int and isinstance(value, int) and not isinstance(value, bool):
+            out[key] = int(value)
+        elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+            raise PolicyError(f"{where}: metadata {key}={value!r} should be {kind.__name__}")
+    if out["method"] not in METHODS:
+        raise PolicyError(f"{where}: metadata method={out['method']!r} is not one of {', '.join(METHODS)}")
+    layout = LAYOUTS.get(out["obs_layout"])
+    if layout is None:
+        raise PolicyError(f"{where}: metadata obs_layout={out['obs_layout']!r} is unknown "
+                          f"(known: {', '.join(LAYOUTS)})")
+    if out["obs_dim"] != layout.dim:
+        raise PolicyError(f"{where}: metadata obs_dim={out['obs_dim']} does not match obs_layout "
+                          f"{layout.name} ({layout.dim})")
+    if layout.opponent != (out["method"] in MULTI_AGENT_METHODS):
+        raise PolicyError(f"{where}: obs_layout {layout.name} does not fit method {out['method']}")
+    if layout.world_position != out["obstacles"]:
+        raise PolicyError(f"{where}: obs_layout {layout.name} does not fit obstacles={out['obstacles']}")
+    rates = out["max_rates_deg"]
+    if len(rates) != 3 or not all(isinstance(v, (int, float)) and v > 0 for v in rates):
+        raise PolicyError(f"{where}: metadata max_rates_deg={rates!r} should be 3 positive numbers")
+    out["max_rates_deg"] = [float(v) for v in rates]
+    if out["max_thrust_weights"] <= 0 or out["policy_hz"] <= 0:
+        raise PolicyError(f"{where}: metadata max_thrust_weights and policy_hz must be > 0")
+    return out
+
+
+def build_model(layers: Sequence[Layer], mean: np.ndarray | None, std: np.ndarray | None, meta: dict,
+                obs_dim: int, nan_output: bool = False) -> onnx.ModelProto:
+    """The ONNX model of a normalised MLP actor. ``std`` = sqrt(var + eps), precomputed in float32.
+    ``nan_output`` adds NaN after the final clip (test policies only)."""
+    inits: list[TensorProto] = []
+    nodes: list[onnx.NodeProto] = []
+
+    def const(name: str, value) -> str:
+        inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+        return name
+
+    x = "obs"
+    if mean is not None:
+        nodes.append(helper.make_node("Sub", [x, const("norm_mean", mean)], ["obs_centred"]))
+        nodes.append(helper.make_node("Div", ["obs_centred", const("norm_std", std)], ["obs_scaled"]))
+        nodes.append(helper.make_node("Clip", ["obs_scaled", const("norm_lo", -NORM_CLIP),
+                                               const("norm_hi", NORM_CLIP)], ["obs_norm"]))
+        x = "obs_norm"
+    for i, (kind, w, b) in enumerate(layers):
+        y = f"h{i}"
+        if kind == "linear":
+            nodes.append(helper.make_node("Gemm", [x, const(f"W{i}", w), const(f"b{i}", b)], [y], transB=1))
+        elif kind == "elu":
+            nodes.append(helper.make_node("Elu", [x], [y], alpha=1.0))
+        elif kind == "relu":
+            nodes.append(helper.make_node("Relu", [x], [y]))
+        elif kind == "tanh":
+            nodes.append(helper.make_node("Tanh", [x], [y]))
+        else:
+            raise ValueError(f"unsupported layer {kind}")
+        x = y
+    out = "action_nan" if nan_output else "action"
+    nodes.append(helper.make_node("Clip", [x, const("act_lo", -1.0), const("act_hi", 1.0)], [out]))
+    if nan_output:
+        nodes.append(helper.make_node("Add", [out, const("nan", np.full(ACTION_DIM, np.nan))], ["action"]))
+    graph = helper.make_graph(
+        nodes, "cfrace_actor",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", obs_dim])],
+        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", ACTION_DIM])],
+        initializer=inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              producer_name="cfrace", doc_string="cfrace racing actor: obs -> action in [-1, 1]")
+    model.ir_version = 8  # readable by every onnxruntime >= 1.14
+    helper.set_model_props(model, encode_meta(meta))
+    onnx.checker.check_model(model, full_check=True)
+    return model
+
+
+def module_layers(actor: torch.nn.Module) -> list[Layer]:
+    """The mean network of an actor as a layer list. Accepts an nn.Sequential of Linear/ELU/ReLU/
+    Tanh/Identity, or any module with such a Sequential as ``mean_net``."""
+    net = getattr(actor, "mean_net", actor)
+    if not isinstance(net, torch.nn.Sequential):
+        raise TypeError(f"cannot export {type(actor).__name__}: expected nn.Sequential or .mean_net")
+    layers: list[Layer] = []
+    for m in net:
+        if isinstance(m, torch.nn.Linear):
+            w = m.weight.detach().cpu().float().numpy()
+            b = m.bias.detach().cpu().float().numpy() if m.bias is not None else np.zeros(w.shape[0], np.float32)
+            layers.append(("linear", w, b))
+        elif isinstance(m, torch.nn.ELU):
+            if m.alpha != 1.0:
+                raise TypeError("only ELU(alpha=1) is exported")
+            layers.append(("elu", None, None))
+        elif isinstance(m, torch.nn.ReLU):
+            layers.append(("relu", None, None))
+        elif isinstance(m, torch.nn.Tanh):
+            layers.append(("tanh", None, None))
+        elif not isinstance(m, torch.nn.Identity):
+            raise TypeError(f"cannot export layer {type(m).__name__}")
+    return layers
+
+
+def norm_arrays(normalizer) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(mean, std) float32 arrays from (mean, var) tensors, an object with .mean/.var, or None.
+    std = sqrt(var + NORM_EPS), computed in float32 exactly like the training forward pass."""
+    if normalizer is None:
+        return None, None
+    mean, var = (normalizer.mean, normalizer.var) if hasattr(normalizer, "var") else normalizer
+    mean = torch.as_tensor(mean).detach().cpu().float()
+    std = torch.sqrt(torch.as_tensor(var).detach().cpu().float() + NORM_EPS)
+    return mean.numpy(), std.numpy()
+
+
+def export_actor(actor_module: torch.nn.Module, normalizer, meta: dict, path: str | Path) -> Path:
+    """Write the actor (mean action, clipped to [-1, 1]) with its normaliser and metadata to ONNX.
+
+    normalizer: (mean (D,), var (D,)) tensors, an object with .mean/.var, or None.
+    meta: the contract keys (see META_SCHEMA); extra keys (e.g. agent) are kept.
+    """
+    path = Path(path)
+    meta = validate_meta(dict(meta), str(path))
+    layers = module_layers(actor_module)
+    linears = [layer for layer in layers if layer[0] == "linear"]
+    if not linears:
+        raise TypeError("actor has no Linear layer")
+    in_dim, out_dim = linears[0][1].shape[1], linears[-1][1].shape[0]
+    if in_dim != meta["obs_dim"] or out_dim != ACTION_DIM:
+        raise PolicyError(f"{path}: actor maps {in_dim} -> {out_dim}, metadata says obs_dim {meta['obs_dim']} -> 4")
+    mean, std = norm_arrays(normalizer)
+    if mean is not None and mean.shape != (in_dim,):
+        raise PolicyError(f"{path}: normaliser has shape {mean.shape}, actor input is {in_dim}")
+    model = build_model(layers, mean, std, meta, in_dim)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    onnx.save_model(model, str(tmp))
+    tmp.replace(path)
+    return path
+
+
+@torch.no_grad()
+def torch_reference(actor_module: torch.nn.Module, normalizer, obs: torch.Tensor) -> torch.Tensor:
+    """What the exported graph computes, in torch: clip(mean_net(clip((obs - m) / s, +-10)), -1, 1)."""
+    net = getattr(actor_module, "mean_net", actor_module)
+    x = obs.float()
+    if normalizer is not None:
+        mean, std = (torch.from_numpy(a) for a in norm_arrays(normalizer))
+        x = ((x - mean) / std).clamp(-NORM_CLIP, NORM_CLIP)
+    return net(x).clamp(-1.0, 1.0)
+
+
+def parity_check(path: str | Path, actor_module: torch.nn.Module, normalizer, n: int = 1000,
+                 seed: int = 0, obs: np.ndarray | None = None) -> float:
+    """Max |onnxruntime - torch| over ``n`` observations (random around the normaliser's statistics
+    unless ``obs`` is given). Used by `cfrace export` and the tests."""
+    from cfrace.policy import OnnxPolicy
+
+    policy = OnnxPolicy(path)
+    if obs is None:
+        gen = np.random.default_rng(seed)
+        mean, std = norm_arrays(normalizer)
+        d = policy.meta["obs_dim"]
+        mean = np.zeros(d, np.float32) if mean is None else mean
+        std = np.ones(d, np.float32) if std is None else std
+        obs = (mean + std * gen.normal(size=(n, d)) * 2.0).astype(np.float32)
+    ours = policy(obs)
+    ref = torch_reference(actor_module, normalizer, torch.from_numpy(obs)).numpy()
+    return float(np.abs(ours - ref).max())
