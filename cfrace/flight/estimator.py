@@ -1,0 +1,163 @@
+"""State estimation from motion-capture poses: position, velocity and attitude per body.
+
+Per body, every frame that holds its pose:
+- reject it as *invalid* if any value is NaN/inf or the quaternion has (near) zero norm;
+- reject it as an *outlier* if it moved more than max(max_jump_m, max_speed_mps * dt) since the
+  last accepted pose (dt on the frame clock): at 100 Hz that is 0.3 m per frame, after an
+  occlusion gap the allowance grows with the top speed. If `reacquire_after` outliers in a row
+  agree with each other (the first accepted pose was the glitch, or the body was re-labelled),
+  the track restarts at the newest one (counted as *reacquired*);
+- otherwise accept it: velocity = finite difference low-passed, v += alpha (v_raw - v) (the first
+  difference initialises v); the quaternion is normalised (sign kept continuous), rot from it.
+
+Ages use only the caller's `now` (seconds since the last update that accepted a pose), velocity
+uses only frame times, so the frame clock and the loop clock need not be the same clock (replay,
+simulation). Between poses the position is predicted forward with the velocity for up to
+`predict_s` (default stale_after_s), then held. An estimate older than stale_after_s is not valid.
+Pure numpy float64 and no randomness: the same frames and times give the same estimates.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cfrace.flight.mocap import MocapFrame
+
+COUNTERS = ("frames", "occluded", "outliers", "invalid", "stale", "reacquired")
+
+
+@dataclass
+class Estimate:
+    pos: np.ndarray     #: (3,) m, world
+    vel: np.ndarray     #: (3,) m/s, world
+    rot: np.ndarray     #: (3, 3) world from body
+    quat: np.ndarray    #: (4,) w, x, y, z, unit norm
+    t: float            #: s, frame-clock time of the last accepted pose (nan if none yet)
+    age_s: float        #: s, caller-clock time since the last accepted pose (inf if none yet)
+    valid: bool         #: a pose was accepted within stale_after_s
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) w, x, y, z -> rotation matrix (3, 3) (same frames as the quaternion)."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+@dataclass
+class _Track:
+    pos: np.ndarray
+    quat: np.ndarray
+    t: float                       # frame clock of the last accepted pose
+    now: float                     # caller clock of the update that accepted it
+    vel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    samples: int = 1
+    out_pos: np.ndarray | None = None   # last rejected pose, for re-acquisition
+    out_t: float = 0.0
+    out_run: int = 0
+
+
+class PoseEstimator:
+    """Per-body estimates from MocapFrames; see the module docstring for the rules."""
+
+    def __init__(self, bodies: list[str], *, alpha: float = 0.5, max_speed_mps: float = 20.0,
+                 max_jump_m: float = 0.3, stale_after_s: float = 0.1,
+                 predict_s: float | None = None, reacquire_after: int = 5):
+        if not 0.0 < alpha <= 1.0:
+            raise ValueError(f"alpha must be in (0, 1], got {alpha}")
+        self.bodies = list(bodies)
+        self.alpha, self.max_speed_mps, self.max_jump_m = alpha, max_speed_mps, max_jump_m
+        self.stale_after_s = stale_after_s
+        self.predict_s = stale_after_s if predict_s is None else predict_s
+        self.reacquire_after = reacquire_after
+        self.counters: dict[str, dict[str, int]] = {b: dict.fromkeys(COUNTERS, 0) for b in bodies}
+        self._tracks: dict[str, _Track] = {}
+        self._last_frame: tuple[int, float] | None = None
+
+    def reset(self) -> None:
+        self._tracks.clear()
+        self._last_frame = None
+        for c in self.counters.values():
+            c.update(dict.fromkeys(COUNTERS, 0))
+
+    def _limit(self, dt: float) -> float:
+        return max(self.max_jump_m, self.max_speed_mps * dt)
+
+    def _ingest(self, body: str, pos: np.ndarray, quat: np.ndarray, t: float, now: float) -> None:
+        c = self.counters[body]
+        c["frames"] += 1
+        pos = np.asarray(pos, dtype=np.float64).reshape(3)
+        quat = np.asarray(quat, dtype=np.float64).reshape(4)
+        norm = float(np.linalg.norm(quat))
+        if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or norm < 1e-6:
+            c["invalid"] += 1
+            return
+        quat = quat / norm
+        tr = self._tracks.get(body)
+        if tr is None:
+            self._tracks[body] = _Track(pos.copy(), quat, t, now)
+            return
+        dt = t - tr.t
+        if dt <= 0.0:                  # repeated or out-of-order pose: nothing new
+            return
+        if float(np.linalg.norm(pos - tr.pos)) > self._limit(dt):
+            c["outliers"] += 1
+            if tr.out_pos is not None and t > tr.out_t and \
+                    float(np.linalg.norm(pos - tr.out_pos)) <= self._limit(t - tr.out_t):
+                tr.out_run += 1
+            else:
+                tr.out_run = 1
+            if tr.out_run >= self.reacquire_after:
+                vel = (pos - tr.out_pos) / (t - tr.out_t)
+                self._tracks[body] = _Track(pos.copy(), quat, t, now, vel=vel, samples=2)
+                c["reacquired"] += 1
+            else:
+                tr.out_pos, tr.out_t = pos.copy(), t
+            return
+        v_raw = (pos - tr.pos) / dt
+        tr.vel = v_raw if tr.samples == 1 else tr.vel + self.alpha * (v_raw - tr.vel)
+        if float(np.dot(quat, tr.quat)) < 0.0:
+            quat = -quat
+        tr.pos, tr.quat, tr.t, tr.now = pos.copy(), quat, t, now
+        tr.samples += 1
+        tr.out_pos, tr.out_run = None, 0
+
+    def update(self, frame: MocapFrame | None, now: float) -> dict[str, Estimate]:
+        """Take a new frame (or None when none arrived) at caller time `now` (s); estimates for
+        every body (bodies never seen: NaN position, valid False)."""
+        if frame is not None and self._last_frame != (frame.seq, frame.t):
+            self._last_frame = (frame.seq, frame.t)
+            for body in self.bodies:
+                pose = frame.poses.get(body)
+                if pose is None:
+                    self.counters[body]["occluded"] += 1
+                else:
+                    self._ingest(body, pose.pos, pose.quat, float(frame.t), now)
+        return {body: self._estimate(body, now) for body in self.bodies}
+
+    def _estimate(self, body: str, now: float) -> Estimate:
+        tr = self._tracks.get(body)
+        if tr is None:
+            self.counters[body]["stale"] += 1
+            return Estimate(pos=np.full(3, np.nan), vel=np.full(3, np.nan), rot=np.eye(3),
+                            quat=np.array([1.0, 0.0, 0.0, 0.0]), t=math.nan, age_s=math.inf,
+                            valid=False)
+        age = max(0.0, now - tr.now)
+        valid = age <= self.stale_after_s
+        if not valid:
+            self.counters[body]["stale"] += 1
+        pos = tr.pos + tr.vel * min(age, self.predict_s)
+        return Estimate(pos=pos, vel=tr.vel.copy(), rot=quat_to_rot(tr.quat), quat=tr.quat.copy(),
+                        t=tr.t, age_s=age, valid=valid)
+
+
+def estimates_to_msg(estimates: dict[str, Estimate]) -> dict:
+    """The /estimate flight-log message: {body: {pos, vel, quat, age_s, valid}}."""
+    return {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s, "valid": e.valid}
+            for b, e in estimates.items()}

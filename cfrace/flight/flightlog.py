@@ -1,0 +1,363 @@
+"""The flight log: one MCAP file per flight, JSON messages with JSON schemas (Foxglove opens it).
+
+Written as the drones fly: every message goes through to the operating system at once (unchunked
+MCAP records, file flushed per message, fsync'd by a background thread about once a second), so a
+killed process or a power cut leaves a file that `read_log` reads up to the cut. `close(summary)`
+writes /summary and the MCAP summary section and footer; it is idempotent, thread-safe and may be
+called from a signal handler (even one that interrupted `write`). Topics and fields:
+docs/flight-log.md.
+
+Every stored message is the caller's dict plus "t" (s, the flight clock given to `write`); a key
+"t" in the caller's dict is stored as "t_msg". numpy arrays become lists, NaN/inf become null.
+The MCAP log_time is wall-clock ns (start time + monotonic elapsed), so Foxglove shows real dates.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.exceptions import EndOfFile, InvalidMagic, McapError
+from mcap.records import Channel, DataEnd, Footer, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+import cfrace
+from cfrace.errors import LogError
+
+PROFILE = "cfrace-flight"   #: MCAP header profile
+_OBJ = {"type": "object"}
+_VEC3 = {"type": "array", "items": {"type": ["number", "null"]}, "minItems": 3, "maxItems": 3}
+_QUAT = {"type": "array", "items": {"type": ["number", "null"]}, "minItems": 4, "maxItems": 4,
+         "description": "quaternion w, x, y, z (world from body)"}
+_PER_BODY = "object keyed by mocap body name"
+
+#: topic -> (description, JSON schema of its message without the common "t" field)
+TOPICS: dict[str, tuple[str, dict]] = {
+    "/meta": ("flight set-up, written first", _OBJ),
+    "/mocap/pose": ("one motion-capture frame as received", {
+        "type": "object", "properties": {
+            "t_src": {"type": "number", "description": "s, mocap source clock"},
+            "seq": {"type": "integer"},
+            "poses": {"type": "object", "description": _PER_BODY, "additionalProperties": {
+                "type": "object", "properties": {"pos": _VEC3, "quat": _QUAT}}}}}),
+    "/estimate": ("state estimate per body", {
+        "type": "object", "description": _PER_BODY, "additionalProperties": {
+            "type": "object", "properties": {
+                "pos": _VEC3, "vel": _VEC3, "quat": _QUAT, "age_s": {"type": ["number", "null"]},
+                "valid": {"type": "boolean"}}}}),
+    "/obs": ("policy observation per body (the training layout)", _OBJ),
+    "/action": ("policy action per body, 4 values in [-1, 1]", _OBJ),
+    "/setpoint": ("command sent per body (SI and link units)", _OBJ),
+    "/safety": ("a safety check that tripped, or the per-tick safety state", _OBJ),
+    "/timing": ("loop timing, one per tick: period_s, compute_s, ...", _OBJ),
+    "/race": ("race progress per body: gates_passed, laps, target, crashed", _OBJ),
+    "/link": ("radio link state per body", _OBJ),
+    "/event": ("free-form events: kind, text", _OBJ),
+    "/summary": ("written by close(): clean end, duration, counts and the caller's summary", _OBJ),
+}
+
+
+def _jsonable(obj: Any) -> Any:
+    """json.dumps default: numpy, paths, sets, anything else as its str."""
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (set, frozenset)):
+        return sorted(obj, key=str)
+    if isinstance(obj, (tuple, list)):
+        return list(obj)
+    return str(obj)
+
+
+def _finite(obj: Any) -> Any:
+    """A copy with non-finite floats replaced by None (JSON has no NaN)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset, np.ndarray, np.generic)):
+        obj = _jsonable(obj)
+        return [_finite(v) for v in obj] if isinstance(obj, list) else _finite(obj)
+    return obj
+
+
+def encode(msg: dict) -> bytes:
+    """dict -> compact JSON bytes (numpy to lists, NaN/inf to null)."""
+    try:
+        text = json.dumps(msg, default=_jsonable, allow_nan=False, separators=(",", ":"))
+    except ValueError:   # a NaN or inf somewhere
+        text = json.dumps(_finite(msg), default=_jsonable, allow_nan=False, separators=(",", ":"))
+    return text.encode()
+
+
+class FlightLog:
+    """An MCAP flight log written as it flies. write() never raises on disk errors (the flight
+    must go on): the first OSError is kept in .error and later writes are dropped."""
+
+    def __init__(self, path: str | Path, meta: dict, *, fsync_interval_s: float | None = 1.0):
+        self.path = Path(path)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "wb")
+        except OSError as exc:
+            raise LogError(f"cannot write flight log {self.path}: {exc.strerror or exc}") from None
+        self._lock = threading.Lock()
+        self._owner: int | None = None          # thread id holding the lock inside write()
+        self._pending: dict | None = None       # close() requested while write() was running
+        self._closed = False
+        self.error: OSError | None = None
+        self.counts: Counter[str] = Counter()
+        self._channels: dict[str, int] = {}
+        self._t_first: float | None = None
+        self._t_last: float | None = None
+        self._wall0_ns, self._mono0_ns = time.time_ns(), time.monotonic_ns()
+        self._dirty = threading.Event()         # written since the last fsync
+        self._stop_sync = threading.Event()
+        self._writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE)
+        self._writer.start(profile=PROFILE, library=f"cfrace {cfrace.__version__}")
+        now = datetime.now(timezone.utc)
+        full = {"cfrace_version": cfrace.__version__, "start_time": now.isoformat(),
+                "start_time_unix_s": now.timestamp(), "command": " ".join(sys.argv),
+                "pid": os.getpid(), **meta}
+        self.write("/meta", 0.0, full)
+        if fsync_interval_s:
+            threading.Thread(target=self._sync_loop, args=(fsync_interval_s,), daemon=True,
+                             name="flightlog-fsync").start()
+
+    # -- writing -------------------------------------------------------------------------------
+    def write(self, topic: str, t: float, msg: dict) -> None:
+        """Append one message on `topic` at flight time t (s); thread-safe, flushed at once."""
+        if self._closed or self.error is not None:
+            return
+        payload = {"t": float(t)}
+        for key, value in msg.items():
+            payload["t_msg" if key == "t" else key] = value
+        data = encode(payload)
+        with self._lock:
+            self._owner = threading.get_ident()
+            try:
+                if not self._closed:
+                    self._append(topic, float(t), data)
+            finally:
+                self._owner = None
+        if self._pending is not None:          # a signal handler asked to close meanwhile
+            self.close(self._pending)
+
+    def _append(self, topic: str, t: float, data: bytes) -> None:
+        try:
+            channel = self._channels.get(topic)
+            if channel is None:
+                channel = self._register(topic)
+            log_ns = self._wall0_ns + time.monotonic_ns() - self._mono0_ns
+            self._writer.add_message(channel, log_time=log_ns, data=data, publish_time=log_ns,
+                                     sequence=self.counts[topic])
+            self._file.flush()
+        except OSError as exc:
+            self.error = exc
+            return
+        self.counts[topic] += 1
+        if topic not in ("/meta", "/summary"):
+            self._t_first = t if self._t_first is None else min(self._t_first, t)
+            self._t_last = t if self._t_last is None else max(self._t_last, t)
+        self._dirty.set()
+
+    def _register(self, topic: str) -> int:
+        description, schema = TOPICS.get(topic, ("", _OBJ))
+        full = dict(schema)
+        props = dict(full.get("properties", {}))
+        props["t"] = {"type": "number", "description": "s, flight clock"}
+        full.update(title=topic, description=description, properties=props)
+        schema_id = self._writer.register_schema(name=topic.strip("/").replace("/", "."),
+                                                 encoding="jsonschema",
+                                                 data=json.dumps(full).encode())
+        self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                              schema_id=schema_id)
+        return self._channels[topic]
+
+    def _sync_loop(self, interval: float) -> None:
+        while not self._stop_sync.wait(interval):
+            if self._dirty.is_set():
+                self._dirty.clear()
+                try:
+                    os.fsync(self._file.fileno())
+                except (OSError, ValueError):
+                    return
+
+    # -- closing -------------------------------------------------------------------------------
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def close(self, summary: dict | None = None) -> None:
+        """Write /summary and finish the file. Idempotent; safe from finally blocks, other threads
+        and signal handlers (if it interrupted a write, the close happens when that write ends)."""
+        if self._closed:
+            return
+        if self._owner == threading.get_ident():     # we interrupted our own write()
+            self._pending = dict(summary or {})
+            return
+        if not self._lock.acquire(timeout=5.0):      # another thread is stuck in write()
+            self._pending = dict(summary or {})
+            return
+        try:
+            if self._closed:
+                return
+            summary = {**(self._pending or {}), **(summary or {})}
+            self._pending = None
+            t_end = self._t_last if self._t_last is not None else 0.0
+            full = {"clean": True,
+                    "duration_s": (t_end - self._t_first) if self._t_first is not None else 0.0,
+                    "messages": dict(self.counts), "write_error": str(self.error or "") or None,
+                    **(summary or {})}
+            if self.error is None:
+                self._append("/summary", t_end, encode({"t": t_end, **full}))
+            try:
+                self._writer.finish()
+                self._file.flush()
+                os.fsync(self._file.fileno())
+            except (OSError, ValueError) as exc:
+                self.error = self.error or exc
+            self._closed = True
+            self._stop_sync.set()
+            try:
+                self._file.close()
+            except OSError:
+                pass
+        finally:
+            self._lock.release()
+
+    def __enter__(self) -> "FlightLog":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ----------------------------------------------------------------------------------------------
+# reading
+
+class _StrictFile:
+    """A read-only file whose short reads raise EndOfFile (the mcap reader would accept them)."""
+
+    def __init__(self, f):
+        self._f = f
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._f.read(n)
+        if n is not None and n >= 0 and len(data) < n:
+            raise EndOfFile()
+        return data
+
+
+@dataclass
+class FlightLogData:
+    """Everything a flight log holds. messages(topic) -> [(t, dict)], decoded on first use."""
+
+    path: Path
+    meta: dict
+    summary: dict | None
+    truncated: bool
+    stop_reason: str = ""                                   #: why reading stopped early
+    raw: dict[str, list[bytes]] = field(default_factory=dict)   #: topic -> JSON payloads
+    bad_messages: int = 0                                   #: payloads that did not decode
+    _decoded: dict[str, list[tuple[float, dict]]] = field(default_factory=dict, repr=False)
+
+    @property
+    def topics(self) -> list[str]:
+        return list(self.raw)
+
+    @property
+    def complete(self) -> bool:
+        """True when the writer closed the log cleanly and nothing was cut off."""
+        return self.summary is not None and not self.truncated
+
+    def count(self, topic: str) -> int:
+        return len(self.raw.get(topic, ()))
+
+    def messages(self, topic: str) -> list[tuple[float, dict]]:
+        if topic not in self._decoded:
+            out = []
+            for data in self.raw.get(topic, ()):
+                try:
+                    msg = json.loads(data)
+                    t = float(msg.pop("t"))
+                except (ValueError, KeyError, TypeError, AttributeError):
+                    self.bad_messages += 1
+                    continue
+                out.append((t, msg))
+            self._decoded[topic] = out
+        return self._decoded[topic]
+
+    @property
+    def duration_s(self) -> float:
+        if self.summary and isinstance(self.summary.get("duration_s"), (int, float)):
+            return float(self.summary["duration_s"])
+        times = [m[0] for topic in self.raw if topic not in ("/meta", "/summary")
+                 for m in self.messages(topic)]
+        return (max(times) - min(times)) if times else 0.0
+
+
+def read_log(path: str | Path) -> FlightLogData:
+    """Read a flight log, also a truncated one (everything before the damage; truncated=True).
+    Raises LogError (one line naming the file) if it is missing, not MCAP or has no /meta."""
+    path = Path(path)
+    try:
+        f = open(path, "rb")
+        size = os.fstat(f.fileno()).st_size
+    except OSError as exc:
+        raise LogError(f"cannot read flight log {path}: {exc.strerror or exc}") from None
+    topics: dict[int, str] = {}
+    raw: dict[str, list[bytes]] = {}
+    truncated, reason = True, "file ends without the MCAP footer"
+    with f:
+        reader = StreamReader(_StrictFile(f), record_size_limit=max(size, 1))
+        records = reader.records
+        try:
+            while True:
+                try:
+                    record = next(records)
+                except StopIteration:
+                    truncated, reason = False, ""
+                    break
+                if isinstance(record, Channel):
+                    topics[record.id] = record.topic
+                elif isinstance(record, Message):
+                    topic = topics.get(record.channel_id)
+                    if topic is None:
+                        raise ValueError(f"message on unknown channel {record.channel_id}")
+                    raw.setdefault(topic, []).append(record.data)
+                elif isinstance(record, (DataEnd, Footer, Schema)):
+                    pass
+        except InvalidMagic:
+            if f.tell() <= 8:
+                raise LogError(f"{path} is not an MCAP flight log (bad magic bytes)") from None
+            reason = "bad magic at the end"
+        except EndOfFile:
+            if size < 8:
+                raise LogError(f"{path} is not an MCAP flight log ({size} bytes)") from None
+            reason = f"cut off inside a record at byte {size}"
+        except (McapError, ValueError, UnicodeDecodeError, OverflowError, MemoryError) as exc:
+            if f.tell() <= 8:
+                raise LogError(f"{path} is not an MCAP flight log") from None
+            reason = f"damaged record near byte {f.tell()}: {exc}"
+    data = FlightLogData(path=path, meta={}, summary=None, truncated=truncated, stop_reason=reason,
+                         raw=raw)
+    metas = data.messages("/meta")
+    if not metas:
+        raise LogError(f"{path} is not a cfrace flight log (no /meta message)")
+    data.meta = metas[0][1]
+    summaries = data.messages("/summary")
+    data.summary = summaries[-1][1] if summaries else None
+    return data

@@ -1,0 +1,439 @@
+"""Motion-capture sources: real systems (via the `motioncapture` package), log replay and simulation.
+
+`open_mocap(spec, bodies=[...])` returns an unopened MocapSource; `open()` connects and checks that
+every required body is seen, `read()` returns the newest frame (or None when nothing new arrived),
+`close()` releases it. Sources are also context managers. Specs:
+
+    vicon://HOST  optitrack://HOST  qualisys://HOST  vrpn://HOST   real systems (libmotioncapture)
+    replay://FILE.mcap[?speed=S]   the /mocap/pose messages of a cfrace flight log; S = 1 recorded
+                                   pace, S > 1 faster, S = 0 lockstep (one frame per read, no waiting)
+    sim                            poses from an object with .poses() -> (t_s, {body: (pos, quat)})
+                                   (SimFleet, SimCrazyflieServer) with optional noise/latency/dropout
+
+Real systems run in a worker process (`python -m cfrace.flight.mocap --worker TYPE HOST`):
+libmotioncapture's connect() holds the GIL and blocks forever when no server answers, which would
+freeze the whole flight process. The worker streams JSON lines; frame times are its
+time.monotonic() at reception (the same system-wide clock as the flight loop's).
+Occluded bodies are absent from a frame; non-finite poses are dropped like occlusions.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from cfrace.errors import CfraceError, MocapError
+
+SYSTEMS = ("vicon", "optitrack", "qualisys", "vrpn")   #: libmotioncapture types we expose
+_SPEC_HELP = ("vicon://HOST, optitrack://HOST, qualisys://HOST, vrpn://HOST, "
+              "replay://FILE.mcap[?speed=S] or sim")
+
+
+@dataclass(frozen=True)
+class Pose:
+    pos: np.ndarray    #: (3,) m, world frame
+    quat: np.ndarray   #: (4,) w, x, y, z; world from body
+
+
+@dataclass(frozen=True)
+class MocapFrame:
+    t: float                  #: s, source clock (monotonic)
+    poses: dict[str, Pose]    #: body name -> pose; occluded bodies absent
+    seq: int                  #: frame counter of this source, from 1
+
+
+@runtime_checkable
+class MocapSource(Protocol):
+    name: str
+
+    def open(self, timeout_s: float = 5.0) -> None: ...
+    def read(self, timeout_s: float = 0.02) -> MocapFrame | None: ...
+    def close(self) -> None: ...
+    def bodies_seen(self) -> set[str]: ...
+
+
+def frame_to_msg(frame: MocapFrame) -> dict:
+    """The /mocap/pose flight-log message of a frame (replay reads it back exactly)."""
+    return {"t_src": frame.t, "seq": frame.seq,
+            "poses": {b: {"pos": p.pos.tolist(), "quat": p.quat.tolist()}
+                      for b, p in frame.poses.items()}}
+
+
+def frame_from_msg(msg: dict) -> MocapFrame:
+    """Inverse of frame_to_msg."""
+    poses = {b: Pose(np.asarray(p["pos"], dtype=np.float64), np.asarray(p["quat"], dtype=np.float64))
+             for b, p in msg["poses"].items()}
+    return MocapFrame(t=float(msg["t_src"]), poses=poses, seq=int(msg["seq"]))
+
+
+def _finite_pose(pos, quat) -> Pose | None:
+    p = np.array(pos, dtype=np.float64).reshape(3)
+    q = np.array(quat, dtype=np.float64).reshape(4)
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        return None
+    return Pose(p, q)
+
+
+class _Source:
+    """Shared parts: required-body check, bodies_seen, context manager."""
+
+    name = ""
+
+    def __init__(self, name: str, bodies: list[str]):
+        self.name = name
+        self.bodies = list(bodies)
+        self._seen: set[str] = set()
+        self._opened = False
+
+    def bodies_seen(self) -> set[str]:
+        return set(self._seen)
+
+    def _missing(self) -> list[str]:
+        return [b for b in self.bodies if b not in self._seen]
+
+    def _body_error(self) -> MocapError:
+        seen = ", ".join(sorted(self._seen)) or "none"
+        missing = self._missing()
+        what = f"body '{missing[0]}'" if len(missing) == 1 else \
+            "bodies " + ", ".join(f"'{b}'" for b in missing)
+        return MocapError(f"unknown mocap {what} (seen: {seen}) from {self.name}")
+
+    def close(self) -> None:
+        self._opened = False
+
+    def __enter__(self):
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# real systems through libmotioncapture, in a worker process
+
+class SystemSource(_Source):
+    """Vicon / OptiTrack / Qualisys / VRPN through a `motioncapture` worker process."""
+
+    def __init__(self, spec: str, kind: str, host: str, bodies: list[str]):
+        super().__init__(spec, bodies)
+        self.kind, self.host = kind, host
+        self._proc: subprocess.Popen | None = None
+        self._cond = threading.Condition()
+        self._connected = threading.Event()
+        self._latest: MocapFrame | None = None
+        self._returned_seq = 0
+        self.error: str | None = None   #: set when the worker reported an error or died
+
+    def open(self, timeout_s: float = 5.0) -> None:
+        if self._opened:
+            return
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "cfrace.flight.mocap", "--worker", self.kind, self.host],
+            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        threading.Thread(target=self._pump, daemon=True, name=f"mocap-{self.kind}").start()
+        if not self._connected.wait(timeout_s):
+            self._kill()
+            raise MocapError(f"{self.name}: no answer within {timeout_s:.1f} s")
+        if self.error is not None:
+            self._kill()
+            raise MocapError(f"{self.name}: {self.error}")
+        deadline = time.monotonic() + timeout_s
+        while self._missing() and time.monotonic() < deadline:
+            with self._cond:
+                self._cond.wait(0.05)
+        if self._missing():
+            self._kill()
+            raise self._body_error()
+        self._opened = True
+
+    def _pump(self) -> None:
+        """Reader thread: worker JSON lines -> latest frame."""
+        proc, seq = self._proc, 0
+        assert proc is not None and proc.stdout is not None
+        for line in proc.stdout:
+            try:
+                msg = json.loads(line)
+            except ValueError:
+                continue
+            if "error" in msg:
+                self.error = str(msg["error"])
+                self._connected.set()
+                break
+            if msg.get("connected"):
+                self._connected.set()
+                continue
+            poses = {}
+            for body, v in msg.get("b", {}).items():
+                pose = _finite_pose(v[:3], v[3:7])
+                if pose is not None:
+                    poses[body] = pose
+            seq += 1
+            with self._cond:
+                self._seen.update(poses)
+                self._latest = MocapFrame(t=float(msg["t"]), poses=poses, seq=seq)
+                self._cond.notify_all()
+        if self.error is None:
+            self.error = "mocap worker exited"
+        with self._cond:
+            self._cond.notify_all()
+
+    def read(self, timeout_s: float = 0.02) -> MocapFrame | None:
+        if not self._opened:
+            self.open()
+        with self._cond:
+            if self._latest is None or self._latest.seq <= self._returned_seq:
+                self._cond.wait(timeout_s)
+            frame = self._latest
+            if frame is None or frame.seq <= self._returned_seq:
+                return None
+            self._returned_seq = frame.seq
+            return frame
+
+    def _kill(self) -> None:
+        if self._proc is not None and self._proc.poll() is None:
+            self._proc.kill()
+            try:
+                self._proc.wait(2.0)
+            except subprocess.TimeoutExpired:
+                pass
+
+    def close(self) -> None:
+        self._kill()
+        super().close()
+
+
+def _die_with_parent() -> None:
+    """Linux: let the kernel kill this worker when the flight process dies (even by SIGKILL)."""
+    try:
+        import ctypes
+        import signal
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)   # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _worker(kind: str, host: str) -> int:
+    """Worker process: connect, then one JSON line per frame on stdout until the pipe closes."""
+    _die_with_parent()
+    out = sys.stdout
+
+    def send(obj) -> None:
+        out.write(json.dumps(obj) + "\n")
+        out.flush()
+
+    try:
+        import motioncapture
+        mc = motioncapture.connect(kind, {"hostname": host})
+        send({"connected": True})
+        while True:
+            mc.waitForNextFrame()
+            t = time.monotonic()
+            bodies = {}
+            for name, rb in mc.rigidBodies.items():
+                p, q = rb.position, rb.rotation
+                bodies[name] = [float(p[0]), float(p[1]), float(p[2]),
+                                float(q.w), float(q.x), float(q.y), float(q.z)]
+            send({"t": t, "b": bodies})
+    except (BrokenPipeError, KeyboardInterrupt):
+        return 0
+    except Exception as exc:   # noqa: BLE001 - reported to the parent as one line
+        try:
+            send({"error": f"{type(exc).__name__}: {exc}"})
+        except BrokenPipeError:
+            pass
+        return 1
+
+
+# ---------------------------------------------------------------------------------------------
+# replay of a flight log
+
+class ReplaySource(_Source):
+    """/mocap/pose messages of a cfrace flight log, at `speed` x the recorded pace (0: lockstep)."""
+
+    def __init__(self, spec: str, path: Path, bodies: list[str], speed: float):
+        super().__init__(spec, bodies)
+        self.path, self.speed = path, speed
+        self.frames: list[MocapFrame] = []
+        self._i = 0
+        self._start: float | None = None
+
+    @property
+    def done(self) -> bool:
+        """True once every recorded frame has been returned or skipped."""
+        return self._opened and self._i >= len(self.frames)
+
+    def open(self, timeout_s: float = 5.0) -> None:
+        if self._opened:
+            return
+        from cfrace.flight.flightlog import read_log
+        try:
+            data = read_log(self.path)
+            self.frames = [frame_from_msg(m) for _, m in data.messages("/mocap/pose")]
+        except CfraceError as exc:
+            raise MocapError(f"{self.name}: {exc}") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MocapError(f"{self.name}: malformed /mocap/pose message ({exc})") from None
+        if not self.frames:
+            raise MocapError(f"{self.name}: the log holds no /mocap/pose messages")
+        for frame in self.frames:
+            self._seen.update(frame.poses)
+        if self._missing():
+            raise self._body_error()
+        self._i, self._start = 0, None
+        self._opened = True
+
+    def read(self, timeout_s: float = 0.02) -> MocapFrame | None:
+        if not self._opened:
+            self.open()
+        if self._i >= len(self.frames):
+            return None
+        if self.speed == 0:
+            self._i += 1
+            return self.frames[self._i - 1]
+        now = time.monotonic()
+        if self._start is None:
+            self._start = now
+        t0 = self.frames[0].t
+
+        def due(k: int) -> float:
+            return self._start + (self.frames[k].t - t0) / self.speed
+
+        wait = due(self._i) - now
+        if wait > 0:
+            time.sleep(min(wait, max(timeout_s, 0.0)))
+            if wait > timeout_s:
+                return None
+            now = max(time.monotonic(), due(self._i))
+        j = self._i
+        while j + 1 < len(self.frames) and due(j + 1) <= now:
+            j += 1                      # a slow reader gets the newest frame, like a live system
+        self._i = j + 1
+        return self.frames[j]
+
+
+# ---------------------------------------------------------------------------------------------
+# simulation
+
+class SimSource(_Source):
+    """Poses from a simulator's .poses() with Gaussian position noise, latency and body dropout."""
+
+    def __init__(self, sim, bodies: list[str], noise_m: float, latency_s: float, dropout: float,
+                 seed: int):
+        super().__init__("sim", bodies)
+        self.sim, self.noise_m, self.latency_s, self.dropout = sim, noise_m, latency_s, dropout
+        self._rng = np.random.default_rng(seed)
+        self._buffer: list[tuple[float, dict]] = []   # (t, {body: (pos, quat)}) not yet delivered
+        self._last_t: float | None = None
+        self._delivered_t = -np.inf
+        self._seq = 0
+
+    def _poll(self) -> float:
+        try:
+            t, poses = self.sim.poses()
+        except Exception as exc:   # noqa: BLE001 - a broken simulator is a mocap failure here
+            raise MocapError(f"sim: poses() failed: {type(exc).__name__}: {exc}") from None
+        t = float(t)
+        self._seen.update(poses)
+        if self._last_t is None or t > self._last_t:
+            self._buffer.append((t, {b: (np.array(p, dtype=np.float64), np.array(q, dtype=np.float64))
+                                     for b, (p, q) in poses.items()}))
+            self._last_t = t
+        return t
+
+    def open(self, timeout_s: float = 5.0) -> None:
+        if self._opened:
+            return
+        deadline = time.monotonic() + timeout_s
+        self._poll()
+        while self._missing() and time.monotonic() < deadline:
+            time.sleep(0.005)
+            self._poll()
+        if self._missing():
+            raise self._body_error()
+        self._opened = True
+
+    def read(self, timeout_s: float = 0.02) -> MocapFrame | None:
+        if not self._opened:
+            self.open()
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while True:
+            t_now = self._poll()
+            ready = [i for i, (t, _) in enumerate(self._buffer)
+                     if t <= t_now - self.latency_s + 1e-9]
+            if ready:
+                t, raw = self._buffer[ready[-1]]
+                del self._buffer[:ready[-1] + 1]
+                return self._frame(t, raw)
+            if time.monotonic() >= deadline:
+                return None
+            time.sleep(0.001)
+
+    def _frame(self, t: float, raw: dict) -> MocapFrame:
+        poses = {}
+        for body in sorted(raw):            # sorted: the random stream does not depend on dict order
+            pos, quat = raw[body]
+            drop = self.dropout > 0 and self._rng.random() < self.dropout
+            if self.noise_m > 0:
+                pos = pos + self._rng.normal(0.0, self.noise_m, 3)
+            pose = _finite_pose(pos, quat)
+            if not drop and pose is not None:
+                poses[body] = pose
+        self._seq += 1
+        return MocapFrame(t=t, poses=poses, seq=self._seq)
+
+
+# ---------------------------------------------------------------------------------------------
+
+def open_mocap(spec: str, *, bodies: list[str], sim=None, noise_m: float = 0.0,
+               latency_s: float = 0.0, dropout: float = 0.0, seed: int = 0,
+               speed: float = 1.0) -> MocapSource:
+    """A MocapSource for `spec` (not yet opened: call .open() or use it as a context manager).
+    Raises MocapError naming the spec if it is malformed."""
+    spec = str(spec).strip()
+    if not (noise_m >= 0 and latency_s >= 0 and 0 <= dropout < 1 and speed >= 0):
+        raise MocapError(f"mocap '{spec}': need noise_m >= 0, latency_s >= 0, 0 <= dropout < 1, "
+                         f"speed >= 0 (got {noise_m}, {latency_s}, {dropout}, {speed})")
+    if spec == "sim":
+        if sim is None or not callable(getattr(sim, "poses", None)):
+            raise MocapError("mocap 'sim' needs a simulator with .poses() (only in sim flights)")
+        return SimSource(sim, bodies, noise_m, latency_s, dropout, seed)
+    kind, sep, rest = spec.partition("://")
+    if not sep or not rest:
+        raise MocapError(f"bad mocap spec '{spec}': expected {_SPEC_HELP}")
+    if kind in SYSTEMS:
+        if any(c in rest for c in "/?# ") or rest.startswith(":"):
+            raise MocapError(f"bad mocap spec '{spec}': expected {kind}://HOST")
+        return SystemSource(spec, kind, rest, bodies)
+    if kind == "replay":
+        file, _, query = rest.partition("?")
+        if query:
+            key, _, value = query.partition("=")
+            try:
+                if key != "speed":
+                    raise ValueError
+                speed = float(value)
+                if not speed >= 0 or speed == float("inf"):
+                    raise ValueError
+            except ValueError:
+                raise MocapError(f"bad mocap spec '{spec}': expected ?speed=S with S >= 0") from None
+        path = Path(file).expanduser()
+        if not path.is_file():
+            raise MocapError(f"mocap '{spec}': no such file {path}")
+        return ReplaySource(spec, path, bodies, speed)
+    raise MocapError(f"bad mocap spec '{spec}': unknown system '{kind}' (expected {_SPEC_HELP})")
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--worker":
+        sys.exit(_worker(sys.argv[2], sys.argv[3]))
+    print("usage: python -m cfrace.flight.mocap --worker TYPE HOST", file=sys.stderr)
+    sys.exit(2)
