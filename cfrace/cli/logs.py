@@ -1,9 +1,111 @@
-"""`cfrace` commands: logs."""
+"""`cfrace log info FILE` and `cfrace log plot FILE [-o DIR]`: read a flight log (MCAP)."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+from typing import Optional
+
 import typer
+from rich.console import Console
+from rich.table import Table
+
+log_app = typer.Typer(help="Flight logs (MCAP): summary and plots.", no_args_is_help=True)
+console = Console()
+
+_META_SHOWN = ("track", "obstacles", "policies", "uris", "bodies", "mocap", "profile",
+               "cfrace_version", "start_time", "command")
+_MAX_EVENTS = 30
+
+
+def _short(value, width: int = 100) -> str:
+    text = value if isinstance(value, str) else json.dumps(value, default=str)
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
+@log_app.command("info")
+def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written by `cfrace fly`")) -> None:
+    """Meta, duration, messages per topic, safety events, race result, loop timing, and whether
+    the log was closed cleanly or cut off (a killed flight)."""
+    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.logplot import log_stats
+
+    data = read_log(file)
+    s = log_stats(data)
+    if s.closed_cleanly:
+        state = "[green]closed cleanly[/green]"
+    elif s.truncated:
+        state = f"[yellow]truncated[/yellow] ({s.stop_reason}; everything before it was read)"
+    else:
+        state = "[yellow]not closed (no /summary)[/yellow]"
+    console.print(f"[bold]{file}[/bold]: {state}, duration {s.duration_s:.2f} s")
+
+    meta = Table(title="meta", show_header=False)
+    meta.add_column("key")
+    meta.add_column("value", overflow="fold")
+    for key in _META_SHOWN:
+        if key in data.meta:
+            meta.add_row(key, _short(data.meta[key]))
+    console.print(meta)
+
+    topics = Table(title="messages per topic")
+    topics.add_column("topic")
+    topics.add_column("count", justify="right")
+    for topic, n in s.counts.items():
+        topics.add_row(topic, str(n))
+    console.print(topics)
+
+    if s.timing:
+        timing = Table(title="loop timing (ms)")
+        for col in ("", "p50", "p99", "max", "mean", "ticks"):
+            timing.add_column(col, justify="right")
+        for key, st in s.timing.items():
+            timing.add_row(key.replace("_ms", ""), f"{st['p50']:.2f}", f"{st['p99']:.2f}",
+                           f"{st['max']:.2f}", f"{st['mean']:.2f}", f"{st['n']:.0f}")
+        console.print(timing)
+
+    if s.safety:
+        events = Table(title=f"safety events ({len(s.safety)})")
+        for col in ("t s", "who", "kind", "action", "detail"):
+            events.add_column(col)
+        for e in s.safety[:_MAX_EVENTS]:
+            events.add_row(f"{e.t:.2f}", e.who, e.kind, e.action, _short(e.detail, 80))
+        console.print(events)
+        if len(s.safety) > _MAX_EVENTS:
+            console.print(f"... and {len(s.safety) - _MAX_EVENTS} more safety events")
+    else:
+        console.print("safety events: none")
+
+    if s.race:
+        race = Table(title="race result", show_header=False)
+        race.add_column("key")
+        race.add_column("value", overflow="fold")
+        for key, value in s.race.items():
+            race.add_row(str(key), _short(value))
+        console.print(race)
+    else:
+        console.print("race result: none recorded")
+    if data.bad_messages:
+        console.print(f"[yellow]{data.bad_messages} messages could not be decoded[/yellow]")
+
+
+@log_app.command("plot")
+def plot_cmd(
+    file: Path = typer.Argument(..., help="flight log (.mcap)"),
+    out: Optional[Path] = typer.Option(None, "-o", "--out", help="output directory (default: next to the log)"),
+) -> None:
+    """Write PNGs: trajectories over the track (top view), speed per drone, loop timing."""
+    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.logplot import plot_log
+
+    data = read_log(file)
+    paths = plot_log(data, out if out is not None else file.parent)
+    if not paths:
+        console.print("nothing to plot (no trajectories, timing or known track in this log)")
+    for p in paths:
+        console.print(f"wrote {p}")
 
 
 def register(app: typer.Typer) -> None:
     """Add this module's commands to the top-level app."""
+    app.add_typer(log_app, name="log")

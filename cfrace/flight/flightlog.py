@@ -253,10 +253,12 @@ class _StrictFile:
 
     def __init__(self, f):
         self._f = f
+        self.clean_eof = False   #: the file ended exactly where a record would start
 
     def read(self, n: int = -1) -> bytes:
         data = self._f.read(n)
         if n is not None and n >= 0 and len(data) < n:
+            self.clean_eof = n == 1 and not data    # only an opcode read asks for 1 byte
             raise EndOfFile()
         return data
 
@@ -322,7 +324,8 @@ def read_log(path: str | Path) -> FlightLogData:
     raw: dict[str, list[bytes]] = {}
     truncated, reason = True, "file ends without the MCAP footer"
     with f:
-        reader = StreamReader(_StrictFile(f), record_size_limit=max(size, 1))
+        strict = _StrictFile(f)
+        reader = StreamReader(strict, record_size_limit=max(size, 1))
         records = reader.records
         try:
             while True:
@@ -347,7 +350,8 @@ def read_log(path: str | Path) -> FlightLogData:
         except EndOfFile:
             if size < 8:
                 raise LogError(f"{path} is not an MCAP flight log ({size} bytes)") from None
-            reason = f"cut off inside a record at byte {size}"
+            reason = ("ends after a complete record without the MCAP footer (writer stopped)"
+                      if strict.clean_eof else f"cut off inside a record at byte {size}")
         except (McapError, ValueError, UnicodeDecodeError, OverflowError, MemoryError) as exc:
             if f.tell() <= 8:
                 raise LogError(f"{path} is not an MCAP flight log") from None

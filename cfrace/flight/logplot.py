@@ -1,0 +1,268 @@
+"""What a flight log says: the numbers behind `cfrace log info` and the PNGs of `cfrace log plot`.
+
+Readers are lenient about message fields (the log may come from an older or newer cfrace, or a
+truncated flight): a missing field leaves that part of the report empty rather than failing.
+Field names looked for (docs/flight-log.md): /timing period_s, compute_s; /estimate per body pos,
+vel, valid (fallback: /mocap/pose poses); /safety kind|check, drone|body, action, detail (or a
+list under "violations"); race result from the summary's "race" or the last /race message.
+matplotlib is imported lazily with the Agg backend.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cfrace.flight.flightlog import FlightLogData
+
+_PERIOD_KEYS = ("period_s", "dt_s", "dt")
+_COMPUTE_KEYS = ("compute_s", "latency_s", "busy_s")
+
+
+@dataclass
+class SafetyEvent:
+    t: float
+    who: str        #: body name, drone index or "all"
+    kind: str
+    action: str
+    detail: str
+
+
+@dataclass
+class LogStats:
+    duration_s: float
+    counts: dict[str, int]
+    closed_cleanly: bool
+    truncated: bool
+    stop_reason: str
+    bodies: list[str]
+    safety: list[SafetyEvent] = field(default_factory=list)
+    race: dict | None = None
+    timing: dict[str, dict[str, float]] = field(default_factory=dict)  #: "period_ms"/"compute_ms"
+
+
+def _first(msg: dict, keys: tuple[str, ...]):
+    for k in keys:
+        v = msg.get(k)
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            return float(v)
+    return None
+
+
+def timing_series(data: FlightLogData) -> dict[str, np.ndarray]:
+    """{"t", "period_s", "compute_s"} arrays (N,) from /timing; NaN where a value is missing.
+    The period falls back to the spacing of the /timing messages."""
+    msgs = data.messages("/timing")
+    t = np.array([m[0] for m in msgs], dtype=float)
+    period = np.array([np.nan if (v := _first(m[1], _PERIOD_KEYS)) is None else v for m in msgs])
+    compute = np.array([np.nan if (v := _first(m[1], _COMPUTE_KEYS)) is None else v for m in msgs])
+    if len(t) > 1 and np.isnan(period).all():
+        period = np.concatenate([[np.nan], np.diff(t)])
+    return {"t": t, "period_s": period, "compute_s": compute}
+
+
+def _percentiles(x: np.ndarray) -> dict[str, float]:
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {}
+    return {"n": float(x.size), "p50": float(np.percentile(x, 50)),
+            "p99": float(np.percentile(x, 99)), "max": float(x.max()), "mean": float(x.mean())}
+
+
+def trajectories(data: FlightLogData) -> dict[str, dict[str, np.ndarray]]:
+    """Per body {"t" (N,), "pos" (N, 3), "vel" (N, 3)} from /estimate (valid entries only), or
+    from /mocap/pose with finite-difference velocities if the log has no estimates."""
+    out: dict[str, dict[str, list]] = {}
+    for t, msg in data.messages("/estimate"):
+        for body, e in msg.items():
+            if not isinstance(e, dict) or e.get("valid") is False:
+                continue
+            pos, vel = e.get("pos"), e.get("vel")
+            if not _vec_ok(pos):
+                continue
+            d = out.setdefault(body, {"t": [], "pos": [], "vel": []})
+            d["t"].append(t)
+            d["pos"].append(pos)
+            d["vel"].append(vel if _vec_ok(vel) else [np.nan] * 3)
+    if not out:
+        for t, msg in data.messages("/mocap/pose"):
+            for body, p in (msg.get("poses") or {}).items():
+                if isinstance(p, dict) and _vec_ok(p.get("pos")):
+                    d = out.setdefault(body, {"t": [], "pos": [], "vel": []})
+                    d["t"].append(float(msg.get("t_src", t)))
+                    d["pos"].append(p["pos"])
+        for d in out.values():
+            pos, tt = np.array(d["pos"], float), np.array(d["t"], float)
+            vel = np.full_like(pos, np.nan)
+            if len(tt) > 1:
+                vel[1:] = np.diff(pos, axis=0) / np.maximum(np.diff(tt), 1e-6)[:, None]
+            d["vel"] = vel
+    return {b: {k: np.asarray(v, dtype=float) for k, v in d.items()} for b, d in out.items()}
+
+
+def _vec_ok(v) -> bool:
+    return isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) for x in v)
+
+
+def _safety_events(data: FlightLogData) -> list[SafetyEvent]:
+    events = []
+    for t, msg in data.messages("/safety"):
+        items = msg.get("violations") if isinstance(msg.get("violations"), list) else [msg]
+        for v in items:
+            if not isinstance(v, dict) or v.get("ok") is True:
+                continue
+            kind = v.get("kind") or v.get("check") or v.get("event")
+            if not kind:
+                continue
+            who = v.get("body", v.get("drone"))
+            detail = v.get("detail") or v.get("text") or ""
+            events.append(SafetyEvent(t, "all" if who is None else str(who), str(kind),
+                                      str(v.get("action", "")), str(detail)))
+    return events
+
+
+def _race_result(data: FlightLogData) -> dict | None:
+    if data.summary:
+        for key in ("race", "result", "race_result"):
+            if isinstance(data.summary.get(key), dict):
+                return data.summary[key]
+    races = data.messages("/race")
+    return races[-1][1] if races else None
+
+
+def log_stats(data: FlightLogData) -> LogStats:
+    """Everything `cfrace log info` prints."""
+    bodies = data.meta.get("bodies")
+    if not isinstance(bodies, list):
+        bodies = sorted(trajectories(data))
+    ts = timing_series(data)
+    timing = {}
+    for key in ("period_s", "compute_s"):
+        stats = _percentiles(ts[key] * 1e3)
+        if stats:
+            timing[key.replace("_s", "_ms")] = stats
+    return LogStats(duration_s=data.duration_s,
+                    counts={topic: data.count(topic) for topic in data.topics},
+                    closed_cleanly=data.complete, truncated=data.truncated,
+                    stop_reason=data.stop_reason, bodies=[str(b) for b in bodies],
+                    safety=_safety_events(data), race=_race_result(data), timing=timing)
+
+
+# ----------------------------------------------------------------------------------------------
+# plots
+
+def _load_track(meta: dict):
+    from cfrace.errors import CfraceError
+    from cfrace.track import load_track
+    name = meta.get("track")
+    if not name:
+        return None
+    try:
+        return load_track(str(name))
+    except (CfraceError, OSError):
+        return None
+
+
+def _draw_gates_fallback(ax, track) -> None:
+    """Gate openings as red segments (used if cfrace.trackplot is unavailable)."""
+    for x, y, _, yaw in track.gate_array():
+        d = 0.5 * track.gate.opening * np.array([-math.sin(yaw), math.cos(yaw)])
+        ax.plot([x - d[0], x + d[0]], [y - d[1], y + d[1]], color="#d62728", lw=3)
+    ax.set_aspect("equal")
+
+
+def plot_log(data: FlightLogData, out_dir: str | Path, *, dpi: int = 120) -> list[Path]:
+    """Write trajectory.png (top view over the track), speed.png and timing.png (those with
+    data) into out_dir; returns the paths written."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = data.path.stem
+    title = f"{data.path.name}" + ("" if data.complete else "  (truncated)" if data.truncated
+                                   else "  (not closed)")
+    written: list[Path] = []
+    trajs = trajectories(data)
+    colors = {b: f"C{i}" for i, b in enumerate(sorted(trajs))}
+
+    track = _load_track(data.meta)
+    if trajs or track is not None:
+        fig, ax = plt.subplots(figsize=(7, 7))
+        if track is not None:
+            obstacles = bool(data.meta.get("obstacles", True))
+            try:
+                from cfrace.trackplot import draw_track
+                draw_track(ax, track, obstacles, view="top")
+            except ImportError:
+                _draw_gates_fallback(ax, track)
+        for body, d in trajs.items():
+            p = d["pos"]
+            ax.plot(p[:, 0], p[:, 1], color=colors[body], lw=1.5, label=body, zorder=8)
+            ax.plot(p[0, 0], p[0, 1], "o", color=colors[body], ms=6, zorder=9)
+            ax.plot(p[-1, 0], p[-1, 1], "s", color=colors[body], mec="black", ms=6, zorder=9)
+        if trajs:
+            ax.legend(loc="upper right", title="o start, \u25a0 end")
+        ax.set_title(f"{title}\ntrack {data.meta.get('track', '?')}, top view")
+        written.append(_save(fig, out / f"{stem}_trajectory.png", dpi))
+
+    if trajs:
+        fig, ax = plt.subplots(figsize=(9, 4))
+        for body, d in trajs.items():
+            speed = np.linalg.norm(d["vel"], axis=1)
+            ok = np.isfinite(speed)
+            if ok.any():
+                ax.plot(d["t"][ok], speed[ok], color=colors[body], lw=1.2,
+                        label=f"{body} (max {speed[ok].max():.2f}, mean {speed[ok].mean():.2f} m/s)")
+        ax.set_xlabel("flight time t [s]")
+        ax.set_ylabel("speed [m/s]")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="upper right")
+        ax.set_title(f"{title}: speed")
+        written.append(_save(fig, out / f"{stem}_speed.png", dpi))
+
+    ts = timing_series(data)
+    if len(ts["t"]):
+        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
+        both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
+        top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
+        bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
+        for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute")):
+            ms = ts[key] * 1e3
+            ok = np.isfinite(ms)
+            if not ok.any():
+                continue
+            st = _percentiles(ms)
+            text = f"{label}: p50 {st['p50']:.2f}, p99 {st['p99']:.2f}, max {st['max']:.2f} ms"
+            ax0.plot(ts["t"][ok], ms[ok], ".", ms=2, color=color, label=text)
+            ax1.hist(ms[ok], bins=bins, color=color, alpha=0.6, label=label)
+        period = data.meta.get("period_s") or (1.0 / data.meta["rate_hz"]
+                                               if data.meta.get("rate_hz") else None)
+        if isinstance(period, (int, float)):
+            for ax in (ax0, ax1):
+                (ax.axhline if ax is ax0 else ax.axvline)(period * 1e3, color="black", ls="--",
+                                                          lw=0.8)
+        ax0.set_xlabel("flight time t [s]")
+        ax0.set_ylabel("ms")
+        ax0.grid(alpha=0.3)
+        ax0.legend(loc="best", fontsize=8, markerscale=4)
+        ax0.set_title(f"{title}: loop timing")
+        ax1.set_xlabel("ms")
+        ax1.set_ylabel("ticks")
+        ax1.set_yscale("log")
+        ax1.legend(fontsize=8)
+        ax1.set_title("histogram")
+        written.append(_save(fig, out / f"{stem}_timing.png", dpi))
+    return written
+
+
+def _save(fig, path: Path, dpi: int) -> Path:
+    import matplotlib.pyplot as plt
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
