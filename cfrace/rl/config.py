@@ -1,0 +1,81 @@
+"""IPPO hyperparameters as frozen dataclasses, with two presets.
+
+``paper``: the authors' settings (facts.md "Training"), sized for a large GPU.
+``cpu``  : the default, sized by measurement for a 2-core laptop CPU (docs/training.md has the
+           figures behind every choice). Both come in a multi-agent (ours, dm) and a
+           single-agent (ds, ss) flavour, as in the paper.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+from cfrace.errors import ConfigError
+
+PRESETS = ("cpu", "paper")
+
+
+@dataclass(frozen=True)
+class IPPOConfig:
+    preset: str
+    actor_hidden: tuple[int, ...]    #: hidden layer widths of each actor (ELU)
+    critic_hidden: tuple[int, ...]   #: hidden layer widths of each critic (ELU)
+    num_envs: int                    #: parallel worlds (a race with 1 or 2 drones each)
+    rollout: int                     #: policy steps per world per iteration (50 Hz steps)
+    epochs: int                      #: passes over each rollout
+    minibatches: int                 #: minibatches per epoch
+    lr: float                        #: Adam learning rate (initial when adaptive)
+    desired_kl: float | None         #: adaptive LR target KL; None = fixed LR
+    gamma: float                     #: discount per policy step
+    lam: float                       #: GAE lambda
+    clip: float                      #: PPO ratio clip
+    value_clip: float | None         #: value-function clip around the old value; None = off
+    entropy_coef: float              #: entropy bonus weight
+    value_coef: float                #: value loss weight
+    grad_clip: float                 #: max global grad norm per agent
+    init_std: float = 1.0            #: initial action std (Gaussian, state-independent)
+    lr_min: float = 1e-5             #: adaptive LR bounds
+    lr_max: float = 1e-2
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(data: dict) -> "IPPOConfig":
+        names = {f.name for f in fields(IPPOConfig)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ConfigError(f"unknown IPPO config key(s): {', '.join(unknown)}")
+        data = dict(data)
+        for k in ("actor_hidden", "critic_hidden"):
+            data[k] = tuple(data[k])
+        return IPPOConfig(**data)
+
+
+_SHARED = dict(gamma=0.99, lam=0.95, clip=0.2, value_clip=0.2, entropy_coef=0.0, value_coef=1.0, epochs=5,
+               minibatches=4)
+
+_PAPER = {
+    True: IPPOConfig("paper", (512, 512, 256, 128), (512, 512, 256, 256, 128, 128), num_envs=10240, rollout=16,
+                     lr=1e-4, desired_kl=None, grad_clip=0.5, **_SHARED),
+    False: IPPOConfig("paper", (512, 512, 256, 128), (512, 512, 256, 256, 128, 128), num_envs=10240, rollout=24,
+                      lr=5e-4, desired_kl=0.01, grad_clip=1.0, **_SHARED),
+}
+
+# CPU: smaller networks and fewer worlds; the update cost grows with the critic size times the batch,
+# the simulation with the worlds. See docs/training.md for the measurements.
+_CPU = {
+    True: IPPOConfig("cpu", (128, 128), (256, 128), num_envs=1024, rollout=16, lr=3e-4, desired_kl=None,
+                     grad_clip=0.5, **_SHARED),
+    False: IPPOConfig("cpu", (128, 128), (256, 128), num_envs=1024, rollout=24, lr=5e-4, desired_kl=0.01,
+                      grad_clip=1.0, **_SHARED),
+}
+
+
+def preset(name: str, multi_agent: bool, **overrides) -> IPPOConfig:
+    """The named preset for a multi- or single-agent method, with fields overridden (None = keep)."""
+    table = {"cpu": _CPU, "paper": _PAPER}.get(name)
+    if table is None:
+        raise ConfigError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    return replace(table[multi_agent], **overrides)

@@ -1,0 +1,99 @@
+"""The PPO update of one agent (IPPO = every agent runs this on its own samples, with its own
+networks and optimizer; the joint objective is the average of the agents' surrogates, paper III-A).
+
+Per minibatch:
+    ratio    = exp(log pi(a|o) - log pi_old(a|o))
+    L_clip   = -mean(min(ratio A, clip(ratio, 1 - eps, 1 + eps) A))
+    V_clip   = V_old + clip(V - V_old, -eps_v, eps_v)
+    L_value  = mean(max((V - R)^2, (V_clip - R)^2))          (plain (V - R)^2 without value clip)
+    L        = L_clip + c_v L_value - c_e H[pi]
+then clip the global grad norm and take an Adam step. With a desired KL the learning rate adapts
+(rsl_rl's rule): KL > 2 kl* -> lr / 1.5, KL < kl* / 2 -> lr * 1.5, within [lr_min, lr_max].
+"""
+
+from __future__ import annotations
+
+import torch
+
+from cfrace.rl.config import IPPOConfig
+from cfrace.rl.models import AgentModels
+
+
+def gaussian_kl(mu_old, sigma_old, mu, sigma) -> torch.Tensor:
+    """KL(N_old || N_new) summed over action dims, averaged over the batch."""
+    kl = torch.log(sigma / sigma_old) + (sigma_old.square() + (mu_old - mu).square()) / (2 * sigma.square()) - 0.5
+    return kl.sum(-1).mean()
+
+
+def make_optimizer(model: AgentModels, lr: float) -> torch.optim.Optimizer:
+    """One Adam per agent over its actor and critic (normalisers are buffers, not trained)."""
+    return torch.optim.Adam(list(model.actor.parameters()) + list(model.critic.parameters()), lr=lr)
+
+
+def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict[str, torch.Tensor],
+               cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None) -> tuple[dict, float]:
+    """Run cfg.epochs x cfg.minibatches updates on ``batch`` (flat alive samples, see
+    RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation)."""
+    n = batch["obs"].shape[0]
+    stats = {"surrogate": 0.0, "value_loss": 0.0, "entropy": 0.0, "kl": 0.0, "clip_frac": 0.0}
+    if n < cfg.minibatches:  # nothing (or almost nothing) alive this rollout
+        return {**stats, "samples": float(n)}, lr
+    obs_n = model.obs_norm(batch["obs"])          # normalisers are fixed during the update
+    critic_n = model.critic_norm(batch["critic"])
+    params = [p for g in optimizer.param_groups for p in g["params"]]
+    size = n // cfg.minibatches
+    updates = 0
+    for _ in range(cfg.epochs):
+        perm = torch.randperm(n, generator=generator, device="cpu").to(obs_n.device)
+        for k in range(cfg.minibatches):
+            idx = perm[k * size:(k + 1) * size]
+            adv, ret, v_old = batch["advantages"][idx], batch["returns"][idx], batch["values"][idx]
+            dist = model.actor(obs_n[idx])
+            log_prob = dist.log_prob(batch["actions"][idx]).sum(-1)
+            entropy = dist.entropy().sum(-1).mean()
+            value = model.critic(critic_n[idx])
+
+            with torch.no_grad():
+                kl = gaussian_kl(batch["mu"][idx], batch["sigma"][idx], dist.mean, dist.stddev)
+            if cfg.desired_kl is not None:  # adaptive learning rate on the KL to the old policy
+                if kl > 2.0 * cfg.desired_kl:
+                    lr = max(cfg.lr_min, lr / 1.5)
+                elif 0.0 < kl < 0.5 * cfg.desired_kl:
+                    lr = min(cfg.lr_max, lr * 1.5)
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+
+            ratio = torch.exp(log_prob - batch["log_prob"][idx])
+            surrogate = -torch.min(ratio * adv, ratio.clamp(1.0 - cfg.clip, 1.0 + cfg.clip) * adv).mean()
+            if cfg.value_clip is not None:
+                v_clip = v_old + (value - v_old).clamp(-cfg.value_clip, cfg.value_clip)
+                value_loss = torch.max((value - ret).square(), (v_clip - ret).square()).mean()
+            else:
+                value_loss = (value - ret).square().mean()
+            loss = surrogate + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
+            optimizer.step()
+
+            updates += 1
+            stats["surrogate"] += surrogate.item()
+            stats["value_loss"] += value_loss.item()
+            stats["entropy"] += entropy.item()
+            stats["kl"] += float(kl)
+            stats["clip_frac"] += ((ratio - 1.0).abs() > cfg.clip).float().mean().item()
+    stats = {k: v / updates for k, v in stats.items()}
+    stats["samples"] = float(n)
+    return stats, lr
+
+
+def ppo_loss(model: AgentModels, batch: dict[str, torch.Tensor], cfg: IPPOConfig) -> float:
+    """The full-batch PPO loss (no gradient), for tests and diagnostics."""
+    with torch.no_grad():
+        dist = model.actor(model.obs_norm(batch["obs"]))
+        ratio = torch.exp(dist.log_prob(batch["actions"]).sum(-1) - batch["log_prob"])
+        adv = batch["advantages"]
+        surrogate = -torch.min(ratio * adv, ratio.clamp(1.0 - cfg.clip, 1.0 + cfg.clip) * adv).mean()
+        value = model.critic(model.critic_norm(batch["critic"]))
+        return float(surrogate + cfg.value_coef * (value - batch["returns"]).square().mean())

@@ -1,0 +1,198 @@
+"""The IPPO runner: rollout -> GAE -> per-agent PPO update -> normaliser update, with exact
+checkpoint/resume state. The training loop with logs and budgets is in cfrace/rl/train.py.
+
+One iteration (everything batched over E worlds, one forward pass per agent and step):
+    for t in 0..T-1:
+        a_i ~ pi_i(. | norm_i(o_i)),  V_i(norm_i'(s_i))              for every agent i
+        env.step(a) -> r, terminated, truncated, alive, next obs (auto-reset), final critic obs
+        r_t += gamma V_i(s_final) where truncated (bootstrap on the time limit)
+        done_t = terminated | truncated | ~alive                      (dead steps are masked)
+    GAE per agent, advantages normalised over its alive samples, PPO update per agent,
+    then fold this rollout's alive observations into each agent's running normalisers.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections import defaultdict
+
+import numpy as np
+import torch
+from torch import nn
+
+from cfrace.rl.config import IPPOConfig
+from cfrace.rl.ippo import make_optimizer, ppo_update
+from cfrace.rl.models import AgentModels
+from cfrace.rl.storage import RolloutStorage
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class Runner:
+    """Owns the agents, their optimizers, the rollout buffer and the env's current observations."""
+
+    def __init__(self, env, cfg: IPPOConfig, seed: int = 0):
+        self.env, self.cfg = env, cfg
+        self.device = torch.device(env.device)
+        self.num_envs, self.num_agents = env.num_envs, env.num_agents
+        torch.manual_seed(seed)
+        self.agents = nn.ModuleList([
+            AgentModels(env.obs_dim, env.critic_dim, cfg.actor_hidden, cfg.critic_hidden, cfg.init_std)
+            for _ in range(self.num_agents)]).to(self.device)
+        self.optimizers = [make_optimizer(m, cfg.lr) for m in self.agents]
+        self.lrs = [cfg.lr] * self.num_agents
+        self.storage = RolloutStorage(cfg.rollout, self.num_envs, self.num_agents, env.obs_dim, env.critic_dim,
+                                      self.device)
+        self.update_gen = torch.Generator().manual_seed(seed + 1)  # minibatch shuffles
+        self.iteration = 0
+        self.env_steps = 0                                         # world transitions (E per step)
+        self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
+        self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
+        self.obs, self.critic = env.reset()                        # (E, A, D), (E, A, C)
+        for a, m in enumerate(self.agents):                        # warm start of the normalisers
+            m.obs_norm.update(self.obs[:, a])
+            m.critic_norm.update(self.critic[:, a])
+
+    # ------------------------------------------------------------------ one iteration
+    def iterate(self) -> dict[str, float]:
+        cfg, st, gamma = self.cfg, self.storage, self.cfg.gamma
+        t_start = time.perf_counter()
+        sim_s = infer_s = 0.0
+        term_sums: dict[str, torch.Tensor] = defaultdict(lambda: torch.zeros(self.num_agents, device=self.device))
+        stat_sums: dict[str, list[float]] = defaultdict(list)
+        returns: list[list[float]] = [[] for _ in range(self.num_agents)]
+        reward_sum = torch.zeros(self.num_agents, device=self.device)
+        for t in range(cfg.rollout):
+            t0 = time.perf_counter()
+            actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
+            _sync(self.device)
+            t1 = time.perf_counter()
+            res = self.env.step(actions)
+            _sync(self.device)
+            t2 = time.perf_counter()
+            alive = res.alive
+            reward = torch.where(alive, res.reward, 0.0)
+            # episode bookkeeping (raw rewards, before the bootstrap)
+            self.ep_return += reward
+            ended = alive & (res.terminated | res.truncated)
+            if ended.any():
+                for a in range(self.num_agents):
+                    returns[a] += self.ep_return[:, a][ended[:, a]].tolist()
+                self.ep_return[ended] = 0.0
+            reward_sum += reward.sum(0)
+            for name, value in res.terms.items():
+                term_sums[name] += torch.where(alive, value, 0.0).sum(0)
+            for name, value in res.stats.items():
+                stat_sums[name].append(float(value))
+            # bootstrap on truncation: r_t += gamma V(s_final)
+            boot = res.truncated & alive & ~res.terminated
+            train_reward = reward.clone()
+            if boot.any():
+                t3 = time.perf_counter()
+                for a, m in enumerate(self.agents):
+                    ids = boot[:, a].nonzero().squeeze(-1)
+                    if len(ids):
+                        train_reward[ids, a] += gamma * m.value(res.final_critic[ids, a])
+                infer_s += time.perf_counter() - t3
+            st.add(t, obs=self.obs, critic=self.critic, actions=actions, log_prob=log_prob, values=values,
+                   mu=mu, sigma=sigma, rewards=train_reward, dones=res.terminated | res.truncated | ~alive,
+                   alive=alive)
+            self.obs, self.critic = res.obs, res.critic
+            infer_s += t1 - t0
+            sim_s += t2 - t1
+        t_update = time.perf_counter()
+        last_values = torch.stack([m.value(self.critic[:, a]) for a, m in enumerate(self.agents)], 1)
+        st.compute_returns(last_values, gamma, cfg.lam)
+        metrics: dict[str, float] = {}
+        alive_count = st.alive.sum((0, 1)).float()                 # (A,)
+        for a, m in enumerate(self.agents):
+            batch = st.agent_batch(a)
+            stats, self.lrs[a] = ppo_update(m, self.optimizers[a], batch, cfg, self.lrs[a], self.update_gen)
+            for k, v in stats.items():
+                metrics[f"{k}_agent{a}"] = v
+            alive_mask = st.alive[:, :, a]
+            m.obs_norm.update(st.obs[:, :, a][alive_mask])
+            m.critic_norm.update(st.critic[:, :, a][alive_mask])
+        _sync(self.device)
+        t_end = time.perf_counter()
+
+        self.iteration += 1
+        steps = cfg.rollout * self.num_envs
+        self.env_steps += steps
+        self.total_reward += (reward_sum / self.num_envs).double().cpu()
+        per_step = (reward_sum / alive_count.clamp(min=1)).tolist()
+        for a, m in enumerate(self.agents):
+            metrics[f"reward_agent{a}"] = per_step[a]
+            metrics[f"return_agent{a}"] = float(np.mean(returns[a])) if returns[a] else float("nan")
+            metrics[f"total_reward_agent{a}"] = float(self.total_reward[a])
+            metrics[f"lr_agent{a}"] = self.lrs[a]
+            metrics[f"std_agent{a}"] = float(m.actor.log_std.detach().exp().mean())
+            metrics[f"alive_agent{a}"] = float(alive_count[a]) / steps
+        for name, value in term_sums.items():
+            for a, v in enumerate((value / alive_count.clamp(min=1)).tolist()):
+                metrics[f"term_{name}_agent{a}"] = v
+        for name, values in stat_sums.items():
+            metrics[f"stat_{name}"] = float(np.mean(values))
+        total = t_end - t_start
+        metrics.update(iteration=self.iteration, env_steps=self.env_steps, fps=steps / total, iter_s=total,
+                       sim_s=sim_s, infer_s=infer_s, update_s=t_end - t_update)
+        return metrics
+
+    @torch.no_grad()
+    def _act(self, obs: torch.Tensor, critic: torch.Tensor):
+        """One forward pass per agent: sampled actions (E, A, 4), log-probs (E, A), values (E, A),
+        Gaussian means and stds (E, A, 4)."""
+        outs = []
+        for a, m in enumerate(self.agents):
+            dist = m.actor(m.obs_norm(obs[:, a]))
+            action = dist.sample()
+            outs.append((action, dist.log_prob(action).sum(-1), m.critic(m.critic_norm(critic[:, a])),
+                         dist.mean, dist.stddev))
+        return tuple(torch.stack(x, 1) for x in zip(*outs))
+
+    # ------------------------------------------------------------------ state for checkpoints
+    def state_dict(self) -> dict:
+        env_state = self.env.state_dict() if hasattr(self.env, "state_dict") else None
+        rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate(),
+               "update": self.update_gen.get_state()}
+        if self.device.type == "cuda":
+            rng["cuda"] = torch.cuda.get_rng_state(self.device)
+        return {"ippo": self.cfg.to_dict(), "iteration": self.iteration, "env_steps": self.env_steps,
+                "agents": [m.state_dict() for m in self.agents],
+                "optimizers": [o.state_dict() for o in self.optimizers], "lrs": list(self.lrs),
+                "total_reward": self.total_reward.clone(), "rng": rng, "env_state": env_state,
+                "obs": self.obs, "critic": self.critic, "ep_return": self.ep_return}
+
+    def load_state_dict(self, state: dict) -> bool:
+        """Restore everything. Returns True when the env state was restored too (exact resume);
+        False when the env has no state_dict and was reset instead."""
+        for m, s in zip(self.agents, state["agents"]):
+            m.load_state_dict(s)
+        for o, s in zip(self.optimizers, state["optimizers"]):
+            o.load_state_dict(s)
+        self.lrs = list(state["lrs"])
+        for o, lr in zip(self.optimizers, self.lrs):
+            for g in o.param_groups:
+                g["lr"] = lr
+        self.iteration, self.env_steps = int(state["iteration"]), int(state["env_steps"])
+        self.total_reward = state["total_reward"].clone()
+        rng = state["rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.update_gen.set_state(rng["update"])
+        if "cuda" in rng and self.device.type == "cuda":
+            torch.cuda.set_rng_state(rng["cuda"], self.device)
+        exact = state.get("env_state") is not None and hasattr(self.env, "load_state_dict")
+        if exact:
+            self.env.load_state_dict(state["env_state"])
+            self.obs, self.critic = state["obs"].to(self.device), state["critic"].to(self.device)
+            self.ep_return = state["ep_return"].to(self.device)
+        else:
+            self.obs, self.critic = self.env.reset()
+            self.ep_return.zero_()
+        return exact
