@@ -9,6 +9,7 @@ every required body is seen, `read()` returns the newest frame (or None when not
                                    pace, S > 1 faster, S = 0 lockstep (one frame per read, no waiting)
     sim                            poses from an object with .poses() -> (t_s, {body: (pos, quat)})
                                    (SimFleet, SimCrazyflieServer) with optional noise/latency/dropout
+    sim://HOST:PORT                the same from a SimCrazyflieServer's pose port in another process
 
 Real systems run in a worker process (`python -m cfrace.flight.mocap --worker TYPE HOST`):
 libmotioncapture's connect() holds the GIL and blocks forever when no server answers, which would
@@ -34,7 +35,7 @@ from cfrace.errors import CfraceError, MocapError
 
 SYSTEMS = ("vicon", "optitrack", "qualisys", "vrpn")   #: libmotioncapture types we expose
 _SPEC_HELP = ("vicon://HOST, optitrack://HOST, qualisys://HOST, vrpn://HOST, "
-              "replay://FILE.mcap[?speed=S] or sim")
+              "replay://FILE.mcap[?speed=S], sim or sim://HOST:PORT")
 
 
 @dataclass(frozen=True)
@@ -338,10 +339,12 @@ class SimSource(_Source):
 
     def _poll(self) -> float:
         try:
-            t, poses = self.sim.poses()
+            got = self.sim.poses()
         except Exception as exc:   # noqa: BLE001 - a broken simulator is a mocap failure here
-            raise MocapError(f"sim: poses() failed: {type(exc).__name__}: {exc}") from None
-        t = float(t)
+            raise MocapError(f"{self.name}: poses() failed: {type(exc).__name__}: {exc}") from None
+        if got is None:            # nothing received yet (pose stream)
+            return -np.inf if self._last_t is None else self._last_t
+        t, poses = float(got[0]), got[1]
         self._seen.update(poses)
         if self._last_t is None or t > self._last_t:
             self._buffer.append((t, {b: (np.array(p, dtype=np.float64), np.array(q, dtype=np.float64))
@@ -391,6 +394,44 @@ class SimSource(_Source):
         return MocapFrame(t=t, poses=poses, seq=self._seq)
 
 
+class _SubscriberPoses:
+    """.poses() over a simcf PoseSubscriber (None until the first datagram)."""
+
+    def __init__(self, sub):
+        self.sub = sub
+
+    def poses(self):
+        return self.sub.latest()
+
+
+class UdpSimSource(SimSource):
+    """The pose stream of a SimCrazyflieServer in another process (`cfrace sim serve`)."""
+
+    def __init__(self, spec: str, host: str, port: int, bodies: list[str], **kw):
+        super().__init__(None, bodies, **kw)
+        self.name, self.host, self.port = spec, host, port
+        self._sub = None
+
+    def open(self, timeout_s: float = 5.0) -> None:
+        if self._opened:
+            return
+        from cfrace.simcf.poses import PoseSubscriber
+        self._sub = PoseSubscriber(self.host, self.port)
+        self.sim = _SubscriberPoses(self._sub)
+        try:
+            self._sub.wait(timeout_s)
+            super().open(timeout_s)
+        except MocapError as exc:
+            self.close()
+            raise MocapError(f"{self.name}: {exc}") from None
+
+    def close(self) -> None:
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None
+        super().close()
+
+
 # ---------------------------------------------------------------------------------------------
 
 def open_mocap(spec: str, *, bodies: list[str], sim=None, noise_m: float = 0.0,
@@ -407,6 +448,12 @@ def open_mocap(spec: str, *, bodies: list[str], sim=None, noise_m: float = 0.0,
             raise MocapError("mocap 'sim' needs a simulator with .poses() (only in sim flights)")
         return SimSource(sim, bodies, noise_m, latency_s, dropout, seed)
     kind, sep, rest = spec.partition("://")
+    if kind == "sim" and sep:
+        host, _, port = rest.rpartition(":")
+        if not host or not port.isdigit() or not 0 < int(port) < 65536:
+            raise MocapError(f"bad mocap spec '{spec}': expected sim://HOST:PORT (a simcf pose port)")
+        return UdpSimSource(spec, host, int(port), bodies, noise_m=noise_m, latency_s=latency_s,
+                            dropout=dropout, seed=seed)
     if not sep or not rest:
         raise MocapError(f"bad mocap spec '{spec}': expected {_SPEC_HELP}")
     if kind in SYSTEMS:

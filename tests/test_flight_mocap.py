@@ -1,0 +1,269 @@
+"""Mocap sources: specs, the real motioncapture package without a server, sim sources (a fake,
+the real SimFleet and a real SimCrazyflieServer pose port), and replay of a real flight log."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from cfrace.errors import MocapError
+from cfrace.flight.flightlog import FlightLog
+from cfrace.flight.mocap import (MocapFrame, MocapSource, Pose, frame_from_msg, frame_to_msg,
+                                 open_mocap)
+
+Q0 = np.array([1.0, 0.0, 0.0, 0.0])
+
+
+class FakeSim:
+    """Bodies moving at constant velocity; time moves only when the test says so."""
+
+    def __init__(self, names=("cf1", "cf2")):
+        self.t = 0.0
+        self.vel = {n: np.array([1.0 + i, -0.5, 0.25]) for i, n in enumerate(names)}
+
+    def advance(self, dt: float) -> None:
+        self.t = round(self.t + dt, 9)
+
+    def true_pos(self, name: str, t: float) -> np.ndarray:
+        return np.array([0.0, 1.0, 1.0]) + self.vel[name] * t
+
+    def poses(self):
+        return self.t, {n: (self.true_pos(n, self.t), Q0.copy()) for n in self.vel}
+
+
+@pytest.mark.parametrize("spec", ["", "vicon", "vicon:/1.2.3.4", "vicon://", "vicon://host/path",
+                                  "foo://1.2.3.4", "replay://", "replay://x.mcap?speed=abc",
+                                  "sim://127.0.0.1", "sim://:80", "VICON://1.2.3.4"])
+def test_bad_specs_name_the_spec(spec, tmp_path):
+    with pytest.raises(MocapError) as err:
+        open_mocap(spec, bodies=["cf1"])
+    assert f"'{spec}'" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_bad_options_and_missing_replay_file(tmp_path):
+    with pytest.raises(MocapError, match="needs a simulator"):
+        open_mocap("sim", bodies=["cf1"])
+    with pytest.raises(MocapError, match="dropout"):
+        open_mocap("sim", bodies=["cf1"], sim=FakeSim(), dropout=1.0)
+    with pytest.raises(MocapError, match="no such file"):
+        open_mocap(f"replay://{tmp_path}/missing.mcap", bodies=["cf1"])
+    log = _record(tmp_path / "r.mcap", FakeSim(), 3)
+    with pytest.raises(MocapError, match="speed"):
+        open_mocap(f"replay://{log}?speed=-2", bodies=["cf1"])
+
+
+def test_vicon_without_a_server_times_out_cleanly():
+    """libmotioncapture's connect blocks forever (holding the GIL) without a server: the worker
+    process must be given up after the timeout, and this process must stay responsive meanwhile."""
+    src = open_mocap("vicon://127.0.0.1", bodies=["cf1"])
+    assert isinstance(src, MocapSource)
+    t0 = time.monotonic()
+    ticks = []
+    import threading
+    stop = threading.Event()
+
+    def ticker():
+        while not stop.is_set():
+            ticks.append(time.monotonic())
+            time.sleep(0.01)
+
+    th = threading.Thread(target=ticker)
+    th.start()
+    try:
+        with pytest.raises(MocapError) as err:
+            src.open(timeout_s=1.0)
+    finally:
+        stop.set()
+        th.join()
+    elapsed = time.monotonic() - t0
+    assert str(err.value) == "vicon://127.0.0.1: no answer within 1.0 s"
+    assert 0.9 < elapsed < 4.0
+    assert len(ticks) > 30                       # the GIL was not held by the blocked connect
+    assert src._proc.poll() is not None          # worker killed, nothing left behind
+
+
+def test_qualisys_refused_is_reported():
+    src = open_mocap("qualisys://127.0.0.1", bodies=["cf1"])
+    with pytest.raises(MocapError, match=r"^qualisys://127.0.0.1: "):
+        src.open(timeout_s=3.0)
+
+
+def test_sim_source_exact_without_noise_and_unknown_body():
+    sim = FakeSim()
+    with open_mocap("sim", bodies=["cf1", "cf2"], sim=sim) as src:
+        assert src.bodies_seen() == {"cf1", "cf2"}
+        first = src.read(0.0)
+        assert first.t == 0.0 and first.seq == 1
+        assert src.read(0.0) is None                  # time did not move: nothing new
+        for k in range(1, 5):
+            sim.advance(0.01)
+            frame = src.read(0.0)
+            assert frame.seq == k + 1 and frame.t == pytest.approx(0.01 * k)
+            for name in ("cf1", "cf2"):
+                np.testing.assert_array_equal(frame.poses[name].pos, sim.true_pos(name, frame.t))
+                np.testing.assert_array_equal(frame.poses[name].quat, Q0)
+    src = open_mocap("sim", bodies=["cf1", "cf3"], sim=FakeSim())
+    with pytest.raises(MocapError) as err:
+        src.open(timeout_s=0.2)
+    assert str(err.value) == "unknown mocap body 'cf3' (seen: cf1, cf2) from sim"
+
+
+def test_sim_source_noise_latency_dropout():
+    sim = FakeSim()
+    src = open_mocap("sim", bodies=["cf1", "cf2"], sim=sim, noise_m=0.002, latency_s=0.03,
+                     dropout=0.2, seed=7)
+    src.open()
+    for _ in range(2):                       # nothing is 30 ms old yet
+        sim.advance(0.01)
+        assert src.read(0.0) is None
+    frames = []
+    for _ in range(2000):
+        sim.advance(0.01)
+        frame = src.read(0.0)
+        assert frame is not None
+        assert frame.t == pytest.approx(sim.t - 0.03)          # latency: 3 ticks behind
+        frames.append(frame)
+    err = np.array([f.poses["cf1"].pos - sim.true_pos("cf1", f.t) for f in frames if "cf1" in f.poses])
+    assert abs(err.mean()) < 3e-4 and err.std() == pytest.approx(0.002, rel=0.1)
+    present = np.mean([("cf1" in f.poses) for f in frames] + [("cf2" in f.poses) for f in frames])
+    assert present == pytest.approx(0.8, abs=0.03)
+    # deterministic for a seed, different for another
+    def run(seed):
+        s = open_mocap("sim", bodies=["cf1"], sim=FakeSim(), noise_m=0.01, dropout=0.3, seed=seed)
+        s.open()
+        out = []
+        for _ in range(20):
+            s.sim.advance(0.01)
+            f = s.read(0.0)
+            out.append({b: p.pos.tolist() for b, p in f.poses.items()})
+        return out
+    assert run(1) == run(1) and run(1) != run(2)
+
+
+def test_sim_source_read_waits_up_to_timeout_for_new_time():
+    sim = FakeSim()
+    src = open_mocap("sim", bodies=["cf1"], sim=sim)
+    src.open()
+    src.read(0.0)
+    t0 = time.monotonic()
+    assert src.read(0.05) is None
+    assert 0.04 < time.monotonic() - t0 < 0.5
+
+
+def _record(path, sim: FakeSim, n: int, occlude_every: int = 0):
+    """A flight log holding n /mocap/pose frames (cf2 occluded every occlude_every frames)."""
+    log = FlightLog(path, {"track": "complex", "mocap": "sim"})
+    for k in range(n):
+        sim.advance(0.01)
+        t, poses = sim.poses()
+        if occlude_every and k % occlude_every == 0:
+            poses.pop("cf2")
+        frame = MocapFrame(t=1000.0 + t, seq=k + 1,
+                           poses={b: Pose(p + 1e-7 * np.pi, q) for b, (p, q) in poses.items()})
+        log.write("/mocap/pose", t, frame_to_msg(frame))
+        log.write("/timing", t, {"period_s": 0.01})
+    log.close()
+    return path
+
+
+def test_frame_message_round_trip():
+    frame = MocapFrame(t=12.345678901234, seq=9, poses={"cf1": Pose(np.array([0.1, 0.2, 1 / 3]), Q0)})
+    back = frame_from_msg(frame_to_msg(frame))
+    assert back.t == frame.t and back.seq == 9
+    np.testing.assert_array_equal(back.poses["cf1"].pos, frame.poses["cf1"].pos)
+
+
+def test_replay_lockstep_reproduces_frames_exactly_and_fast(tmp_path):
+    from cfrace.flight.flightlog import read_log
+    path = _record(tmp_path / "f.mcap", FakeSim(), 1500, occlude_every=7)
+    recorded = [frame_from_msg(m) for _, m in read_log(path).messages("/mocap/pose")]
+    src = open_mocap(f"replay://{path}?speed=0", bodies=["cf1", "cf2"])
+    t0 = time.monotonic()
+    src.open()
+    got = []
+    while (frame := src.read()) is not None:
+        got.append(frame)
+    assert time.monotonic() - t0 < 2.0
+    assert src.done and len(got) == 1500
+    for a, b in zip(got, recorded):
+        assert a.t == b.t and a.seq == b.seq and a.poses.keys() == b.poses.keys()
+        for name in a.poses:
+            np.testing.assert_array_equal(a.poses[name].pos, b.poses[name].pos)
+    assert "cf2" not in got[0].poses and "cf2" in got[1].poses     # occlusions replayed too
+    src.close()
+
+
+def test_replay_at_speed(tmp_path):
+    path = _record(tmp_path / "f.mcap", FakeSim(), 100)            # 1 s recorded
+    src = open_mocap(f"replay://{path}", bodies=["cf1"], speed=10.0)   # ~0.1 s
+    src.open()
+    t0 = time.monotonic()
+    seqs = []
+    while not src.done and time.monotonic() - t0 < 5:
+        frame = src.read(0.02)
+        if frame is not None:
+            seqs.append(frame.seq)
+    elapsed = time.monotonic() - t0
+    assert 0.08 < elapsed < 1.0
+    assert seqs == sorted(seqs) and seqs[-1] == 100 and len(set(seqs)) == len(seqs)
+    # a slow reader gets the newest frame, skipping stale ones
+    src = open_mocap(f"replay://{path}?speed=1", bodies=["cf1"])
+    src.open()
+    first = src.read(0.02)
+    time.sleep(0.3)
+    later = src.read(0.02)
+    assert first.seq == 1 and later.seq >= 25
+
+
+def test_replay_unknown_body_and_bad_file(tmp_path):
+    path = _record(tmp_path / "f.mcap", FakeSim(), 10)
+    with pytest.raises(MocapError, match=r"unknown mocap body 'cf9' \(seen: cf1, cf2\)"):
+        open_mocap(f"replay://{path}", bodies=["cf1", "cf9"]).open()
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(b"garbage" * 10)
+    with pytest.raises(MocapError, match="not an MCAP flight log"):
+        open_mocap(f"replay://{bad}", bodies=["cf1"]).open()
+    empty = tmp_path / "empty.mcap"
+    FlightLog(empty, {"track": "complex"}).close()
+    with pytest.raises(MocapError, match="no /mocap/pose"):
+        open_mocap(f"replay://{empty}", bodies=["cf1"]).open()
+
+
+def test_sim_source_on_the_real_simfleet():
+    from cfrace.simcf.firmware import SimFleet
+    fleet = SimFleet("complex", "cf2x_paper", 2)
+    src = open_mocap("sim", bodies=["cf1", "cf2"], sim=fleet)
+    src.open(timeout_s=1.0)
+    for _ in range(5):
+        fleet.advance(0.01)
+        frame = src.read(0.0)
+        t, truth = fleet.poses()
+        assert frame.t == t
+        for name in ("cf1", "cf2"):
+            np.testing.assert_array_equal(frame.poses[name].pos, truth[name][0])
+            np.testing.assert_array_equal(frame.poses[name].quat, truth[name][1])
+    with pytest.raises(MocapError, match="unknown mocap body 'cf3'"):
+        open_mocap("sim", bodies=["cf3"], sim=fleet).open(timeout_s=0.1)
+
+
+def test_udp_pose_stream_of_a_sim_server():
+    from cfrace.simcf.firmware import SimFleet
+    from cfrace.simcf.server import SimCrazyflieServer
+    with SimCrazyflieServer(SimFleet("complex", "cf2x_paper", 2), base_port=0) as server:
+        src = open_mocap(f"sim://127.0.0.1:{server.pose_port}", bodies=["cf1", "cf2"])
+        src.open(timeout_s=3.0)
+        try:
+            frames = [f for f in (src.read(0.1) for _ in range(10)) if f is not None]
+        finally:
+            src.close()
+    assert len(frames) >= 5
+    assert all(b.t > a.t for a, b in zip(frames, frames[1:]))
+    assert frames[-1].poses.keys() == {"cf1", "cf2"}
+
+
+def test_udp_pose_stream_nobody_listening():
+    src = open_mocap("sim://127.0.0.1:9", bodies=["cf1"])
+    with pytest.raises(MocapError, match=r"^sim://127.0.0.1:9: no simulated poses"):
+        src.open(timeout_s=0.3)
