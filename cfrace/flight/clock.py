@@ -1,0 +1,101 @@
+"""Loop clocks: absolute deadlines in real time, or a lockstep clock that drives a simulator.
+
+RealClock: tick k is due at t0 + k dt (absolute deadlines: no drift, no accumulation of sleep
+overshoot). A tick that starts late never causes a burst: when the previous tick overran one or
+more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
+with fresh mocap data. Waiting is a plain sleep: on this 2-core machine busy-waiting the last
+fraction of a millisecond made the jitter worse (the scheduler preempts spinning threads).
+
+LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
+period (or by a requested stall) and the loop's time is k dt.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Tick:
+    k: int          #: tick index (k dt after the start)
+    t: float        #: s since the start, the loop's clock (race time)
+    late_s: float   #: s this tick started after the deadline it was expected at
+    skipped: int    #: deadlines skipped before this tick (overrun)
+    wall: float     #: time.perf_counter() when the tick started (real) / t (lockstep)
+
+
+class RealClock:
+    def __init__(self, dt: float, *, perf=time.perf_counter, sleep=time.sleep):
+        self.dt = float(dt)
+        self._perf, self._sleep = perf, sleep
+        self.t0 = math.nan
+        self._k_next = 0
+        self.skipped = 0
+        self.realtime = True
+
+    def start(self) -> None:
+        self.t0 = self._perf()
+        self._k_next = 0
+
+    def now(self) -> float:
+        """s since start on the loop clock."""
+        return self._perf() - self.t0
+
+    def wait_next(self) -> Tick:
+        k = self._k_next
+        deadline = self.t0 + k * self.dt
+        now = self._perf()
+        if now < deadline:
+            self._sleep(deadline - now)
+            now = self._perf()
+        late = now - deadline
+        skipped = 0
+        if late >= self.dt:                      # overrun: run the newest due tick, drop the rest
+            k_due = int((now - self.t0) / self.dt)
+            skipped = max(0, k_due - k)
+            k = k + skipped
+            self.skipped += skipped
+        self._k_next = k + 1
+        return Tick(k, now - self.t0, late, skipped, now)
+
+    def stall(self, seconds: float) -> None:
+        """Fault injection: block the loop (real time: really sleep)."""
+        self._sleep(seconds)
+
+
+class LockstepClock:
+    """Virtual time for --lockstep: ``advance(dt)`` moves the simulated world one tick."""
+
+    def __init__(self, dt: float, advance=None):
+        self.dt = float(dt)
+        self._advance = advance
+        self._k = -1
+        self._stall = 0.0
+        self.skipped = 0
+        self.realtime = False
+
+    def start(self) -> None:
+        self._k = -1
+
+    def now(self) -> float:
+        return max(self._k, 0) * self.dt
+
+    def wait_next(self) -> Tick:
+        late, skipped = 0.0, 0
+        if self._k >= 0:
+            if self._stall > 0.0:
+                # the loop "hung" for _stall s: the world moved on without us
+                skipped = int(self._stall / self.dt)
+                late = self._stall
+                self._stall = 0.0
+            if self._advance is not None:
+                self._advance(self.dt * (1 + skipped))
+        self._k += 1 + skipped
+        self.skipped += skipped
+        t = self._k * self.dt
+        return Tick(self._k, t, late, skipped, t)
+
+    def stall(self, seconds: float) -> None:
+        self._stall += float(seconds)

@@ -1,0 +1,143 @@
+"""Flight configuration: frozen dataclasses, SI units, loadable from a strict YAML file.
+
+A flight config file (``cfrace fly --config room.yaml``) names what belongs to a room and its
+drones; command-line options override it. Example::
+
+    uris: [radio://0/80/2M/E7E7E7E7E1, radio://1/90/2M/E7E7E7E7E2]   # ego, opp
+    bodies: [cf1, cf2]                                               # mocap body of ego, opp
+    mocap: vicon://192.168.1.10
+    profile: cf21bl
+    safety: {geofence_margin_m: 0.3, speed_max_mps: 6.0}
+
+Unknown keys are errors (cfrace.yamlcfg.Reader).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+from cfrace.errors import ConfigError
+from cfrace.yamlcfg import Reader, load_yaml
+
+DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    """Limits of the per-tick safety check (cfrace.flight.safety). See docs/flight.md."""
+
+    geofence_margin_m: float = 0.3   #: m, the fence is the track arena grown by this on every side
+    floor_z_m: float = 0.1           #: m, below this after ``floor_grace_s`` = crashed (training rule)
+    floor_grace_s: float = 1.0       #: s after the start during which the floor rule is off (take-off)
+    tilt_max_deg: float = 80.0       #: deg, body z axis against world up
+    speed_max_mps: float = 12.0      #: m/s, estimated speed
+    mocap_stale_s: float = 0.15      #: s, a pose estimate older than this stops the drone
+    link_timeout_s: float = 0.5      #: s without any packet from a drone = link lost
+    overrun_stop_s: float = 0.1      #: s, a tick starting later than this past its deadline stops all
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, (int, float)) and v >= 0 and v == v):
+                raise ConfigError(f"safety.{f.name}: must be a number >= 0, got {v!r}")
+        if self.tilt_max_deg > 180:
+            raise ConfigError(f"safety.tilt_max_deg: must be <= 180, got {self.tilt_max_deg}")
+
+
+@dataclass(frozen=True)
+class FlightConfig:
+    """Everything `cfrace fly` needs. Lists hold one entry per drone, ego first."""
+
+    track: str                                   #: track name or path
+    ego: str                                     #: policy short name or .onnx path
+    opp: str
+    uris: tuple[str, ...] = ()                   #: link URI per drone (radio://, udp://, sim://N)
+    mocap: str = "sim"                           #: mocap source spec (vicon://HOST, replay://F.mcap, sim)
+    bodies: tuple[str, ...] = ("cf1", "cf2")     #: mocap body name per drone
+    laps: int = 3
+    profile: str = "cf21bl"                      #: drone profile of the flown drones
+    obstacles: bool = False
+    log: Path | None = None                      #: flight log (.mcap); None = no log
+    timeout_s: float = 120.0                     #: s, the race ends (draw) after this
+    connect_timeout_s: float = 5.0               #: s per link
+    mocap_timeout_s: float = 3.0                 #: s to wait for the first frame with every body
+    rate_hz: float = 100.0                       #: Hz, control loop (setpoints streamed every tick)
+    quiet: bool = False                          #: no live view
+    view_hz: float = 4.0                         #: Hz, live view refresh
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+    def __post_init__(self):
+        if self.laps < 1:
+            raise ConfigError(f"laps: must be >= 1, got {self.laps}")
+        if len(self.bodies) != len(DRONE_NAMES):
+            raise ConfigError(f"bodies: need {len(DRONE_NAMES)} mocap body names (ego, opp), got {list(self.bodies)}")
+        if len(set(self.bodies)) != len(self.bodies):
+            raise ConfigError(f"bodies: names must differ, got {list(self.bodies)}")
+        if self.uris and len(self.uris) != len(DRONE_NAMES):
+            raise ConfigError(f"uris: need {len(DRONE_NAMES)} URIs (ego, opp), got {list(self.uris)}")
+        if self.uris and len(set(self.uris)) != len(self.uris):
+            raise ConfigError(f"uris: every drone needs its own URI, got {list(self.uris)}")
+        if not (1.0 <= self.rate_hz <= 1000.0):
+            raise ConfigError(f"rate_hz: must be in [1, 1000], got {self.rate_hz}")
+        if self.timeout_s <= 0:
+            raise ConfigError(f"timeout_s: must be > 0, got {self.timeout_s}")
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+def split_list(text: str | None) -> tuple[str, ...] | None:
+    """'a,b' -> ('a', 'b'); None stays None (option not given)."""
+    if text is None:
+        return None
+    return tuple(s.strip() for s in text.split(",") if s.strip())
+
+
+def load_flight_file(path: str | Path) -> dict:
+    """Read a flight config YAML into keyword arguments for FlightConfig (strict)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"{path}: no such flight config file")
+    r = Reader(path, load_yaml(path))
+    out: dict = {}
+    for key in ("uris", "bodies"):
+        if r.has(key):
+            seq = r.sequence(key)
+            if not all(isinstance(s, str) and s for s in seq):
+                raise r.fail(key, f"expected a list of strings, got {seq!r}")
+            out[key] = tuple(seq)
+    for key in ("mocap", "profile", "track", "ego", "opp"):
+        if r.has(key):
+            out[key] = r.string(key)
+    for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
+        if r.has(key):
+            out[key] = r.number(key, positive=True)
+    if r.has("laps"):
+        out["laps"] = int(r.number("laps", min=1))
+    if r.has("obstacles"):
+        v = r.raw("obstacles")
+        if not isinstance(v, bool):
+            raise r.fail("obstacles", f"expected true or false, got {v!r}")
+        out["obstacles"] = v
+    if r.has("safety"):
+        s = r.mapping("safety")
+        kw = {f.name: s.number(f.name, min=0.0) for f in fields(SafetyConfig) if s.has(f.name)}
+        s.done()
+        out["safety"] = SafetyConfig(**kw)
+    r.done()
+    return out
+
+
+def make_config(file: str | Path | None = None, **options) -> FlightConfig:
+    """FlightConfig from an optional YAML file, overridden by the options that are not None."""
+    kw = load_flight_file(file) if file else {}
+    safety_over = options.pop("safety_overrides", None) or {}
+    kw.update({k: v for k, v in options.items() if v is not None})
+    if safety_over:
+        kw["safety"] = replace(kw.get("safety", SafetyConfig()), **safety_over)
+    for key in ("track", "ego", "opp"):
+        if key not in kw:
+            raise ConfigError(f"missing --{key} (or '{key}:' in the flight config file)")
+    return FlightConfig(**kw)

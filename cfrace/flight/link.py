@@ -1,0 +1,196 @@
+"""Links to the drones: a small protocol with a real (cflib) and a direct simulated implementation.
+
+Units at this boundary (design rule 10: conversions happen only here):
+``send(roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts)`` takes the BODY rates the
+drone must fly, right-handed, x forward, y left, z up (pitch + = nose down), in deg/s, and the
+collective thrust in CRTP counts (profile.thrust_curve.to_counts).
+
+The legacy CRTP setpoint (port 3, ``<fffH``) does not carry those values as they are:
+cflib's ``send_setpoint`` negates pitch, and the firmware negates the yaw rate of this packet
+(crtp_commander_rpyt.c), so with p, q, r the wanted body rates:
+
+    cflib send_setpoint(roll=p, pitch=q, yawrate=-r, thrust)  ->  packet (p, -q, -r, thrust)
+
+and the firmware (roll/pitch in rate mode: flightmode.stabModeRoll = stabModePitch = 0) tracks
+gyro x = p, gyro y = q, gyro z = r. ``packet_values`` and ``cflib_setpoint_args`` hold this once.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from cfrace.errors import LinkError
+
+RATE_MODE_PARAMS = ("flightmode.stabModeRoll", "flightmode.stabModePitch")  #: set to 0 after EVERY connect
+THRUST_MAX_COUNTS = 65535
+
+
+def packet_values(p_dps: float, q_dps: float, r_dps: float) -> tuple[float, float, float]:
+    """Body rates (deg/s) -> (roll, pitch, yawrate) as they sit in the CRTP <fffH packet."""
+    return p_dps, -q_dps, -r_dps
+
+
+def cflib_setpoint_args(p_dps: float, q_dps: float, r_dps: float) -> tuple[float, float, float]:
+    """Body rates (deg/s) -> the (roll, pitch, yawrate) arguments of cflib's send_setpoint."""
+    return p_dps, q_dps, -r_dps
+
+
+def thrust_to_counts(thrust_n, curve) -> np.ndarray | int:
+    """Collective thrust (N) -> uint16 counts through the calibration curve (clamped, rounded)."""
+    counts = np.clip(np.rint(curve.to_counts(thrust_n)), 0, THRUST_MAX_COUNTS)
+    return int(counts) if np.ndim(counts) == 0 else counts.astype(np.int64)
+
+
+@dataclass
+class LinkQuality:
+    """Figures of one link, read by the loop every tick (cheap)."""
+
+    connected: bool = False
+    last_rx: float = float("nan")     #: time.monotonic() of the last packet from the drone
+    latency_ms: float = float("nan")  #: round trip (cflib echo ping, p95), nan if unknown
+    link_quality: float = float("nan")  #: % (Crazyradio ack rate), nan if unknown
+    sent: int = 0                     #: setpoints sent
+    errors: int = 0
+    error: str = ""                   #: the last error message
+
+    def rx_age(self, now: float) -> float:
+        return now - self.last_rx if self.last_rx == self.last_rx else float("inf")
+
+    def as_dict(self, now: float) -> dict:
+        return {"connected": self.connected, "rx_age_s": self.rx_age(now), "latency_ms": self.latency_ms,
+                "link_quality": self.link_quality, "sent": self.sent, "errors": self.errors, "error": self.error}
+
+
+@runtime_checkable
+class Link(Protocol):
+    uri: str
+    quality: LinkQuality
+
+    def connect(self, timeout_s: float) -> None:
+        """Open the link; LinkError (one line naming the URI) when nothing answers in time."""
+
+    def setup(self) -> None:
+        """After every connect: rate mode params, arming, zero-thrust unlock."""
+
+    def send(self, roll_rate_dps: float, pitch_rate_dps: float, yaw_rate_dps: float, thrust_counts: int) -> None:
+        """Stream one setpoint (body rates deg/s, thrust counts)."""
+
+    def stop(self) -> None:
+        """Zero setpoint + stop: motors off. Safe to call many times and on a dead link."""
+
+    def close(self) -> None:
+        """Stop (if connected) and release the link."""
+
+
+class DirectSimLink:
+    """A link straight to one drone of a simcf SimFleet: no UDP, no cflib, no threads (--lockstep).
+
+    It applies the same packet convention as the real link (packet_values), so the simulated
+    firmware decodes exactly what it would decode from cflib's packet."""
+
+    def __init__(self, fleet, index: int, clock=time.monotonic):
+        self.fleet, self.index = fleet, int(index)
+        self.uri = f"sim://{self.index}"
+        self.quality = LinkQuality()
+        self._clock = clock
+        self.cut = False   #: fault injection: a cut link delivers nothing and hears nothing
+
+    def cut_link(self) -> None:
+        """Fault injection: from now on nothing gets through either way."""
+        self.cut = True
+
+    def connect(self, timeout_s: float = 5.0) -> None:
+        if not 0 <= self.index < self.fleet.n:
+            raise LinkError(f"{self.uri}: no such simulated drone (fleet has {self.fleet.n})")
+        self.quality.connected = True
+        self._heard()
+
+    def _heard(self) -> None:
+        if not self.cut:
+            self.quality.last_rx = self._clock()
+
+    def setup(self) -> None:
+        self._need()
+        for name in RATE_MODE_PARAMS:
+            self.fleet.set_param(self.index, name, 0)
+        self.fleet.arm(self.index, True)
+        self.fleet.handle_setpoint(self.index, 0.0, 0.0, 0.0, 0)
+        self._heard()
+
+    def _need(self) -> None:
+        if not self.quality.connected:
+            raise LinkError(f"{self.uri}: not connected")
+
+    def send(self, roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts) -> None:
+        if self.cut or not self.quality.connected:
+            return
+        r, p, y = packet_values(float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps))
+        self.fleet.handle_setpoint(self.index, r, p, y, int(thrust_counts))
+        self.quality.sent += 1
+        self._heard()
+
+    def stop(self) -> None:
+        if self.cut or not self.quality.connected:
+            return
+        self.fleet.handle_setpoint(self.index, 0.0, 0.0, 0.0, 0)
+        self.fleet.stop_setpoint(self.index)
+        self.fleet.arm(self.index, False)
+
+    def close(self) -> None:
+        if self.quality.connected:
+            self.stop()
+        self.quality.connected = False
+
+
+class RecordingLink:
+    """A link to nothing that keeps what it was sent (replays and unit tests)."""
+
+    def __init__(self, uri: str = "null://", clock=time.monotonic):
+        self.uri = uri
+        self.quality = LinkQuality()
+        self._clock = clock
+        self.sent: list[tuple[float, float, float, int]] = []
+        self.stops = 0
+        self.setups = 0
+
+    def connect(self, timeout_s: float = 5.0) -> None:
+        self.quality.connected = True
+        self.quality.last_rx = self._clock()
+
+    def setup(self) -> None:
+        self.setups += 1
+
+    def send(self, roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts) -> None:
+        self.sent.append((float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps), int(thrust_counts)))
+        self.quality.sent += 1
+        self.quality.last_rx = self._clock()
+
+    def stop(self) -> None:
+        self.stops += 1
+
+    def close(self) -> None:
+        self.quality.connected = False
+
+
+def open_link(uri: str, *, fleet=None, clock=time.monotonic) -> Link:
+    """A Link for ``uri``: radio:// and udp:// go through cflib (link_cflib.py); sim://N is a
+    DirectSimLink to drone N of ``fleet``; null:// records only."""
+    if uri.startswith(("radio://", "udp://", "usb://")):
+        from cfrace.flight.link_cflib import CflibLink
+
+        return CflibLink(uri)
+    if uri.startswith("sim://"):
+        if fleet is None:
+            raise LinkError(f"{uri}: a sim:// link needs the in-process simulator (cfrace sim dry-run --lockstep)")
+        try:
+            index = int(uri[len("sim://"):])
+        except ValueError:
+            raise LinkError(f"{uri}: expected sim://INDEX") from None
+        return DirectSimLink(fleet, index, clock=clock)
+    if uri.startswith("null://"):
+        return RecordingLink(uri, clock=clock)
+    raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N)")

@@ -1,0 +1,315 @@
+"""The 100 Hz flight loop: mocap -> estimate -> race progress -> observation -> ONNX -> action map
+-> safety -> link, every tick, for every drone; logging and the live view after the send.
+
+Rates: setpoints are streamed to every drone on every tick (100 Hz) and the safety check runs
+every tick, so a stop reaches a drone within one period and a lost radio packet is replaced
+10 ms later; the policies run at their metadata ``policy_hz`` (50 Hz: inference on every 2nd
+tick, both drones on the same tick), as in training where one action holds for 20 ms. Between
+inferences the last command is re-sent.
+
+What one tick measures (all in /timing): ``late_s`` (start against its absolute deadline),
+``period_s`` (start to start), ``compute_s`` (start to the last setpoint handed to the links: the
+latency the loop adds) and ``infer_s`` per drone (observation + ONNX).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from cfrace.env.actions import action_to_command
+from cfrace.env.observations import ObsLayout, build_observation
+from cfrace.flight import safety as sf
+from cfrace.flight.link import thrust_to_counts
+from cfrace.flight.mocap import frame_to_msg
+
+perf = time.perf_counter
+
+
+class KillSwitch:
+    """Set by signal handlers (or anyone): the next tick stops every drone and ends the loop."""
+
+    def __init__(self):
+        self.reason: str | None = None
+
+    def request(self, reason: str) -> None:
+        if self.reason is None:
+            self.reason = reason
+
+
+@dataclass
+class Drone:
+    """One racing drone in the loop (mutable runtime state)."""
+
+    name: str                  #: "ego" / "opp"
+    body: str                  #: mocap body name
+    policy: object             #: callable obs (1, D) float32 -> (1, 4) actions
+    layout: ObsLayout
+    link: object               #: cfrace.flight.link.Link
+    meta: dict                 #: policy metadata
+    mass: float                #: kg, flown drone (thrust in N = weights x m g)
+    thrust_curve: object       #: profile.thrust_curve
+    decimation: int = 2        #: loop ticks per policy step
+    stopped: bool = False
+    stop_kind: str = ""
+    stop_t: float = float("nan")
+    stop_k: int = -1
+    frozen_pos: np.ndarray | None = None
+    action: np.ndarray = field(default_factory=lambda: np.full(4, np.nan, np.float32))
+    obs: np.ndarray | None = None
+    thrust_n: float = 0.0
+    rates_dps: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    counts: int = 0
+    speed_max: float = 0.0
+    speed_sum: float = 0.0
+    speed_n: int = 0
+
+
+class ObservationBuilder:
+    """The training observation (cfrace.env.observations.build_observation) from estimates.
+    float32 torch like the simulator; small tensors, so a call costs tens of microseconds."""
+
+    def __init__(self, gate_corners: np.ndarray):
+        self.corners = torch.as_tensor(np.asarray(gate_corners), dtype=torch.float32)  # (G, 4, 3)
+
+    def __call__(self, layout: ObsLayout, est, target: int, opp=None) -> np.ndarray:
+        f = torch.float32
+        with torch.inference_mode():
+            pos = torch.as_tensor(est.pos, dtype=f)
+            vel = torch.as_tensor(est.vel, dtype=f)
+            rot = torch.as_tensor(est.rot, dtype=f)
+            opp_pos = opp_vel = None
+            if layout.opponent:
+                opp_pos, opp_vel = torch.as_tensor(opp.pos, dtype=f), torch.as_tensor(opp.vel, dtype=f)
+            obs = build_observation(pos, vel, rot, torch.tensor(int(target)), self.corners, layout, opp_pos, opp_vel)
+        return obs.numpy()
+
+
+@dataclass
+class LoopResult:
+    end: str                         #: "finished", "all_stopped", "timeout", "operator_kill", "loop_overrun"
+    winner: str                      #: drone name or "draw"
+    t_end: float
+    ticks: int
+    skipped: int
+    timing: dict                     #: arrays: late, period, compute, infer (per drone)
+    safety_events: list
+    drones: list
+
+
+class FlightLoop:
+    """Runs one race. Construct with ready (connected, set up) links and an opened mocap source."""
+
+    def __init__(self, *, drones: list[Drone], mocap, estimator, progress, obs_builder: ObservationBuilder,
+                 clock, fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, log=None, view=None,
+                 faults=None, kill: KillSwitch | None = None, link_log_every: int = 10, link_clock=None):
+        self.drones, self.mocap, self.estimator, self.progress = drones, mocap, estimator, progress
+        self.obs_builder, self.clock, self.fence, self.safety_cfg = obs_builder, clock, fence, safety_cfg
+        self.laps, self.timeout_s, self.log, self.view, self.faults = laps, timeout_s, log, view, faults
+        self.kill = kill or KillSwitch()
+        self.link_log_every = link_log_every
+        self.link_clock = link_clock or time.monotonic   #: the clock the links stamp last_rx with
+        self.events: list[dict] = []
+        self._active: set = set()        # (kind, drone) of violations currently present
+        self._outliers = {d.body: 0 for d in drones}
+        self.running = False
+        self.t = 0.0
+
+    # ------------------------------------------------------------------ helpers
+    def _event(self, t: float, v: sf.Violation) -> None:
+        ev = {"t": round(t, 4), "kind": v.kind, "drone": None if v.drone is None else self.drones[v.drone].name,
+              "body": None if v.drone is None else self.drones[v.drone].body, "action": v.action, "detail": v.detail}
+        self.events.append(ev)
+        if self.log is not None:
+            self.log.write("/safety", t, {k: ev[k] for k in ("kind", "drone", "body", "action", "detail")})
+
+    def _stop(self, i: int, t: float, kind: str) -> None:
+        d = self.drones[i]
+        if d.stopped:
+            return
+        d.stopped, d.stop_kind, d.stop_t = True, kind, t
+        d.link.stop()
+        d.counts, d.thrust_n = 0, 0.0
+        if self.log is not None:
+            self.log.write("/event", t, {"kind": "stop", "drone": d.name, "body": d.body, "text": f"stopped: {kind}"})
+
+    def stop_all(self, t: float, kind: str) -> None:
+        for i in range(len(self.drones)):
+            self._stop(i, t, kind)
+
+    def _policy_step(self, i: int, ests: list, k: int) -> float:
+        """Observation + inference + action map for drone i; returns the seconds it took."""
+        d = self.drones[i]
+        t0 = perf()
+        opp = ests[1 - i] if len(ests) == 2 else None
+        obs = self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
+        if self.faults is not None:
+            obs = self.faults.filter_obs(d, obs)
+        act = np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4)
+        if self.faults is not None:
+            act = self.faults.filter_action(d, act, self.t)
+        thrust, rates = action_to_command(act.astype(np.float64), d.mass, d.meta["max_thrust_weights"],
+                                          d.meta["max_rates_deg"])
+        d.obs, d.action = obs, act
+        d.thrust_n = float(thrust)
+        d.rates_dps = np.degrees(rates)
+        d.counts = thrust_to_counts(d.thrust_n, d.thrust_curve) if np.isfinite(d.thrust_n) else 0
+        return perf() - t0
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> LoopResult:
+        n = len(self.drones)
+        late_l, period_l, compute_l, infer_l = [], [], [], [[] for _ in range(n)]
+        end, winner = "", "draw"
+        self.clock.start()
+        self.running = True
+        prev_wall = None
+        k = 0
+        try:
+            while True:
+                tick = self.clock.wait_next()
+                t_start = perf()
+                k, t = tick.k, tick.t
+                self.t = t
+                if self.faults is not None:
+                    self.faults.before_tick(self, t)
+                frame = self.mocap.read(0.0)
+                now = self.clock.now()
+                est_map = self.estimator.update(frame, now)
+                ests = [est_map[d.body] for d in self.drones]
+                pos = np.stack([d.frozen_pos if d.stopped and d.frozen_pos is not None else e.pos
+                                for d, e in zip(self.drones, ests)])
+                safe_pos = np.where(np.isfinite(pos), pos, 0.0)
+                passed, lap_done, hit = self.progress.update(t, safe_pos)
+                infer = [np.nan] * n
+                policy_tick = False
+                for i, d in enumerate(self.drones):
+                    if not d.stopped and k % d.decimation == 0:
+                        infer[i] = self._policy_step(i, ests, k)
+                        policy_tick = True
+                inputs = sf.SafetyInputs(
+                    t=t, dt=self.clock.dt, tick_late_s=tick.late_s, operator_kill=self.kill.reason,
+                    drones=tuple(sf.DroneInputs(
+                        pos=e.pos, vel=e.vel, rot=e.rot, est_valid=bool(e.valid), est_age_s=float(e.age_s),
+                        obs=d.obs if policy_tick else None, action=d.action,
+                        link_connected=d.link.quality.connected,
+                        link_rx_age_s=d.link.quality.rx_age(self.link_clock()),
+                        gate_crash=bool(hit[i])) for i, (d, e) in enumerate(zip(self.drones, ests))))
+                decision = sf.check(inputs, self.fence, self.safety_cfg)
+                for i, d in enumerate(self.drones):
+                    if decision.stop[i]:
+                        kinds = [v.kind for v in decision.violations
+                                 if v.action != sf.NONE and (v.drone == i or v.drone is None)]
+                        if not d.stopped:
+                            d.frozen_pos = pos[i].copy()
+                        self._stop(i, t, kinds[0] if kinds else "safety")
+                        d.stop_k = k
+                    elif not d.stopped:
+                        r = d.rates_dps
+                        d.link.send(r[0], r[1], r[2], d.counts)
+                t_sent = perf()
+                # ---------------------------------------------- after the send: bookkeeping
+                compute = t_sent - t_start
+                late_l.append(tick.late_s)
+                period_l.append(np.nan if prev_wall is None else tick.wall - prev_wall)
+                prev_wall = tick.wall
+                compute_l.append(compute)
+                for i in range(n):
+                    infer_l[i].append(infer[i])
+                self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, infer,
+                                  policy_tick)
+                # ---------------------------------------------- race end
+                if self.kill.reason is not None:
+                    end = "operator_kill"
+                    break
+                if decision.stop_all:
+                    end = next(v.kind for v in decision.violations if v.action == sf.STOP_ALL)
+                    break
+                done = [i for i in range(n) if self.progress.laps[i] >= self.laps and not self.drones[i].stopped]
+                if done:
+                    end, winner = "finished", (self.drones[done[0]].name if len(done) == 1 else "draw")
+                    break
+                if all(d.stopped for d in self.drones):
+                    end = "all_stopped"
+                    break
+                if t >= self.timeout_s:
+                    end = "timeout"
+                    break
+        finally:
+            self.running = False
+            self.stop_all(self.t, end or "exception")
+        return LoopResult(end=end, winner=winner, t_end=self.t, ticks=len(compute_l), skipped=self.clock.skipped,
+                          timing={"late": np.asarray(late_l), "period": np.asarray(period_l),
+                                  "compute": np.asarray(compute_l), "infer": [np.asarray(x) for x in infer_l]},
+                          safety_events=self.events, drones=self.drone_results())
+
+    def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, infer,
+                     policy_tick) -> None:
+        # safety: log each violation once per episode (it re-arms when it clears)
+        present = set()
+        for v in decision.violations:
+            key = (v.kind, v.drone)
+            present.add(key)
+            if v.drone is not None and self.drones[v.drone].stopped and self.drones[v.drone].stop_k != k:
+                continue   # a stopped drone's later state (falling, on the floor) is no news
+            if key not in self._active:
+                self._event(t, v)
+        self._active = present
+        counters = self.estimator.counters
+        for i, d in enumerate(self.drones):
+            c = counters[d.body]["outliers"]
+            if c > self._outliers[d.body]:
+                self._outliers[d.body] = c
+                self._event(t, sf.Violation("pose_outlier", i, sf.NONE,
+                                            f"mocap pose of {d.body} rejected as an outlier ({c} so far)"))
+            e = ests[i]
+            if not d.stopped and e.valid:
+                s = float(np.linalg.norm(e.vel))
+                d.speed_max = max(d.speed_max, s)
+                d.speed_sum += s
+                d.speed_n += 1
+        log = self.log
+        if log is not None:
+            if frame is not None:
+                log.write("/mocap/pose", t, {**frame_to_msg(frame), "k": k})
+            log.write("/estimate", t, {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
+                                           "valid": e.valid} for b, e in est_map.items()})
+            if policy_tick:
+                log.write("/obs", t, {"k": k, **{d.body: d.obs for d in self.drones
+                                                 if not d.stopped and d.obs is not None}})
+                log.write("/action", t, {"k": k, **{d.body: d.action for d in self.drones if not d.stopped}})
+            log.write("/setpoint", t, {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n,
+                                                "thrust_counts": d.counts, "rates_dps": d.rates_dps}
+                                       for d in self.drones})
+            log.write("/timing", t, {"k": k, "now": self.clock.now() if not self.clock.realtime else None,
+                                     "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
+                                     "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
+            if passed.any() or lap_done.any():
+                log.write("/race", t, self.race_state())
+            if k % self.link_log_every == 0:
+                mono = self.link_clock()
+                log.write("/link", t, {d.body: d.link.quality.as_dict(mono) for d in self.drones})
+        if self.view is not None:
+            self.view.maybe_update(self, t, ests)
+
+    def race_state(self) -> dict:
+        p = self.progress
+        return {d.body: {"drone": d.name, "gates_passed": int(p.gates_passed[i]), "laps": int(p.laps[i]),
+                         "target": int(p.target[i]), "lap_times": list(p.lap_times[i]), "stopped": d.stopped,
+                         "stop_kind": d.stop_kind} for i, d in enumerate(self.drones)}
+
+    def drone_results(self) -> list[dict]:
+        p = self.progress
+        out = []
+        for i, d in enumerate(self.drones):
+            out.append({"name": d.name, "body": d.body, "uri": d.link.uri, "policy": str(d.meta.get("path", "")),
+                        "method": d.meta.get("method"), "laps": int(p.laps[i]), "gates_passed": int(p.gates_passed[i]),
+                        "lap_times": [round(x, 3) for x in p.lap_times[i]], "stopped": d.stopped,
+                        "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
+                        "speed_max": round(d.speed_max, 3),
+                        "speed_mean": round(d.speed_sum / d.speed_n, 3) if d.speed_n else None,
+                        "link": d.link.quality.as_dict(self.link_clock())})
+        return out

@@ -1,0 +1,168 @@
+"""The safety check: a PURE function run every tick before anything is sent.
+
+Inputs: per-drone estimates, observations and actions, link states, the tick's timing, the
+operator's kill request, and the limits (SafetyConfig + the fence). Output: one Decision naming
+the drones to stop and every violation found. It keeps no state; the loop makes stops sticky
+and logs each violation once per episode (see loop.py).
+
+Which event stops what (docs/flight.md explains why):
+
+| kind          | scope     | trigger                                                           |
+|---------------|-----------|-------------------------------------------------------------------|
+| geofence      | one drone | position outside the arena grown by geofence_margin_m             |
+| floor         | one drone | z < floor_z_m after floor_grace_s (the training crash rule)       |
+| tilt          | one drone | body z axis more than tilt_max_deg from world up                  |
+| speed         | one drone | estimated speed > speed_max_mps                                   |
+| mocap_stale   | one drone | its pose estimate is invalid or older than mocap_stale_s          |
+| non_finite    | one drone | NaN/inf in its estimate, observation or action                    |
+| link_lost     | one drone | its link reports disconnected or silent for link_timeout_s        |
+| gate_crash    | one drone | it crossed its target gate's plane in the frame (a crash)         |
+| loop_overrun  | all       | a tick started later than overrun_stop_s after its deadline       |
+| operator_kill | all       | Ctrl-C / SIGTERM / the `kill` request                             |
+| tick_skipped  | none      | a tick started more than one period late (missed ticks, skipped)  |
+| mocap_dropout | none      | no fresh pose for more than 2 ticks but still below mocap_stale_s |
+
+One-drone events stop only that drone: each drone has its own radio, pose and policy, and the
+other drone can finish the race (a stopped drone lies on the floor). Events that say the loop
+itself is unhealthy (overrun, operator) stop every drone.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cfrace.flight.config import SafetyConfig
+
+STOP_DRONE, STOP_ALL, NONE = "stop_drone", "stop_all", "none"
+
+
+@dataclass(frozen=True)
+class Fence:
+    """Axis-aligned box the drones must stay in (m); the floor is handled by the floor rule."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    @classmethod
+    def from_track(cls, track, margin_m: float) -> "Fence":
+        a = track.arena
+        return cls((a.x[0] - margin_m, a.y[0] - margin_m, -math.inf),
+                   (a.x[1] + margin_m, a.y[1] + margin_m, a.z_max + margin_m))
+
+    def contains(self, pos) -> bool:
+        return all(lo <= float(p) <= hi for lo, p, hi in zip(self.lo, pos, self.hi))
+
+
+@dataclass(frozen=True)
+class DroneInputs:
+    """What the safety check sees of one drone this tick (SI units, world frame)."""
+
+    pos: np.ndarray            #: (3,) m
+    vel: np.ndarray            #: (3,) m/s
+    rot: np.ndarray            #: (3, 3) world-from-body
+    est_valid: bool            #: the estimator has a usable pose
+    est_age_s: float           #: s since the last mocap pose of this body
+    obs: np.ndarray | None     #: (D,) this tick's observation (None if none computed this tick)
+    action: np.ndarray | None  #: (4,) the action about to be sent
+    link_connected: bool
+    link_rx_age_s: float       #: s since the last packet from the drone
+    gate_crash: bool = False   #: crossed the target gate plane inside the frame this tick
+
+
+@dataclass(frozen=True)
+class SafetyInputs:
+    t: float                        #: s since the race start
+    dt: float                       #: s, loop period
+    tick_late_s: float              #: s, how late this tick started against its deadline
+    drones: tuple[DroneInputs, ...]
+    operator_kill: str | None = None  #: e.g. "SIGTERM", "SIGINT", or None
+
+
+@dataclass(frozen=True)
+class Violation:
+    kind: str
+    drone: int | None   #: index, or None for the whole loop
+    action: str         #: "stop_drone", "stop_all" or "none"
+    detail: str
+
+
+@dataclass(frozen=True)
+class Decision:
+    stop: tuple[bool, ...]        #: per drone: must be stopped now
+    stop_all: bool
+    violations: tuple[Violation, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not any(self.stop) and not self.stop_all
+
+
+def _finite(x) -> bool:
+    # one reduction instead of isfinite().all(): a sum is finite iff every element is (no overflow
+    # at these magnitudes); ~1 us on the loop's small arrays
+    return x is None or math.isfinite(float(np.sum(x)))
+
+
+def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: SafetyConfig) -> list[Violation]:
+    """All violations of drone i (pure)."""
+    out: list[Violation] = []
+
+    def bad(kind: str, detail: str, action: str = STOP_DRONE):
+        out.append(Violation(kind, i, action, detail))
+
+    pos_ok, vel_ok, rot_ok = _finite(d.pos), _finite(d.vel), _finite(d.rot)
+    if not (pos_ok and vel_ok and rot_ok and _finite(d.obs) and _finite(d.action)):
+        parts = [name for name, x in (("estimate", d.pos), ("velocity", d.vel), ("attitude", d.rot),
+                                      ("observation", d.obs), ("action", d.action)) if not _finite(x)]
+        bad("non_finite", f"NaN/inf in {', '.join(parts)}")
+    if not d.est_valid or not (d.est_age_s <= cfg.mocap_stale_s):
+        bad("mocap_stale", f"no valid pose for {d.est_age_s * 1e3:.0f} ms (limit {cfg.mocap_stale_s * 1e3:.0f} ms)")
+    elif d.est_age_s > 2.5 * dt:
+        bad("mocap_dropout", f"pose {d.est_age_s * 1e3:.0f} ms old, riding through", NONE)
+    if not d.link_connected:
+        bad("link_lost", "link disconnected")
+    elif not (d.link_rx_age_s <= cfg.link_timeout_s):
+        bad("link_lost", f"no packet for {d.link_rx_age_s * 1e3:.0f} ms (limit {cfg.link_timeout_s * 1e3:.0f} ms)")
+    if d.gate_crash:
+        bad("gate_crash", "crossed the target gate plane inside the frame")
+    if pos_ok:
+        x, y, z = float(d.pos[0]), float(d.pos[1]), float(d.pos[2])
+        lo, hi = fence.lo, fence.hi
+        if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
+            bad("geofence", f"position ({x:.2f}, {y:.2f}, {z:.2f}) m outside the fence "
+                            f"x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, z <= {hi[2]:.2f}")
+        if t > cfg.floor_grace_s and z < cfg.floor_z_m:
+            bad("floor", f"z {z:.2f} m below {cfg.floor_z_m} m after take-off")
+    if rot_ok:
+        cos_tilt = max(-1.0, min(1.0, float(d.rot[2][2])))  # world z of the body z axis
+        if cos_tilt < math.cos(math.radians(cfg.tilt_max_deg)):
+            bad("tilt", f"tilt {math.degrees(math.acos(cos_tilt)):.0f} deg > {cfg.tilt_max_deg:.0f} deg")
+    if vel_ok:
+        vx, vy, vz = float(d.vel[0]), float(d.vel[1]), float(d.vel[2])
+        speed = math.sqrt(vx * vx + vy * vy + vz * vz)
+        if speed > cfg.speed_max_mps:
+            bad("speed", f"speed {speed:.1f} m/s > {cfg.speed_max_mps:.1f} m/s")
+    return out
+
+
+def check(inputs: SafetyInputs, fence: Fence, cfg: SafetyConfig) -> Decision:
+    """The per-tick safety decision (pure: same inputs, same decision)."""
+    violations: list[Violation] = []
+    if inputs.operator_kill:
+        violations.append(Violation("operator_kill", None, STOP_ALL, f"operator kill ({inputs.operator_kill})"))
+    if not (inputs.tick_late_s <= cfg.overrun_stop_s):
+        violations.append(Violation("loop_overrun", None, STOP_ALL,
+                                    f"tick {inputs.tick_late_s * 1e3:.0f} ms late (limit {cfg.overrun_stop_s * 1e3:.0f} ms)"))
+    elif inputs.tick_late_s > inputs.dt:
+        violations.append(Violation("tick_skipped", None, NONE,
+                                    f"tick {inputs.tick_late_s * 1e3:.1f} ms late: "
+                                    f"{int(inputs.tick_late_s / inputs.dt)} tick(s) skipped"))
+    for i, d in enumerate(inputs.drones):
+        violations += check_drone(i, d, inputs.t, inputs.dt, fence, cfg)
+    stop_all = any(v.action == STOP_ALL for v in violations)
+    n = len(inputs.drones)
+    stop = tuple(stop_all or any(v.drone == i and v.action == STOP_DRONE for v in violations) for i in range(n))
+    return Decision(stop, stop_all, tuple(violations))

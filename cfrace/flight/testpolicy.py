@@ -1,0 +1,82 @@
+"""Hand-made linear ONNX policies that really fly (for flight-stack tests and demos without
+trained policies): take off, level, hold the current target gate's height and, with seek > 0,
+drift towards the target gate's centre. Linear in the training observation, so it is one Gemm
+layer written by cfrace.export.build_model with valid metadata; it does NOT race well (a trained
+policy does), it only gives the flight stack a drone in the air.
+
+Observation entries used (layout without world position; +3 with it):
+    v_body (0..2), R row-major (3..11), current gate corners in body frame (12..23).
+Control (small angles, body yaw held): thrust a0 = hover + kz * (mean corner z) - kvz * v_z;
+desired tilt from the gate centre's body-frame offset and the velocity; rates = k_att * angle error.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+G = 9.81
+
+
+def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek: float = 0.0,
+                       height_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(W (4, D), b (4,)) of the linear controller for ``layout`` (cfrace.env.observations.ObsLayout)."""
+    d = layout.dim
+    o = 3 if layout.world_position else 0
+    vx, vy, vz = o + 0, o + 1, o + 2
+
+    def r(i, j):
+        return o + 3 + 3 * i + j
+
+    corner = [[o + 12 + 3 * c + k for k in range(3)] for c in range(4)]
+    w = np.zeros((4, d), np.float64)
+    b = np.zeros(4, np.float64)
+    a_per_weight = 2.0 / max_thrust_weights          # a0 units per weight of thrust
+    kp_z, kd_z = 4.0, 3.0                            # 1/s^2, 1/s
+    b[0] = a_per_weight - 1.0 + a_per_weight * kp_z * height_offset / G
+    for c in range(4):
+        w[0, corner[c][2]] += a_per_weight * kp_z / G / 4.0
+    w[0, vz] -= a_per_weight * kd_z / G
+    k_att = 6.0                                     # 1/s, angle error -> rate
+    k_pos, k_vel = 0.08 * seek, 0.25                 # rad per m, rad per m/s
+    rate_scale = [math.radians(v) for v in max_rates_deg]
+    # pitch (about +y, nose down +) accelerates +x: theta_d = k_pos gx - k_vel vx; theta ~ -R20
+    for c in range(4):
+        w[2, corner[c][0]] += k_att * k_pos / 4.0 / rate_scale[1]
+    w[2, vx] -= k_att * k_vel / rate_scale[1]
+    w[2, r(2, 0)] += k_att / rate_scale[1]
+    # roll (about +x) accelerates -y: phi_d = -(k_pos gy - k_vel vy); phi ~ R21
+    for c in range(4):
+        w[1, corner[c][1]] -= k_att * k_pos / 4.0 / rate_scale[0]
+    w[1, vy] += k_att * k_vel / rate_scale[0]
+    w[1, r(2, 1)] -= k_att / rate_scale[0]
+    return w.astype(np.float32), b.astype(np.float32)
+
+
+def make_hold_policy(path: str | Path, layout_name: str, track: str, obstacles: bool, *, seek: float = 0.0,
+                     method: str | None = None, profile: str = "cf2x_paper", height_offset: float = 0.0) -> Path:
+    """Write the linear take-off-and-hold policy as an ONNX file with valid cfrace metadata."""
+    import onnx
+
+    from cfrace import __version__
+    from cfrace.drone import load_profile
+    from cfrace.env.actions import action_map_constants
+    from cfrace.env.observations import LAYOUTS
+    from cfrace.export import build_model
+
+    layout = LAYOUTS[layout_name]
+    prof = load_profile(profile)
+    consts = action_map_constants(prof)
+    w, b = hold_policy_layers(layout, consts["max_thrust_weights"], consts["max_rates_deg"], seek=seek,
+                              height_offset=height_offset)
+    meta = {"method": method or ("ours" if layout.opponent else "ds"), "track": getattr(track, "name", track),
+            "obstacles": bool(obstacles), "obs_layout": layout.name, "obs_dim": layout.dim, **consts,
+            "policy_hz": 50.0, "drone_profile": prof.name, "train_steps": 0, "seed": 0,
+            "cfrace_version": __version__, "test_kind": f"hold(seek={seek})"}
+    model = build_model([("linear", w, b)], None, None, meta, layout.dim)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(model, str(path))
+    return path
