@@ -1,0 +1,172 @@
+"""Pose estimator: velocity, attitude, occlusions, staleness, outliers, NaN, determinism."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cfrace.flight.estimator import PoseEstimator, estimates_to_msg, quat_to_rot
+from cfrace.flight.mocap import MocapFrame, Pose
+
+Q0 = np.array([1.0, 0.0, 0.0, 0.0])
+DT = 0.01
+
+
+def yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+def frame(k: int, poses: dict, dt: float = DT) -> MocapFrame:
+    return MocapFrame(t=500.0 + k * dt, poses={b: Pose(np.asarray(p, float), np.asarray(q, float))
+                                              for b, (p, q) in poses.items()}, seq=k + 1)
+
+
+def test_constant_velocity_and_attitude():
+    v = np.array([3.0, -1.5, 0.4])
+    est = PoseEstimator(["cf1"], alpha=0.3)
+    for k in range(30):
+        e = est.update(frame(k, {"cf1": (v * k * DT, 2.0 * yaw_quat(0.5))}), now=k * DT)["cf1"]
+    np.testing.assert_allclose(e.vel, v, atol=1e-9)
+    np.testing.assert_allclose(e.pos, v * 29 * DT, atol=1e-12)
+    assert e.valid and e.age_s == 0.0 and e.t == pytest.approx(500.29)
+    np.testing.assert_allclose(np.linalg.norm(e.quat), 1.0)           # normalised
+    np.testing.assert_allclose(e.rot, [[math.cos(0.5), -math.sin(0.5), 0],
+                                       [math.sin(0.5), math.cos(0.5), 0], [0, 0, 1]], atol=1e-12)
+    assert est.counters["cf1"] == {"frames": 30, "occluded": 0, "outliers": 0, "invalid": 0,
+                                   "stale": 0, "reacquired": 0}
+
+
+def test_rotation_matrix_maps_body_axes():
+    # 90 deg about x: body y -> world z
+    q = np.array([math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0])
+    np.testing.assert_allclose(quat_to_rot(q) @ [0, 1, 0], [0, 0, 1], atol=1e-12)
+    r = quat_to_rot(np.array([0.3, -0.5, 0.7, 0.1]) / np.linalg.norm([0.3, -0.5, 0.7, 0.1]))
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+def test_velocity_low_pass_reduces_noise():
+    rng = np.random.default_rng(0)
+    v = np.array([2.0, 0.0, 0.0])
+    errs = {}
+    for alpha in (1.0, 0.2):
+        est = PoseEstimator(["cf1"], alpha=alpha)
+        out = []
+        for k in range(600):
+            p = v * k * DT + rng.normal(0, 0.001, 3)
+            out.append(est.update(frame(k, {"cf1": (p, Q0)}), k * DT)["cf1"].vel)
+        errs[alpha] = np.std(np.array(out[100:]) - v)
+    assert errs[0.2] < 0.5 * errs[1.0]
+
+
+def test_occlusion_gap_prediction_and_staleness():
+    v = np.array([1.0, 0.0, 0.0])
+    est = PoseEstimator(["cf1", "cf2"], stale_after_s=0.1)
+    for k in range(10):
+        est.update(frame(k, {"cf1": (v * k * DT, Q0), "cf2": ([0, 0, 1], Q0)}), k * DT)
+    ages, valid = [], []
+    for k in range(10, 40):                     # cf1 occluded for 0.3 s
+        e = est.update(frame(k, {"cf2": ([0, 0, 1], Q0)}), k * DT)
+        ages.append(e["cf1"].age_s)
+        valid.append(e["cf1"].valid)
+        if k == 15:                              # short gap: predicted forward with its velocity
+            np.testing.assert_allclose(e["cf1"].pos, v * 15 * DT, atol=1e-9)
+        assert e["cf2"].valid
+    assert all(b > a for a, b in zip(ages, ages[1:]))
+    assert ages[-1] == pytest.approx(0.30)
+    assert valid[:10] == [True] * 10 and not any(valid[11:])      # stale after 0.1 s
+    held = est.update(None, 0.5)["cf1"]
+    np.testing.assert_allclose(held.pos, v * (9 * DT + 0.1), atol=1e-9)   # prediction capped
+    c = est.counters["cf1"]
+    assert c["occluded"] == 30 and c["stale"] == 21   # 20 ticks in the gap + the held one
+    e = est.update(frame(40, {"cf1": (v * 40 * DT, Q0)}), 40 * DT)["cf1"]   # seen again
+    assert e.valid and e.age_s == 0.0
+    np.testing.assert_allclose(e.vel, v, atol=1e-9)
+
+
+def test_outlier_jump_rejected_and_counted():
+    v = np.array([0.0, 2.0, 0.0])
+    est = PoseEstimator(["cf1"], max_jump_m=0.3)
+    for k in range(40):
+        p = v * k * DT
+        if k == 20:
+            p = p + np.array([0.8, 0.0, 0.0])   # a mocap glitch (mirrored marker solution)
+        e = est.update(frame(k, {"cf1": (p, Q0)}), k * DT)["cf1"]
+        if k == 20:
+            np.testing.assert_allclose(e.pos, v * 19 * DT + v * DT, atol=1e-9)   # predicted, not the glitch
+            assert e.valid
+    assert est.counters["cf1"]["outliers"] == 1
+    np.testing.assert_allclose(e.vel, v, atol=1e-9)
+    # 30 m/s in one frame is beyond max_speed even if below max_jump_m: allowed 0.3 m per 10 ms
+    est2 = PoseEstimator(["cf1"], max_speed_mps=20.0, max_jump_m=0.05)
+    est2.update(frame(0, {"cf1": ([0, 0, 1], Q0)}), 0.0)
+    est2.update(frame(1, {"cf1": ([0.3, 0, 1], Q0)}), DT)
+    assert est2.counters["cf1"]["outliers"] == 1
+
+
+def test_consistent_outliers_reacquire_the_track():
+    est = PoseEstimator(["cf1"], reacquire_after=5)
+    est.update(frame(0, {"cf1": ([5.0, 5.0, 5.0], Q0)}), 0.0)      # first pose was a ghost
+    for k in range(1, 10):
+        e = est.update(frame(k, {"cf1": ([0.0, 0.01 * k, 1.0], Q0)}), k * DT)["cf1"]
+    c = est.counters["cf1"]
+    assert c["outliers"] == 5 and c["reacquired"] == 1
+    np.testing.assert_allclose(e.pos, [0, 0.09, 1.0], atol=1e-12)
+    np.testing.assert_allclose(e.vel, [0, 1.0, 0], atol=1e-9)
+
+
+@pytest.mark.parametrize("bad", [([np.nan, 0, 1], Q0), ([0, 0, 1], [np.nan, 0, 0, 0]),
+                                 ([np.inf, 0, 1], Q0), ([0, 0, 1], [0, 0, 0, 0])])
+def test_nan_and_degenerate_poses_rejected(bad):
+    est = PoseEstimator(["cf1"])
+    est.update(frame(0, {"cf1": ([0, 0, 1], Q0)}), 0.0)
+    e = est.update(frame(1, {"cf1": bad}), DT)["cf1"]
+    assert np.isfinite(e.pos).all() and np.isfinite(e.vel).all() and np.isfinite(e.rot).all()
+    assert est.counters["cf1"]["invalid"] == 1 and e.age_s == pytest.approx(DT)
+    first = PoseEstimator(["cf1"])                        # a NaN as the very first pose
+    e = first.update(frame(0, {"cf1": bad}), 0.0)["cf1"]
+    assert not e.valid and first.counters["cf1"]["invalid"] == 1
+
+
+def test_unseen_body_is_invalid_and_repeated_frames_ignored():
+    est = PoseEstimator(["cf1", "ghost"])
+    f = frame(0, {"cf1": ([0, 0, 1], Q0)})
+    e = est.update(f, 0.0)
+    assert not e["ghost"].valid and np.isnan(e["ghost"].pos).all() and e["ghost"].age_s == math.inf
+    est.update(f, 0.005)                                  # same frame again (no new mocap data)
+    assert est.counters["cf1"]["frames"] == 1 and est.counters["ghost"]["occluded"] == 1
+    msg = estimates_to_msg(est.update(None, 0.006))
+    assert set(msg) == {"cf1", "ghost"} and msg["cf1"]["valid"] is True
+
+
+def test_deterministic_for_the_same_frames():
+    rng = np.random.default_rng(3)
+    frames = []
+    for k in range(300):
+        poses = {"cf1": (rng.normal(0, 0.002, 3) + [0.02 * k, 0, 1], yaw_quat(0.01 * k))}
+        if k % 13 == 0:
+            poses = {}
+        if k == 100:
+            poses = {"cf1": ([9.0, 9.0, 9.0], Q0)}
+        frames.append(frame(k, poses))
+
+    def run():
+        est = PoseEstimator(["cf1"], alpha=0.4)
+        return [est.update(f, 0.01 * i + 0.003)["cf1"] for i, f in enumerate(frames)], est.counters
+
+    a, ca = run()
+    b, cb = run()
+    assert ca == cb and ca["cf1"]["outliers"] == 1
+    for x, y in zip(a, b):
+        assert np.array_equal(x.pos, y.pos, equal_nan=True) and np.array_equal(x.vel, y.vel, equal_nan=True)
+        assert np.array_equal(x.rot, y.rot) and x.age_s == y.age_s and x.valid == y.valid
+
+
+def test_quaternion_sign_kept_continuous():
+    est = PoseEstimator(["cf1"])
+    q = yaw_quat(0.3)
+    est.update(frame(0, {"cf1": ([0, 0, 1], q)}), 0.0)
+    e = est.update(frame(1, {"cf1": ([0, 0, 1], -q)}), DT)["cf1"]   # same attitude, other sign
+    np.testing.assert_allclose(e.quat, q, atol=1e-12)
