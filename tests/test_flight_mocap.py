@@ -115,9 +115,11 @@ def test_sim_source_noise_latency_dropout():
     src = open_mocap("sim", bodies=["cf1", "cf2"], sim=sim, noise_m=0.002, latency_s=0.03,
                      dropout=0.2, seed=7)
     src.open()
-    for _ in range(2):                       # nothing is 30 ms old yet
-        sim.advance(0.01)
-        assert src.read(0.0) is None
+    sim.advance(0.01)
+    first = src.read(0.0)     # the scene as it was one latency before open (drones sit still)
+    assert first.t == pytest.approx(-0.03) and first.seq == 1
+    sim.advance(0.01)
+    assert src.read(0.0) is None             # nothing newer is 30 ms old yet
     frames = []
     for _ in range(2000):
         sim.advance(0.01)

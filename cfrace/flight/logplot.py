@@ -2,8 +2,8 @@
 
 Readers are lenient about message fields (the log may come from an older or newer cfrace, or a
 truncated flight): a missing field leaves that part of the report empty rather than failing.
-Field names looked for (docs/flight-log.md): /timing period_s, compute_s; /estimate per body pos,
-vel, valid (fallback: /mocap/pose poses); /safety kind|check, drone|body, action, detail (or a
+Field names looked for (docs/flight-log.md): /timing period_s (or t + late_s), compute_s, late_s;
+/estimate per body pos, vel, valid (fallback: /mocap/pose poses); /safety kind|check, drone|body, action, detail (or a
 list under "violations"); race result from the summary's "race" or the last /race message.
 matplotlib is imported lazily with the Agg backend.
 """
@@ -41,7 +41,7 @@ class LogStats:
     bodies: list[str]
     safety: list[SafetyEvent] = field(default_factory=list)
     race: dict | None = None
-    timing: dict[str, dict[str, float]] = field(default_factory=dict)  #: "period_ms"/"compute_ms"
+    timing: dict[str, dict[str, float]] = field(default_factory=dict)  #: period/compute/late_ms
 
 
 def _first(msg: dict, keys: tuple[str, ...]):
@@ -53,15 +53,20 @@ def _first(msg: dict, keys: tuple[str, ...]):
 
 
 def timing_series(data: FlightLogData) -> dict[str, np.ndarray]:
-    """{"t", "period_s", "compute_s"} arrays (N,) from /timing; NaN where a value is missing.
-    The period falls back to the spacing of the /timing messages."""
+    """{"t", "period_s", "compute_s", "late_s"} arrays (N,) from /timing; NaN where missing.
+    Without a logged period, the period is the spacing of the tick starts t + late_s (t is the
+    tick's scheduled time, late_s how late it started), or of the message times."""
     msgs = data.messages("/timing")
     t = np.array([m[0] for m in msgs], dtype=float)
-    period = np.array([np.nan if (v := _first(m[1], _PERIOD_KEYS)) is None else v for m in msgs])
-    compute = np.array([np.nan if (v := _first(m[1], _COMPUTE_KEYS)) is None else v for m in msgs])
+
+    def column(keys):
+        return np.array([np.nan if (v := _first(m[1], keys)) is None else v for m in msgs])
+
+    period, compute, late = column(_PERIOD_KEYS), column(_COMPUTE_KEYS), column(("late_s",))
     if len(t) > 1 and np.isnan(period).all():
-        period = np.concatenate([[np.nan], np.diff(t)])
-    return {"t": t, "period_s": period, "compute_s": compute}
+        start = t + np.nan_to_num(late, nan=0.0)
+        period = np.concatenate([[np.nan], np.diff(start)])
+    return {"t": t, "period_s": period, "compute_s": compute, "late_s": late}
 
 
 def _percentiles(x: np.ndarray) -> dict[str, float]:
@@ -124,11 +129,19 @@ def _safety_events(data: FlightLogData) -> list[SafetyEvent]:
     return events
 
 
+_RESULT_KEYS = ("end", "winner", "laps", "lap_times", "operator_kill", "error")
+
+
 def _race_result(data: FlightLogData) -> dict | None:
+    """The summary's race result (its "race" dict, or the result keys the flight runner writes),
+    else the last /race message (a flight that did not close)."""
     if data.summary:
-        for key in ("race", "result", "race_result"):
+        for key in ("race", "race_result"):
             if isinstance(data.summary.get(key), dict):
                 return data.summary[key]
+        found = {k: data.summary[k] for k in _RESULT_KEYS if data.summary.get(k) is not None}
+        if found:
+            return found
     races = data.messages("/race")
     return races[-1][1] if races else None
 
@@ -140,7 +153,7 @@ def log_stats(data: FlightLogData) -> LogStats:
         bodies = sorted(trajectories(data))
     ts = timing_series(data)
     timing = {}
-    for key in ("period_s", "compute_s"):
+    for key in ("period_s", "compute_s", "late_s"):
         stats = _percentiles(ts[key] * 1e3)
         if stats:
             timing[key.replace("_s", "_ms")] = stats
@@ -231,7 +244,8 @@ def plot_log(data: FlightLogData, out_dir: str | Path, *, dpi: int = 120) -> lis
         both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
         top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
         bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
-        for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute")):
+        for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute"),
+                                  ("late_s", "C2", "start late")):
             ms = ts[key] * 1e3
             ok = np.isfinite(ms)
             if not ok.any():

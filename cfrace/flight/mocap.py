@@ -362,6 +362,11 @@ class SimSource(_Source):
             self._poll()
         if self._missing():
             raise self._body_error()
+        if self.latency_s > 0 and self._buffer:
+            # a live system has been streaming before we connect: the scene as it was one latency
+            # ago (the drones sit still before a flight) is already on its way
+            t0, first = self._buffer[0]
+            self._buffer.insert(0, (t0 - self.latency_s, first))
         self._opened = True
 
     def read(self, timeout_s: float = 0.02) -> MocapFrame | None:
