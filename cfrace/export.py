@@ -224,3 +224,46 @@ def parity_check(path: str | Path, actor_module: torch.nn.Module, normalizer, n:
     ours = policy(obs)
     ref = torch_reference(actor_module, normalizer, torch.from_numpy(obs)).numpy()
     return float(np.abs(ours - ref).max())
+
+
+AGENTS = ("ego", "adversary", "best")
+
+
+def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "best") -> tuple[Path, dict, float]:
+    """Export one actor of a training checkpoint (cfrace/rl/train.py) to ONNX, then check parity.
+
+    agent: "ego" (agent 0), "adversary" (agent 1), or "best": the agent with the greater total
+    training reward (paper Sec. IV). Returns (path, metadata, max |onnx - torch| on 1000 obs).
+    """
+    from cfrace import __version__
+    from cfrace.rl.config import IPPOConfig
+    from cfrace.rl.models import AgentModels
+    from cfrace.rl.train import load_checkpoint
+
+    if agent not in AGENTS:
+        raise PolicyError(f"unknown agent {agent!r} (choose from {', '.join(AGENTS)})")
+    ckpt = load_checkpoint(checkpoint)
+    state, meta0 = ckpt["runner"], dict(ckpt["meta"])
+    totals = [float(v) for v in state["total_reward"]]
+    n = len(state["agents"])
+    if agent == "best":
+        index = max(range(n), key=lambda i: totals[i])
+    else:
+        index = AGENTS.index(agent)
+        if index >= n:
+            raise PolicyError(f"{checkpoint}: single-agent checkpoint has no {agent}; use --agent ego or best")
+    if meta0.get("obs_layout") is None:
+        raise PolicyError(f"{checkpoint}: checkpoint has no observation layout (trained on a toy env?)")
+    ippo = IPPOConfig.from_dict(state["ippo"])
+    model = AgentModels(meta0["obs_dim"], meta0["critic_dim"], ippo.actor_hidden, ippo.critic_hidden, ippo.init_std)
+    model.load_state_dict(state["agents"][index])
+    meta = {k: meta0[k] for k in META_SCHEMA if k in meta0}
+    meta.update(train_steps=int(state["env_steps"]), cfrace_version=__version__,
+                agent=AGENTS[index] if n > 1 else "ego", agent_index=index, num_agents=n,
+                total_training_reward=totals[index], iterations=int(state["iteration"]),
+                preset=ippo.preset)
+    out = export_actor(model.actor, model.obs_norm, meta, path)
+    err = parity_check(out, model.actor, model.obs_norm, n=1000)
+    if not err < 1e-4:
+        raise PolicyError(f"{out}: exported actor differs from torch by {err:.2e} (parity check failed)")
+    return out, meta, err

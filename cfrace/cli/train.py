@@ -1,9 +1,176 @@
-"""`cfrace` commands: train."""
+"""`cfrace train`, `cfrace export`, `cfrace bench train`: thin wrappers over cfrace.rl.train and
+cfrace.export (parse, call one library function, print with rich)."""
 
 from __future__ import annotations
 
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
 import typer
+from rich.console import Console
+from rich.live import Live
+from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+console = Console()
+
+_STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "success", "{:.0%}"), ("lap_time_s", "lap s", "{:.2f}"),
+          ("lead_share", "lead", "{:.0%}"), ("win_share_agent0", "wins ego", "{:.0%}"),
+          ("win_share_agent1", "wins adv", "{:.0%}"))
+
+
+def _fmt(value, spec="{:.3g}") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return spec.format(value)
+
+
+def _figures(metrics: dict, info: dict) -> Table:
+    """The live table under the progress bar: per-agent rewards and terms, race stats, speed."""
+    n = info["meta"].get("num_agents", 1)
+    names = ["ego", "adversary"][:n] if n > 1 else ["agent"]
+    table = Table(show_header=True, header_style="bold", box=None, pad_edge=False)
+    table.add_column("")
+    for name in names:
+        table.add_column(name, justify="right")
+    rows = [("return (episode)", "return_agent{}"), ("reward / step", "reward_agent{}"),
+            ("total reward", "total_reward_agent{}")]
+    rows += [(k[5:-7], k[:-1] + "{}") for k in metrics if k.startswith("term_") and k.endswith("_agent0")]
+    rows += [("value loss", "value_loss_agent{}"), ("action std", "std_agent{}"), ("alive", "alive_agent{}")]
+    for label, key in rows:
+        table.add_row(label, *(_fmt(metrics.get(key.format(a))) for a in range(n)))
+    stats = "  ".join(f"{label} {_fmt(metrics.get('stat_' + key), spec)}" for key, label, spec in _STATS
+                      if ("stat_" + key) in metrics)
+    speed = (f"{metrics['fps']:,.0f} env-steps/s  (sim {metrics['sim_s']:.1f} s, policy {metrics['infer_s']:.1f} s, "
+             f"update {metrics['update_s']:.1f} s per iteration)")
+    outer = Table.grid()
+    outer.add_row(table)
+    if stats:
+        outer.add_row(stats)
+    outer.add_row(f"[dim]{speed}[/dim]")
+    return outer
+
+
+def train_cmd(
+    method: Optional[str] = typer.Option(None, "--method", help="ours | ds | ss | dm (required unless --resume)"),
+    track: Optional[str] = typer.Option(None, "--track", help="track name or YAML path (required unless --resume)"),
+    obstacles: Optional[bool] = typer.Option(None, "--obstacles/--no-obstacles", help="train with obstacles"),
+    preset: Optional[str] = typer.Option(None, "--preset", help="cpu (default) | paper"),
+    envs: Optional[int] = typer.Option(None, "--envs", min=1, help="parallel worlds (default: the preset's)"),
+    minutes: Optional[float] = typer.Option(None, "--minutes", min=0.0, help="wall-clock budget of this run"),
+    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="total env-step budget (world transitions)"),
+    seed: Optional[int] = typer.Option(None, "--seed"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output folder (default runs/METHOD_TRACK[_obstacles]_sSEED)"),
+    resume: Optional[Path] = typer.Option(None, "--resume", help="continue the run in this folder from its checkpoint"),
+    device: Optional[str] = typer.Option(None, "--device", help="cpu | cuda (default: cuda when available)"),
+    profile: Optional[str] = typer.Option(None, "--profile", help="drone profile (default cf2x_paper)"),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
+    checkpoint_min: float = typer.Option(5.0, "--checkpoint-min", min=0.0, help="minutes between checkpoints"),
+) -> None:
+    """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG."""
+    from cfrace.errors import ConfigError
+    from cfrace.rl.train import TrainConfig, resume_config, train
+
+    if minutes is None and steps is None:
+        minutes = 30.0
+    if resume is not None:
+        cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
+                            seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
+                            out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0)
+    else:
+        if method is None or track is None:
+            raise ConfigError("--method and --track are required (or --resume DIR)")
+        seed = 0 if seed is None else seed
+        name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
+        cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
+                          profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
+                          checkpoint_min * 60.0, threads=threads)
+    budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
+                                       f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
+    console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
+                  f"{' with obstacles' if cfg.obstacles else ''}, preset {cfg.preset}, budget {budget}, "
+                  f"out {cfg.out}{' (resumed)' if resume else ''}")
+    progress = Progress(TextColumn("[bold]it {task.fields[it]}"), BarColumn(), TaskProgressColumn(),
+                        TextColumn("{task.fields[steps]} steps"), TimeElapsedColumn(), console=console)
+    task = progress.add_task("train", total=1.0, it=0, steps=0)
+    grid = Table.grid()
+    grid.add_row(progress)
+    with Live(grid, console=console, refresh_per_second=4, transient=False) as live:
+        def update(metrics: dict, info: dict) -> None:
+            progress.update(task, completed=info["progress"], it=metrics["iteration"], steps=f"{metrics['env_steps']:,}")
+            view = Table.grid()
+            view.add_row(progress)
+            view.add_row(_figures(metrics, info))
+            live.update(view)
+
+        result = train(cfg, resume=resume, on_iteration=update)
+    how = "stopped by signal, checkpointed" if result.interrupted else "done"
+    console.print(f"{how}: {result.iterations} iterations, {result.env_steps:,} env steps, "
+                  f"{result.wall_s / 60:.1f} min total")
+    if result.exact_resume is False:
+        console.print("[yellow]note: the environment has no saved state; its races restarted on resume[/yellow]")
+    console.print(f"checkpoint {result.checkpoint}\nmetrics {result.out / 'metrics.csv'}  tensorboard {result.out / 'tb'}")
+    if result.curve:
+        console.print(f"training curve {result.curve}")
+
+
+def export_cmd(
+    checkpoint: Path = typer.Argument(..., help="checkpoint.pt or the run folder holding it"),
+    output: Path = typer.Option(..., "-o", "--output", help="ONNX file to write"),
+    agent: str = typer.Option("best", "--agent", help="ego | adversary | best (greater total training reward)"),
+) -> None:
+    """Export a trained actor (with its observation normaliser and metadata) to ONNX; parity-checked."""
+    from cfrace.export import export_checkpoint
+
+    path, meta, err = export_checkpoint(checkpoint, output, agent)
+    table = Table(title=f"exported {path}")
+    table.add_column("key")
+    table.add_column("value")
+    for k, v in meta.items():
+        table.add_row(k, json.dumps(v) if not isinstance(v, str) else v)
+    table.add_row("parity (max |onnx - torch|, 1000 obs)", f"{err:.2e}")
+    console.print(table)
+
+
+def bench_train_cmd(
+    preset: str = typer.Option("cpu", "--preset", help="cpu | paper"),
+    method: str = typer.Option("ours", "--method"),
+    track: str = typer.Option("complex", "--track"),
+    obstacles: bool = typer.Option(False, "--obstacles"),
+    envs: Optional[int] = typer.Option(None, "--envs", min=1, help="parallel worlds (default: the preset's)"),
+    iterations: int = typer.Option(3, "--iterations", min=1, help="timed iterations (after one warm-up)"),
+    device: Optional[str] = typer.Option(None, "--device"),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures to this JSON file"),
+) -> None:
+    """Env-steps/s of whole training iterations, split into simulation, policy inference and update."""
+    from cfrace.rl.train import bench_train
+
+    r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads)
+    table = Table(title=f"training speed: {method} on {r['track']}, preset {r['preset']}, {r['device']}, "
+                        f"{r['threads']} thread(s)")
+    table.add_column("figure")
+    table.add_column("value", justify="right")
+    table.add_row("worlds x drones", f"{r['num_envs']} x {r['num_agents']}")
+    table.add_row("env steps / s (whole iterations)", f"{r['env_steps_per_s']:,.0f}")
+    table.add_row("drone steps / s", f"{r['drone_steps_per_s']:,.0f}")
+    table.add_row("simulation only, env steps / s", f"{r['sim_env_steps_per_s']:,.0f}")
+    table.add_row("seconds per iteration", f"{r['iteration_s']:.2f}")
+    for k in ("sim", "inference", "update", "other"):
+        table.add_row(f"share {k}", f"{r['share_' + k]:.0%}")
+    console.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(r, indent=2) + "\n")
+        console.print(f"wrote {json_out}")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the top-level app."""
+    """Add `train`, `export` and `bench train`."""
+    from cfrace.cli.bench import bench_app
+
+    app.command("train")(train_cmd)
+    app.command("export")(export_cmd)
+    bench_app.command("train")(bench_train_cmd)

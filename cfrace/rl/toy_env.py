@@ -34,12 +34,17 @@ class ToyRaceEnv:
     GOAL_R = 0.3    #: m, goal radius
 
     def __init__(self, num_envs: int, num_agents: int = 2, *, episode_steps: int = 40, device="cpu", seed: int = 0,
-                 randomize: bool = True):
+                 randomize: bool = True, layout: str | None = None):
+        """layout: a name from LAYOUTS to pad the observation to that layout's size (noise
+        features), so that checkpoints of the toy env can be exported like real ones."""
+        from cfrace.env.observations import LAYOUTS
+
         self.num_envs, self.num_agents, self.episode_steps = num_envs, num_agents, episode_steps
         self.device = torch.device(device)
-        self.obs_dim = 6 + (2 if num_agents > 1 else 0)
+        self.core_dim = 6 + (2 if num_agents > 1 else 0)
+        self.layout = LAYOUTS[layout] if layout is not None else None
+        self.obs_dim = self.layout.dim if self.layout is not None else self.core_dim
         self.critic_dim = self.obs_dim * num_agents
-        self.layout = None
         self.randomize = randomize
         self.gen = torch.Generator(device=self.device).manual_seed(seed)
         e, a = num_envs, num_agents
@@ -65,6 +70,12 @@ class ToyRaceEnv:
         own = torch.cat([self.goal - self.p, self.v, self.p], -1)                # (E, A, 6)
         if self.num_agents > 1:
             own = torch.cat([own, self.p.flip(1) - self.p], -1)
+        if self.obs_dim > self.core_dim:  # padding features: noise with distinct offsets and scales
+            pad = self.obs_dim - self.core_dim
+            k = torch.arange(pad, device=self.device, dtype=torch.float32)
+            noise = torch.randn(self.num_envs, self.num_agents, pad, generator=self.gen, device=self.device)
+            own = torch.cat([own, noise * (0.1 + 0.2 * k) + k - pad / 2], -1)
+        if self.num_agents > 1:
             critic = torch.cat([own, own.flip(1)], -1)
         else:
             critic = own.clone()

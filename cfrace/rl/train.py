@@ -1,0 +1,270 @@
+"""The training loop behind `cfrace train`: budgets, checkpoints, resume, logs, Ctrl-C.
+
+out/checkpoint.pt   models, optimizers, normalisers, RNG states, env state, iteration, env steps,
+                    config and the export metadata (written atomically every few minutes and at the end)
+out/metrics.csv     one row per iteration;  out/tb/  TensorBoard scalars
+out/training_curve.png   episode return per drone against env steps
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import threading
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from cfrace import __version__
+from cfrace.drone import DEFAULT_PROFILE, load_profile
+from cfrace.env.actions import action_map_constants
+from cfrace.errors import ConfigError
+from cfrace.export import METHODS, MULTI_AGENT_METHODS
+from cfrace.rl.config import IPPOConfig, preset
+from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
+from cfrace.rl.runner import Runner
+from cfrace.track import load_track
+
+CHECKPOINT = "checkpoint.pt"
+FORMAT = "cfrace-ippo-1"
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    method: str                     #: ours | ds | ss | dm
+    track: str                      #: track name or YAML path
+    obstacles: bool = False         #: train with the track's obstacles
+    preset: str = "cpu"             #: IPPO preset (cpu | paper)
+    num_envs: int | None = None     #: parallel worlds; None = the preset's
+    seed: int = 0
+    device: str | None = None       #: cpu | cuda; None = cuda when available
+    profile: str = DEFAULT_PROFILE  #: drone profile name or path
+    minutes: float | None = None    #: wall-clock budget of this run (min)
+    steps: int | None = None        #: total env-step budget (world transitions, counted across resumes)
+    out: str = "runs/train"         #: output folder
+    checkpoint_every_s: float = 300.0  #: s between periodic checkpoints
+    episode_s: float = 30.0         #: s, race length before truncation
+    threads: int | None = None      #: torch intra-op threads; None = 1 on a CPU (see docs/training.md)
+
+    def ippo(self) -> IPPOConfig:
+        return preset(self.preset, self.method in MULTI_AGENT_METHODS, num_envs=self.num_envs)
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    checkpoint: Path
+    curve: Path | None
+    iterations: int
+    env_steps: int
+    wall_s: float
+    interrupted: bool
+    exact_resume: bool | None
+    last: dict
+
+
+def pick_device(device: str | None) -> torch.device:
+    if device is None:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise ConfigError(f"unknown device {device!r} (cpu or cuda)")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError("--device cuda requested but no CUDA device is available")
+    return torch.device(device)
+
+
+def set_threads(threads: int | None, device: torch.device) -> int:
+    """One intra-op thread by default on CPU: on a shared 2-core machine more threads spin against
+    the simulator and other processes (measured 10x slower updates, docs/training.md)."""
+    n = threads if threads is not None else 1
+    torch.set_num_threads(max(1, n))
+    return torch.get_num_threads()
+
+
+def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
+    """The RaceEnv of this config, plus the export metadata that describes it."""
+    if cfg.method not in METHODS:
+        raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
+    from cfrace.env.race_env import RaceEnv
+
+    track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
+                  device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s)
+    return env, env_meta(cfg, env, track.name, profile)
+
+
+def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
+    layout = getattr(env, "layout", None)
+    return {"method": cfg.method, "track": track_name, "obstacles": bool(cfg.obstacles),
+            "obs_layout": layout.name if layout is not None else None, "obs_dim": int(env.obs_dim),
+            **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
+            "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents)}
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.exists():
+        raise ConfigError(f"{path}: no such checkpoint")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises many types for damaged files
+        raise ConfigError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:120]})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ConfigError(f"{path}: not a cfrace training checkpoint")
+    return ckpt
+
+
+def resume_config(resume: str | Path, **given) -> TrainConfig:
+    """The saved TrainConfig with this run's budget/output/device; settings that define the task
+    (method, track, obstacles, preset, seed, profile, envs) must match if given."""
+    saved = load_checkpoint(resume)["train_config"]
+    for key in ("method", "track", "obstacles", "preset", "num_envs", "seed", "profile"):
+        if given.get(key) is not None and given[key] != saved[key]:
+            raise ConfigError(f"--resume {resume}: {key} is {saved[key]!r} in the checkpoint, not {given[key]!r}")
+    names = {f.name for f in fields(TrainConfig)}
+    keep = {k: v for k, v in saved.items() if k in names}
+    for key in ("minutes", "steps", "device", "threads", "checkpoint_every_s"):
+        keep[key] = given.get(key)
+    keep["out"] = str(given.get("out") or resume)
+    if keep["checkpoint_every_s"] is None:
+        keep["checkpoint_every_s"] = saved.get("checkpoint_every_s", 300.0)
+    return TrainConfig(**keep)
+
+
+def _save(path: Path, cfg: TrainConfig, meta: dict, runner: Runner, wall_s: float) -> None:
+    state = {"format": FORMAT, "cfrace_version": __version__, "train_config": asdict(cfg), "meta": meta,
+             "runner": runner.state_dict(), "wall_s": wall_s, "saved_at": time.time()}
+    tmp = path.with_suffix(".pt.tmp")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+class _StopFlag:
+    """First Ctrl-C (or SIGTERM): finish the iteration, checkpoint, exit. Second: stop now."""
+
+    def __init__(self):
+        self.stop = False
+        self._old = {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.stop:
+            raise KeyboardInterrupt
+        self.stop = True
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Callable | None = None,
+          on_iteration: Callable[[dict, dict], None] | None = None) -> TrainResult:
+    """Train until the budget (minutes and/or steps) is spent or Ctrl-C; checkpoint and plot.
+
+    env_factory(cfg, device, num_envs) -> (env, meta) replaces RaceEnv (tests use the toy env).
+    on_iteration(metrics, info) is called after every iteration (info: progress 0..1, elapsed_s).
+    """
+    if cfg.minutes is None and cfg.steps is None:
+        raise ConfigError("give a budget: --minutes M and/or --steps N")
+    device = pick_device(cfg.device)
+    threads = set_threads(cfg.threads, device)
+    ippo = cfg.ippo()
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt_path = out / CHECKPOINT
+    saved = load_checkpoint(resume) if resume is not None else None
+    if saved is not None:
+        ippo = IPPOConfig.from_dict(saved["runner"]["ippo"])
+    env, meta = (env_factory or make_env)(cfg, device, ippo.num_envs)
+    runner = Runner(env, ippo, seed=cfg.seed)
+    exact = None
+    wall_before = 0.0
+    if saved is not None:
+        exact = runner.load_state_dict(saved["runner"])
+        wall_before = float(saved.get("wall_s", 0.0))
+    csv_log = CsvLog(out / "metrics.csv", resume_iteration=runner.iteration if saved is not None else None)
+    tb = TensorBoardLog(out / "tb", purge_step=runner.iteration + 1 if saved is not None else None)
+    title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({ippo.preset} preset)"
+    start = time.perf_counter()
+    last_ckpt = start
+    metrics: dict = {}
+    interrupted = False
+    info = {"threads": threads, "device": str(device), "num_envs": ippo.num_envs, "ippo": ippo, "meta": meta}
+
+    def progress() -> float:
+        parts = []
+        if cfg.minutes is not None:
+            parts.append((time.perf_counter() - start) / (60.0 * cfg.minutes))
+        if cfg.steps is not None:
+            parts.append(runner.env_steps / max(cfg.steps, 1))
+        return min(1.0, max(parts))
+
+    def save() -> None:
+        _save(ckpt_path, cfg, meta, runner, wall_before + time.perf_counter() - start)
+        tb.flush()
+
+    try:
+        with _StopFlag() as flag:
+            while progress() < 1.0 and not flag.stop:
+                metrics = runner.iterate()
+                metrics["wall_s"] = wall_before + time.perf_counter() - start
+                csv_log.write(metrics)
+                tb.write(metrics, runner.env_steps)
+                if on_iteration is not None:
+                    on_iteration(metrics, {**info, "progress": progress(),
+                                           "elapsed_s": time.perf_counter() - start})
+                if time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s:
+                    save()
+                    last_ckpt = time.perf_counter()
+            interrupted = flag.stop
+        save()
+    finally:
+        tb.close()
+    curve = plot_training_curve(csv_log.rows, out / "training_curve.png", title, runner.num_agents)
+    return TrainResult(out, ckpt_path, curve, runner.iteration, runner.env_steps,
+                       wall_before + time.perf_counter() - start, interrupted, exact, metrics)
+
+
+def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
+                num_envs: int | None = None, iterations: int = 3, device: str | None = None,
+                threads: int | None = None, env_factory: Callable | None = None, **overrides) -> dict:
+    """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
+    and the update. One warm-up iteration is not counted."""
+    cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1)
+    dev = pick_device(device)
+    n_threads = set_threads(threads, dev)
+    ippo = replace(cfg.ippo(), **{k: v for k, v in overrides.items() if v is not None})
+    t0 = time.perf_counter()
+    env, meta = (env_factory or make_env)(cfg, dev, ippo.num_envs)
+    runner = Runner(env, ippo, seed=0)
+    setup_s = time.perf_counter() - t0
+    runner.iterate()
+    sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
+    for _ in range(iterations):
+        m = runner.iterate()
+        for k in sums:
+            sums[k] += m[k]
+    steps = iterations * ippo.rollout * ippo.num_envs
+    drones = steps * runner.num_agents
+    return {"method": method, "track": meta["track"], "obstacles": obstacles, "preset": ippo.preset,
+            "device": str(dev), "threads": n_threads, "num_envs": ippo.num_envs, "rollout": ippo.rollout,
+            "num_agents": runner.num_agents, "actor_hidden": list(ippo.actor_hidden),
+            "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
+            "iterations": iterations, "setup_s": setup_s,
+            "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],
+            "sim_env_steps_per_s": steps / sums["sim_s"] if sums["sim_s"] > 0 else math.inf,
+            "iteration_s": sums["iter_s"] / iterations,
+            "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],
+            "share_update": sums["update_s"] / sums["iter_s"],
+            "share_other": 1.0 - (sums["sim_s"] + sums["infer_s"] + sums["update_s"]) / sums["iter_s"]}

@@ -1,0 +1,136 @@
+"""The training loop (budgets, logs, checkpoints, resume, signals) and checkpoint export, on the toy env."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+
+import numpy as np
+import pytest
+import torch
+
+from cfrace.drone import load_profile
+from cfrace.errors import ConfigError, PolicyError
+from cfrace.export import export_checkpoint
+from cfrace.policy import OnnxPolicy
+from cfrace.rl.toy_env import ToyRaceEnv
+from cfrace.rl.train import TrainConfig, bench_train, env_meta, load_checkpoint, resume_config, train
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def toy_factory(cfg, device, num_envs):
+    layout = {("ours", False): "race42", ("ds", False): "solo36"}[(cfg.method, cfg.obstacles)]
+    env = ToyRaceEnv(num_envs, 2 if cfg.method == "ours" else 1, episode_steps=12, seed=cfg.seed, layout=layout)
+    return env, env_meta(cfg, env, "complex", load_profile(cfg.profile))
+
+
+def _cfg(tmp_path, **kw):
+    base = dict(method="ours", track="complex", num_envs=16, steps=16 * 16 * 3, out=str(tmp_path / "run"),
+                device="cpu", threads=1, seed=2)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_train_writes_outputs_and_resumes_exactly(tmp_path):
+    # uninterrupted: 5 iterations
+    full = train(_cfg(tmp_path, steps=16 * 16 * 5, out=str(tmp_path / "full")), env_factory=toy_factory)
+    assert full.iterations == 5 and not full.interrupted
+    # interrupted after 3, resumed to 5
+    part = train(_cfg(tmp_path, steps=16 * 16 * 3), env_factory=toy_factory)
+    assert part.iterations == 3 and part.env_steps == 16 * 16 * 3
+    out = tmp_path / "run"
+    for name in ("checkpoint.pt", "metrics.csv", "training_curve.png"):
+        assert (out / name).stat().st_size > 0
+    assert (out / "training_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    ck = load_checkpoint(out)
+    assert ck["meta"]["obs_layout"] == "race42" and ck["runner"]["iteration"] == 3
+    cfg = resume_config(out, steps=16 * 16 * 5, device="cpu", threads=1)
+    assert cfg.method == "ours" and cfg.seed == 2 and cfg.out == str(out)
+    res = train(cfg, resume=out, env_factory=toy_factory)
+    assert res.exact_resume is True and res.iterations == 5
+    a, b = _rows(tmp_path / "full" / "metrics.csv"), _rows(out / "metrics.csv")
+    assert [r["iteration"] for r in b] == ["1", "2", "3", "4", "5"]
+    for ra, rb in zip(a, b):  # same numbers as without the interruption
+        for k in ra:
+            if not (k.endswith("_s") or k == "fps"):
+                assert ra[k] == rb[k], (ra["iteration"], k)
+    wa = load_checkpoint(tmp_path / "full")["runner"]["agents"]
+    wb = load_checkpoint(out)["runner"]["agents"]
+    for sa, sb in zip(wa, wb):
+        for k in sa:
+            assert torch.equal(sa[k], sb[k]), k
+
+
+def test_resume_refuses_other_task(tmp_path):
+    train(_cfg(tmp_path, steps=16 * 16), env_factory=toy_factory)
+    with pytest.raises(ConfigError, match="method"):
+        resume_config(tmp_path / "run", method="ds")
+    with pytest.raises(ConfigError):
+        load_checkpoint(tmp_path / "nowhere")
+    (tmp_path / "junk.pt").write_bytes(b"garbage")
+    with pytest.raises(ConfigError):
+        load_checkpoint(tmp_path / "junk.pt")
+
+
+def test_signal_checkpoints_and_stops(tmp_path):
+    seen = []
+
+    def on_iteration(metrics, info):
+        seen.append(metrics["iteration"])
+        if metrics["iteration"] == 2:
+            os.kill(os.getpid(), signal.SIGINT)  # like Ctrl-C: finish the iteration, checkpoint, stop
+
+    res = train(_cfg(tmp_path, steps=None, minutes=5.0), env_factory=toy_factory, on_iteration=on_iteration)
+    assert res.interrupted and res.iterations == 2 and seen == [1, 2]
+    assert load_checkpoint(tmp_path / "run")["runner"]["iteration"] == 2
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handler restored
+
+
+def test_export_agents_from_checkpoint(tmp_path):
+    train(_cfg(tmp_path), env_factory=toy_factory)
+    ck = load_checkpoint(tmp_path / "run")
+    totals = [float(v) for v in ck["runner"]["total_reward"]]
+    best = int(np.argmax(totals))
+    paths = {}
+    for agent in ("ego", "adversary", "best"):
+        path, meta, err = export_checkpoint(tmp_path / "run", tmp_path / f"{agent}.onnx", agent)
+        assert err < 1e-5
+        paths[agent] = path
+        pol = OnnxPolicy(path)
+        assert pol.meta["method"] == "ours" and pol.meta["obs_dim"] == 42 and pol.meta["track"] == "complex"
+        assert pol.meta["train_steps"] == 16 * 16 * 3 and pol.meta["seed"] == 2
+        assert pol.meta["agent"] == ("ego", "adversary")[best] if agent == "best" else pol.meta["agent"] == agent
+    obs = np.random.default_rng(0).normal(size=(50, 42)).astype(np.float32)
+    ego, adv, bst = (OnnxPolicy(paths[k])(obs) for k in ("ego", "adversary", "best"))
+    assert np.abs(ego - adv).max() > 1e-4  # two different actors
+    np.testing.assert_array_equal(bst, (ego, adv)[best])
+    with pytest.raises(PolicyError):
+        export_checkpoint(tmp_path / "run", tmp_path / "x.onnx", "nobody")
+
+
+def test_export_single_agent_refuses_adversary(tmp_path):
+    train(_cfg(tmp_path, method="ds", steps=16 * 24), env_factory=toy_factory)
+    path, meta, _ = export_checkpoint(tmp_path / "run", tmp_path / "ds.onnx", "best")
+    assert OnnxPolicy(path).meta["obs_layout"] == "solo36" and meta["agent"] == "ego"
+    with pytest.raises(PolicyError, match="single-agent"):
+        export_checkpoint(tmp_path / "run", tmp_path / "x.onnx", "adversary")
+
+
+def test_bench_train_split(tmp_path):
+    r = bench_train("ours", "complex", num_envs=16, iterations=2, device="cpu", threads=1, env_factory=toy_factory)
+    assert r["env_steps_per_s"] > 0 and r["num_agents"] == 2
+    total = r["share_sim"] + r["share_inference"] + r["share_update"] + r["share_other"]
+    assert abs(total - 1.0) < 1e-9 and r["share_update"] > 0 and r["share_sim"] > 0
