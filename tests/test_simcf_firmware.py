@@ -231,14 +231,14 @@ def test_advance_carries_the_remainder():
     assert f.time == pytest.approx(0.006)
 
 
-def test_hover_lifts_off_with_numpy_and_torch_backends():
-    """Hover thrust + 30 % lifts a drone off the floor in both backends, the same way."""
+def test_hover_lifts_off_the_same_in_every_backend():
+    """Hover thrust + 30 % lifts a drone off the floor in every backend, the same way."""
     from cfrace.drone import load_profile
 
     prof = load_profile("cf2x_paper")
     counts = int(prof.thrust_curve.to_counts(prof.weight * 1.3))
     heights = []
-    for backend in ("numpy", "torch"):
+    for backend in ("numpy", "c", "torch"):
         f = SimFleet("lemniscate", prof, 1, arming_required=False, backend=backend)
         rate_mode(f)
         f.handle_setpoint(0, 0, 0, 0, 0)
@@ -247,4 +247,4 @@ def test_hover_lifts_off_with_numpy_and_torch_backends():
             f.advance(0.02)
         heights.append(f.state(0)["pos"][2])
     assert heights[0] > 0.1
-    assert heights[0] == pytest.approx(heights[1], abs=1e-3)
+    assert heights[0] == pytest.approx(heights[1], abs=1e-3) and heights[0] == pytest.approx(heights[2], abs=1e-3)

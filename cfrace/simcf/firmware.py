@@ -170,7 +170,7 @@ class SimFleet:
 
     def __init__(self, track: Track | str, profile: DroneProfile | str, drones: int, *,
                  body_names=None, start_positions=None, seed: int = 0, arming_required: bool = True,
-                 obstacles: bool = True, crash_rules=None, backend: str = "numpy", sim=None):
+                 obstacles: bool = True, crash_rules=None, backend: str = "auto", sim=None):
         self.track = load_track(track) if isinstance(track, str) else track
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         if drones < 1:
@@ -189,20 +189,27 @@ class SimFleet:
                 raise ConfigError(f"simcf: start_positions must have shape ({self.n}, 3), got {pos.shape}")
         self._start_pos = pos
         self.lock = threading.RLock()
+        custom = sim is not None
         if sim is None:
             from cfrace.sim.simulator import CrashRules
 
             # A real drone may sit on the floor and leave the arena: only impacts, gate frames and
             # long contacts end in a crash (the simulator then freezes the drone, motors off).
             rules = crash_rules or CrashRules(floor_grace_s=None, arena=False)
+            if backend == "auto":
+                from cfrace.sim import ckernel
+
+                backend = "c" if ckernel.available() else "numpy"
             if backend == "numpy":
                 from cfrace.simcf.npsim import NumpySim
 
                 sim = NumpySim(self.track, self.profile, self.n, obstacles=obstacles, rules=rules)
-            elif backend == "torch":
-                sim = TorchSimAdapter(self.track, self.profile, self.n, obstacles=obstacles, rules=rules, seed=seed)
+            elif backend in ("c", "torch"):
+                sim = TorchSimAdapter(self.track, self.profile, self.n, obstacles=obstacles, rules=rules, seed=seed,
+                                      backend=backend)
             else:
-                raise ConfigError(f"simcf: unknown backend {backend!r} (numpy or torch)")
+                raise ConfigError(f"simcf: unknown backend {backend!r} (auto, c, torch or numpy)")
+        self.backend = "custom" if custom else backend   #: which physics runs: c, torch, numpy or custom
         self.sim = sim
         self._steps = 0          # physics steps done since construction
         self._pending = 0.0      # s of requested time not yet simulated (< DT)
@@ -491,12 +498,15 @@ class SimFleet:
 
 class TorchSimAdapter:
     """cfrace.sim.simulator.Simulator (one world) behind the NumpySim interface: numpy in and out.
-    Exactly the training simulator, but too slow for real time on a laptop CPU (see npsim.py)."""
+    The training simulator itself; real-time capable with its C kernel (backend "c", one thread),
+    not with its torch path (several ms per 2 ms step for one world; see npsim.py)."""
 
-    def __init__(self, track: Track, profile: DroneProfile, drones: int, *, obstacles: bool, rules, seed: int = 0):
+    def __init__(self, track: Track, profile: DroneProfile, drones: int, *, obstacles: bool, rules, seed: int = 0,
+                 backend: str = "c"):
         from cfrace.sim.simulator import Simulator
 
-        self.sim = Simulator(track, profile, worlds=1, drones=drones, obstacles=obstacles, seed=seed, rules=rules)
+        self.sim = Simulator(track, profile, worlds=1, drones=drones, obstacles=obstacles, seed=seed, rules=rules,
+                             backend=backend, threads=1)
 
     def reset(self, pos, vel, quat, target) -> None:
         import torch

@@ -160,7 +160,7 @@ class NumpySim:
         v_new = [v[k] + acc[k] * dt for k in range(3)]
         p_new = [s.p[k] + v_new[k] * dt for k in range(3)]
         w_new = [w[k] + (tau[k] - gyro[k]) / inertia[k] * dt for k in range(3)]
-        ox, oy, oz = w
+        ox, oy, oz = w_new                                   # semi-implicit: the new rate turns q
         h = 0.5 * dt
         q = [qw + (-qx * ox - qy * oy - qz * oz) * h, qx + (qw * ox + qy * oz - qz * oy) * h,
              qy + (qw * oy - qx * oz + qz * ox) * h, qz + (qw * oz + qx * oy - qy * ox) * h]
