@@ -1,0 +1,122 @@
+"""SimCrazyflieServer without cflib: raw UDP, pose stream, lockstep mode, errors, serve()."""
+
+import socket
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from cfrace.errors import ConfigError, LinkError, MocapError
+from cfrace.simcf import crtp
+from cfrace.simcf.firmware import SimFleet
+from cfrace.simcf.poses import PoseSubscriber, decode_frame, encode_frame
+from cfrace.simcf.server import SimCrazyflieServer, serve
+
+
+@pytest.fixture(scope="module")
+def fleet():
+    return SimFleet("complex", "cf2x_paper", 2, arming_required=False)
+
+
+def udp_client(port):
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.settimeout(1.0)
+    s.connect(("127.0.0.1", port))
+    return s
+
+
+def test_raw_udp_roundtrip_and_counters(fleet):
+    with SimCrazyflieServer(fleet, base_port=0, realtime=False) as server:
+        assert server.uris == [f"udp://127.0.0.1:{p}" for p in server.ports] and len(set(server.ports)) == 2
+        c = udp_client(server.ports[1])
+        c.send(b"\xff")                                           # cflib's scan probe
+        assert c.recv(64)
+        c.send(crtp.packet(crtp.LINK, 0, b"hello"))
+        assert c.recv(64) == crtp.packet(crtp.LINK, 0, b"hello")
+        c.send(crtp.packet(crtp.COMMANDER, 0, struct.pack("<fffH", 0, 0, 0, 0)))
+        assert wait(lambda: fleet.status(1)["setpoints_received"] >= 1)
+        st = server.stats()[1]
+        assert st["rx"] == 3 and st["tx"] == 2 and st["setpoints"] == 1 and server.stats()[0]["rx"] == 0
+        c.close()
+
+
+def test_lockstep_mode_does_not_advance_time(fleet):
+    with SimCrazyflieServer(fleet, base_port=0, realtime=False):
+        t0 = fleet.time
+        time.sleep(0.1)
+        assert fleet.time == t0
+        fleet.advance(0.05)
+        assert fleet.time == pytest.approx(t0 + 0.05)
+
+
+def test_realtime_clock_follows_the_wall_clock():
+    f = SimFleet("lemniscate", "cf2x_paper", 2)
+    with SimCrazyflieServer(f, base_port=0) as server:
+        w0, t0 = time.monotonic(), f.time
+        time.sleep(0.5)
+        elapsed, simulated = time.monotonic() - w0, f.time - t0
+    assert simulated == pytest.approx(elapsed, abs=0.05)
+    assert server.overruns == 0
+
+
+def test_pose_stream(fleet):
+    with SimCrazyflieServer(fleet, base_port=0, realtime=False) as server:
+        with PoseSubscriber(port=server.pose_port) as sub:
+            t, bodies = sub.wait(2.0)
+            t_ref, ref = server.poses()
+            assert t == t_ref and list(bodies) == ["cf1", "cf2"]
+            for name in ref:
+                np.testing.assert_allclose(bodies[name][0], ref[name][0])
+                np.testing.assert_allclose(bodies[name][1], ref[name][1])
+    with PoseSubscriber(port=server.pose_port) as sub:               # server gone
+        with pytest.raises(MocapError, match="no simulated poses"):
+            sub.wait(0.3)
+
+
+def test_frame_codec_rejects_garbage():
+    frame = encode_frame(1.5, {"a": (np.arange(3.0), np.array([1.0, 0, 0, 0]))})
+    t, b = decode_frame(frame)
+    assert t == 1.5 and b["a"][0].tolist() == [0, 1, 2]
+    for bad in (b"", b"XXXX" + frame[4:], frame[:-3]):
+        with pytest.raises(ValueError):
+            decode_frame(bad)
+
+
+def test_refuses_non_loopback_and_busy_ports(fleet):
+    with pytest.raises(ConfigError, match="127.0.0.1 only"):
+        SimCrazyflieServer(fleet, host="0.0.0.0")
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    port = busy.getsockname()[1]
+    try:
+        with pytest.raises(LinkError, match=f"udp://127.0.0.1:{port}"):
+            SimCrazyflieServer(fleet, base_port=port).start()
+    finally:
+        busy.close()
+
+
+def test_serve_prints_uris_and_stops():
+    lines = []
+    stats = serve("lemniscate", 2, port=0, profile="cf2x_paper", duration=0.3, out=lines.append)
+    text = "\n".join(lines)
+    assert "cf1: udp://127.0.0.1:" in text and "cf2: udp://127.0.0.1:" in text and "poses" in text
+    assert len(stats) == 2 and all(s["rx"] == 0 for s in stats)
+
+
+def test_serve_stops_on_sigterm():
+    import os
+    import signal
+
+    threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM)).start()
+    t0 = time.monotonic()
+    serve("lemniscate", 1, port=0, profile="cf2x_paper", out=lambda s: None)
+    assert time.monotonic() - t0 < 3.0
+
+
+def wait(cond, timeout=2.0):
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end and not cond():
+        time.sleep(0.01)
+    return cond()
