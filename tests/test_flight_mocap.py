@@ -269,3 +269,81 @@ def test_udp_pose_stream_nobody_listening():
     src = open_mocap("sim://127.0.0.1:9", bodies=["cf1"])
     with pytest.raises(MocapError, match=r"^sim://127.0.0.1:9: no simulated poses"):
         src.open(timeout_s=0.3)
+
+
+_FAKE_MOTIONCAPTURE = '''
+"""Stand-in for the compiled motioncapture module (same API), for the worker-process plumbing."""
+import math, os, time
+
+class Quaternion:
+    def __init__(self, w, x, y, z):
+        self.w, self.x, self.y, self.z = w, x, y, z
+
+class RigidBody:
+    def __init__(self, name, position, rotation):
+        self.name, self.position, self.rotation = name, position, rotation
+
+class MotionCapture:
+    def __init__(self, host):
+        self.k = 0
+        self.fail_after = int(os.environ.get("FAKE_MOCAP_FAIL_AFTER", "0"))
+        self.rigidBodies = {}
+
+    def waitForNextFrame(self):
+        time.sleep(0.005)
+        self.k += 1
+        if self.fail_after and self.k > self.fail_after:
+            raise RuntimeError("lost connection to the fake server")
+        print("chatter from the C++ library on stdout")
+        bodies = {"cf1": RigidBody("cf1", [0.01 * self.k, 1.0, 2.0], Quaternion(1.0, 0.0, 0.0, 0.0)),
+                  "bad": RigidBody("bad", [math.nan, 0.0, 0.0], Quaternion(1.0, 0.0, 0.0, 0.0))}
+        if self.k % 3:      # cf2 occluded every third frame
+            bodies["cf2"] = RigidBody("cf2", [0.0, 0.0, 1.0], Quaternion(0.0, 0.0, 0.0, 1.0))
+        self.rigidBodies = bodies
+
+def connect(kind, cfg):
+    if cfg.get("hostname") == "refuse":
+        raise RuntimeError("Unknown motion capture type!")
+    return MotionCapture(cfg["hostname"])
+'''
+
+
+@pytest.fixture
+def fake_motioncapture(tmp_path, monkeypatch):
+    (tmp_path / "motioncapture.py").write_text(_FAKE_MOTIONCAPTURE)
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))   # only the worker process sees the fake
+    return tmp_path
+
+
+def test_system_source_worker_streams_frames(fake_motioncapture):
+    src = open_mocap("optitrack://fakehost", bodies=["cf1", "cf2"])
+    src.open(timeout_s=10.0)
+    try:
+        frames = [src.read(0.5) for _ in range(20)]
+    finally:
+        src.close()
+    assert all(f is not None for f in frames)
+    assert [f.seq for f in frames] == sorted(f.seq for f in frames)
+    assert all(b.t > a.t for a, b in zip(frames, frames[1:]))
+    assert abs(frames[-1].t - time.monotonic()) < 5.0          # the same monotonic clock
+    assert all("bad" not in f.poses for f in frames)          # NaN pose dropped like an occlusion
+    assert any("cf2" not in f.poses for f in frames) and any("cf2" in f.poses for f in frames)
+    f = frames[-1]
+    assert f.poses["cf1"].pos[1:].tolist() == [1.0, 2.0]
+    assert src.bodies_seen() == {"cf1", "cf2"} and src._proc.poll() is not None
+
+
+def test_system_source_errors(fake_motioncapture, monkeypatch):
+    with pytest.raises(MocapError, match=r"^vicon://refuse: RuntimeError: Unknown motion capture type!$"):
+        open_mocap("vicon://refuse", bodies=["cf1"]).open(timeout_s=10.0)
+    with pytest.raises(MocapError, match=r"unknown mocap body 'cf7' \(seen: cf1, cf2\) from vicon://h"):
+        open_mocap("vicon://h", bodies=["cf7"]).open(timeout_s=1.0)
+    monkeypatch.setenv("FAKE_MOCAP_FAIL_AFTER", "30")
+    src = open_mocap("vicon://h", bodies=["cf1"])
+    src.open(timeout_s=10.0)
+    t0 = time.monotonic()
+    while src.error is None and time.monotonic() - t0 < 5:
+        src.read(0.05)
+    assert "lost connection to the fake server" in src.error
+    assert src.read(0.05) is None                  # a dead source just stops delivering
+    src.close()

@@ -148,9 +148,12 @@ class SystemSource(_Source):
             self._kill()
             raise MocapError(f"{self.name}: {self.error}")
         deadline = time.monotonic() + timeout_s
-        while self._missing() and time.monotonic() < deadline:
+        while self._missing() and time.monotonic() < deadline and self.error is None:
             with self._cond:
                 self._cond.wait(0.05)
+        if self.error is not None:
+            self._kill()
+            raise MocapError(f"{self.name}: {self.error}")
         if self._missing():
             self._kill()
             raise self._body_error()
@@ -183,7 +186,8 @@ class SystemSource(_Source):
                 self._latest = MocapFrame(t=float(msg["t"]), poses=poses, seq=seq)
                 self._cond.notify_all()
         if self.error is None:
-            self.error = "mocap worker exited"
+            self.error = f"mocap worker exited (code {proc.wait()})"
+        self._connected.set()            # an open() still waiting fails now, with the error
         with self._cond:
             self._cond.notify_all()
 
@@ -224,8 +228,10 @@ def _die_with_parent() -> None:
 
 def _worker(kind: str, host: str) -> int:
     """Worker process: connect, then one JSON line per frame on stdout until the pipe closes."""
+    import os
     _die_with_parent()
-    out = sys.stdout
+    out = os.fdopen(os.dup(1), "w")   # our protocol keeps the pipe; anything the C++ library
+    os.dup2(2, 1)                     # prints to stdout goes to stderr instead
 
     def send(obj) -> None:
         out.write(json.dumps(obj) + "\n")
