@@ -347,3 +347,12 @@ def test_system_source_errors(fake_motioncapture, monkeypatch):
     assert "lost connection to the fake server" in src.error
     assert src.read(0.05) is None                  # a dead source just stops delivering
     src.close()
+
+
+def test_system_source_reopen_after_close(fake_motioncapture):
+    src = open_mocap("qualisys://fakehost", bodies=["cf1"])
+    for _ in range(2):
+        src.open(timeout_s=10.0)
+        assert src.read(1.0) is not None and src.error is None
+        src.close()
+        assert src._proc.poll() is not None

@@ -137,6 +137,8 @@ class SystemSource(_Source):
     def open(self, timeout_s: float = 5.0) -> None:
         if self._opened:
             return
+        self._connected, self.error = threading.Event(), None
+        self._latest, self._returned_seq = None, 0
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "cfrace.flight.mocap", "--worker", self.kind, self.host],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
@@ -168,6 +170,8 @@ class SystemSource(_Source):
                 msg = json.loads(line)
             except ValueError:
                 continue
+            if not isinstance(msg, dict):
+                continue
             if "error" in msg:
                 self.error = str(msg["error"])
                 self._connected.set()
@@ -175,18 +179,22 @@ class SystemSource(_Source):
             if msg.get("connected"):
                 self._connected.set()
                 continue
-            poses = {}
-            for body, v in msg.get("b", {}).items():
-                pose = _finite_pose(v[:3], v[3:7])
-                if pose is not None:
-                    poses[body] = pose
+            try:
+                t = float(msg["t"])
+                poses = {body: pose for body, v in msg["b"].items()
+                         if (pose := _finite_pose(v[:3], v[3:7])) is not None}
+            except (KeyError, TypeError, ValueError, AttributeError):
+                continue
             seq += 1
             with self._cond:
                 self._seen.update(poses)
-                self._latest = MocapFrame(t=float(msg["t"]), poses=poses, seq=seq)
+                self._latest = MocapFrame(t=t, poses=poses, seq=seq)
                 self._cond.notify_all()
+        code = proc.wait()
+        if self._proc is not proc:       # a reopen started a new worker meanwhile
+            return
         if self.error is None:
-            self.error = f"mocap worker exited (code {proc.wait()})"
+            self.error = f"mocap worker exited (code {code})"
         self._connected.set()            # an open() still waiting fails now, with the error
         with self._cond:
             self._cond.notify_all()
