@@ -142,7 +142,8 @@ class SystemSource(_Source):
         self._proc = subprocess.Popen(
             [sys.executable, "-m", "cfrace.flight.mocap", "--worker", self.kind, self.host],
             stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-        threading.Thread(target=self._pump, daemon=True, name=f"mocap-{self.kind}").start()
+        self._pump_thread = threading.Thread(target=self._pump, daemon=True, name=f"mocap-{self.kind}")
+        self._pump_thread.start()
         if not self._connected.wait(timeout_s):
             self._kill()
             raise MocapError(f"{self.name}: no answer within {timeout_s:.1f} s")
@@ -221,6 +222,9 @@ class SystemSource(_Source):
 
     def close(self) -> None:
         self._kill()
+        thread = getattr(self, "_pump_thread", None)
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(2.0)
         super().close()
 
 
