@@ -1,9 +1,140 @@
-"""`cfrace` commands: flight."""
+"""`cfrace fly`: race two Crazyflies from motion capture with two ONNX policies (docs/flight.md)."""
 
 from __future__ import annotations
 
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
 import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console(stderr=True)
+out = Console()
+
+
+def _ms(stats: dict | None) -> str:
+    if not stats or stats.get("p50") is None:
+        return "-"
+    return f"{stats['p50']:.3f} / {stats['p99']:.3f} / {stats['max']:.3f}"
+
+
+def print_result(result: dict, con: Console = out) -> None:
+    """The race result, loop timing figures and safety events as rich tables."""
+    end, winner = result.get("end"), result.get("winner")
+    con.print(f"[bold]race end:[/bold] {end}   [bold]winner:[/bold] {winner}   "
+              f"duration {result.get('duration_s', 0):.2f} s")
+    drones = result.get("drones") or []
+    if drones:
+        t = Table(title="drones")
+        for col in ("drone", "body", "policy", "laps", "gates", "lap times s", "max m/s", "mean m/s", "stopped"):
+            t.add_column(col)
+        for d in drones:
+            t.add_row(d["name"], d["body"], str(d.get("method")), str(d["laps"]), str(d["gates_passed"]),
+                      ", ".join(f"{x:.2f}" for x in d["lap_times"]) or "-", f"{d['speed_max']:.2f}",
+                      "-" if d["speed_mean"] is None else f"{d['speed_mean']:.2f}",
+                      f"{d['stop_kind']} @ {d['stop_t']:.2f} s" if d["stopped"] and d["stop_t"] is not None else "no")
+        con.print(t)
+    loop = result.get("loop")
+    if loop:
+        t = Table(title=f"loop timing, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz (ms, p50 / p99 / max)")
+        t.add_column("figure")
+        t.add_column("ms")
+        t.add_row("compute (tick start -> setpoints sent)", _ms(loop["compute_ms"]))
+        t.add_row("period jitter |period - 10 ms|", _ms(loop["period_jitter_ms"]))
+        t.add_row("tick start late", _ms(loop["late_ms"]))
+        for name, s in loop["inference_ms"].items():
+            t.add_row(f"inference {name} (obs + ONNX)", _ms(s))
+        t.add_row("skipped ticks", str(loop.get("skipped", 0)))
+        con.print(t)
+    events = result.get("safety_events") or []
+    if events:
+        t = Table(title="safety events")
+        for col in ("t s", "kind", "drone", "action", "detail"):
+            t.add_column(col)
+        for e in events:
+            t.add_row(f"{e['t']:.2f}", e["kind"], e["drone"] or "all", e["action"], e["detail"])
+        con.print(t)
+    else:
+        con.print("safety events: none")
+    for d in result.get("drones_final") or []:
+        con.print(f"  {d['body']}: motors {'off' if d['motors_off'] else 'ON'}, thrust {d['thrust_counts']} counts, "
+                  f"armed {d['armed']}, watchdog {d['watchdog']}")
+    if result.get("log"):
+        con.print(f"flight log: {result['log']}")
+
+
+def _clean(obj):
+    """JSON-safe copy: NaN/inf -> None, tuples -> lists, numpy scalars -> numbers."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item):
+        return _clean(obj.item())
+    return obj
+
+
+def write_json(result: dict, path: Path | None) -> None:
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_clean(result), indent=1, default=str, allow_nan=False) + "\n")
+
+
+def exit_code(result: dict) -> int:
+    from cfrace.flight.runner import EXIT_CODES
+
+    return EXIT_CODES.get(result.get("operator_kill") or "", 0) if result.get("end") == "operator_kill" else 0
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the top-level app."""
+    """Add `cfrace fly` to the top-level app."""
+
+    @app.command("fly")
+    def fly_cmd(
+        track: Optional[str] = typer.Option(None, help="Track name or YAML path."),
+        ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path (flies uris[0])."),
+        opp: Optional[str] = typer.Option(None, help="Opponent policy (flies uris[1])."),
+        uris: Optional[str] = typer.Option(None, help="Link URIs ego,opp: radio://0/80/2M/E7E7E7E7E1,radio://1/90/2M/E7E7E7E7E2 "
+                                                      "(one Crazyradio per drone), udp://127.0.0.1:19850,..."),
+        mocap: Optional[str] = typer.Option(None, help="vicon://HOST, optitrack://HOST, replay://LOG.mcap, sim://HOST:PORT."),
+        bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
+        laps: Optional[int] = typer.Option(None, help="Laps to win (default 3)."),
+        profile: Optional[str] = typer.Option(None, help="Drone profile of the flown drones (default cf21bl)."),
+        log: Optional[Path] = typer.Option(None, help="Flight log (.mcap); default flights/fly-DATE.mcap."),
+        obstacles: Optional[bool] = typer.Option(None, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
+        config: Optional[Path] = typer.Option(None, help="Flight config YAML (room, URIs, bodies, safety limits)."),
+        timeout_s: Optional[float] = typer.Option(None, help="End the race (draw) after this many seconds."),
+        geofence_margin_m: Optional[float] = typer.Option(None, help="Fence = track arena grown by this (m)."),
+        speed_max_mps: Optional[float] = typer.Option(None, help="Stop a drone above this speed (m/s)."),
+        tilt_max_deg: Optional[float] = typer.Option(None, help="Stop a drone tilted more than this (deg)."),
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+        quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+    ):
+        """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
+        from cfrace.flight.config import make_config, split_list
+        from cfrace.flight.runner import fly
+
+        safety = {k: v for k, v in (("geofence_margin_m", geofence_margin_m), ("speed_max_mps", speed_max_mps),
+                                    ("tilt_max_deg", tilt_max_deg)) if v is not None}
+        if log is None:
+            log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
+        cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
+                          bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
+                          timeout_s=timeout_s, quiet=quiet, safety_overrides=safety)
+        if not cfg.uris:
+            from cfrace.errors import ConfigError
+            raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+        result = fly(cfg, console=console)
+        print_result(result)
+        write_json(result, json_out)
+        code = exit_code(result)
+        if code:
+            sys.exit(code)

@@ -1,9 +1,124 @@
-"""`cfrace sim` commands: serve (simulated Crazyflies over CRTP/UDP) and dry-run."""
+"""`cfrace sim` commands: serve (simulated Crazyflies over CRTP/UDP), dry-run, replay; `cfrace bench loop`."""
 
 from __future__ import annotations
 
+import json
+import sys
+from pathlib import Path
+from typing import Optional
+
 import typer
+from rich.console import Console
+
+sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
+                      no_args_is_help=True)
+console = Console(stderr=True)
+out = Console()
+
+
+@sim_app.command("serve")
+def serve_cmd(
+    track: str = typer.Option(..., help="Track name or YAML path."),
+    drones: int = typer.Option(2, help="Number of simulated Crazyflies."),
+    port: int = typer.Option(19850, help="UDP port of the first drone (pose stream on port - 1)."),
+    profile: str = typer.Option("cf21bl", help="Drone profile."),
+    obstacles: bool = typer.Option(True, "--obstacles/--no-obstacles", help="Simulate the track's obstacles."),
+    bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
+    seed: int = typer.Option(0),
+):
+    """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
+    from cfrace.flight.config import split_list
+    from cfrace.simcf.server import serve
+
+    serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
+          out=lambda text: out.print(text, highlight=False))
+
+
+@sim_app.command("dry-run")
+def dry_run_cmd(
+    track: str = typer.Option(..., help="Track name or YAML path."),
+    ego: str = typer.Option(..., help="Ego policy: ours/ds/ss/dm or an .onnx path."),
+    opp: str = typer.Option(..., help="Opponent policy."),
+    laps: int = typer.Option(3, help="Laps to win."),
+    profile: str = typer.Option("cf21bl", help="Drone profile (simulated and flown)."),
+    obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
+    bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+    log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
+    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp],...: mocap_dropout_short, mocap_dropout_long, "
+                                                    "pose_outlier, geofence, nan_policy, link_loss, stall_50ms, "
+                                                    "stall_200ms, sigterm, sigint."),
+    lockstep: bool = typer.Option(False, "--lockstep", help="No wall clock, no cflib: the sim advances one tick "
+                                                            "per loop iteration (fast, deterministic)."),
+    timeout_s: float = typer.Option(60.0, help="End the race (draw) after this many seconds of race time."),
+    mocap_noise_m: float = typer.Option(0.0, help="Gaussian mocap position noise (m)."),
+    seed: int = typer.Option(0),
+    quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+):
+    """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
+    from cfrace.cli.flight import exit_code, print_result, write_json
+    from cfrace.flight.config import FlightConfig, split_list
+    from cfrace.flight.dryrun import dry_run
+
+    cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
+                       bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep)
+    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m, console=console)
+    print_result(result)
+    write_json(result, json_out)
+    code = exit_code(result)
+    if code:
+        sys.exit(code)
+
+
+@sim_app.command("replay")
+def replay_cmd(
+    log: Path = typer.Argument(..., help="A flight log written by cfrace fly / cfrace sim dry-run."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+):
+    """Re-run a logged flight lockstep and check that every logged observation is reproduced exactly."""
+    from cfrace.flight.replay import replay_log
+
+    r = replay_log(log)
+    verdict = "[green]identical[/green]" if r["identical"] else "[red]MISMATCH[/red]"
+    out.print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
+              f"({r['mismatched']} differ, max |diff| {r['max_abs_diff']:.3g})")
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1) + "\n")
+    if not r["identical"]:
+        sys.exit(1)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the top-level app."""
+    """Add `cfrace sim ...` and `cfrace bench loop` to the top-level app."""
+    from cfrace.cli.bench import bench_app
+
+    app.add_typer(sim_app, name="sim")
+
+    @bench_app.command("loop")
+    def bench_loop_cmd(
+        duration_s: float = typer.Option(10.0, help="Seconds of real-time flight to measure."),
+        track: str = typer.Option("lemniscate", help="Track name."),
+        profile: str = typer.Option("cf21bl", help="Drone profile."),
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
+    ):
+        """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
+        from rich.table import Table
+
+        from cfrace.flight.benchloop import bench_loop
+
+        r = bench_loop(duration_s, track=track, profile=profile)
+        loop = r["loop"]
+        t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
+                        f"({r['policies']}), ms")
+        for col in ("figure", "p50", "p99", "max", "goal (p99)"):
+            t.add_column(col)
+        rows = [("compute latency", loop["compute_ms"], "1.0"), ("period jitter", loop["period_jitter_ms"], "0.5"),
+                ("tick start late", loop["late_ms"], "")]
+        rows += [(f"inference {n}", s, "0.2") for n, s in loop["inference_ms"].items()]
+        for name, s, goal in rows:
+            t.add_row(name, f"{s['p50']:.3f}", f"{s['p99']:.3f}", f"{s['max']:.3f}", goal)
+        out.print(t)
+        out.print("goals met: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in r["goals_met"].items())
+                  + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs)")
+        if json_out is not None:
+            json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")

@@ -86,6 +86,16 @@ class Link(Protocol):
         """Stop (if connected) and release the link."""
 
 
+@dataclass
+class _DirectQuality(LinkQuality):
+    """A direct link always answers at once, until it is cut."""
+
+    cut_at: float = float("nan")
+
+    def rx_age(self, now: float) -> float:
+        return 0.0 if self.cut_at != self.cut_at else max(0.0, now - self.cut_at)
+
+
 class DirectSimLink:
     """A link straight to one drone of a simcf SimFleet: no UDP, no cflib, no threads (--lockstep).
 
@@ -95,13 +105,14 @@ class DirectSimLink:
     def __init__(self, fleet, index: int, clock=time.monotonic):
         self.fleet, self.index = fleet, int(index)
         self.uri = f"sim://{self.index}"
-        self.quality = LinkQuality()
+        self.quality = _DirectQuality()
         self._clock = clock
         self.cut = False   #: fault injection: a cut link delivers nothing and hears nothing
 
     def cut_link(self) -> None:
         """Fault injection: from now on nothing gets through either way."""
         self.cut = True
+        self.quality.cut_at = self._clock()
 
     def connect(self, timeout_s: float = 5.0) -> None:
         if not 0 <= self.index < self.fleet.n:

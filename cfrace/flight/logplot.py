@@ -3,8 +3,9 @@
 Readers are lenient about message fields (the log may come from an older or newer cfrace, or a
 truncated flight): a missing field leaves that part of the report empty rather than failing.
 Field names looked for (docs/flight-log.md): /timing period_s (or t + late_s), compute_s, late_s;
-/estimate per body pos, vel, valid (fallback: /mocap/pose poses); /safety kind|check, drone|body, action, detail (or a
-list under "violations"); race result from the summary's "race" or the last /race message.
+/estimate per body pos, vel, valid (fallback: /mocap/pose poses); /safety kind|check, body|drone,
+action, detail (or a list under "violations"); race result from the summary ("race", or end,
+winner, laps, lap_times) or the last /race message.
 matplotlib is imported lazily with the Agg backend.
 """
 

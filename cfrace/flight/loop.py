@@ -117,6 +117,7 @@ class FlightLoop:
         self._outliers = {d.body: 0 for d in drones}
         self.running = False
         self.t = 0.0
+        self._now = 0.0
 
     # ------------------------------------------------------------------ helpers
     def _event(self, t: float, v: sf.Violation) -> None:
@@ -177,7 +178,7 @@ class FlightLoop:
                 if self.faults is not None:
                     self.faults.before_tick(self, t)
                 frame = self.mocap.read(0.0)
-                now = self.clock.now()
+                now = self._now = self.clock.now()
                 est_map = self.estimator.update(frame, now)
                 ests = [est_map[d.body] for d in self.drones]
                 pos = np.stack([d.frozen_pos if d.stopped and d.frozen_pos is not None else e.pos
@@ -205,8 +206,8 @@ class FlightLoop:
                                  if v.action != sf.NONE and (v.drone == i or v.drone is None)]
                         if not d.stopped:
                             d.frozen_pos = pos[i].copy()
+                            d.stop_k = k
                         self._stop(i, t, kinds[0] if kinds else "safety")
-                        d.stop_k = k
                     elif not d.stopped:
                         r = d.rates_dps
                         d.link.send(r[0], r[1], r[2], d.counts)
@@ -284,7 +285,7 @@ class FlightLoop:
             log.write("/setpoint", t, {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n,
                                                 "thrust_counts": d.counts, "rates_dps": d.rates_dps}
                                        for d in self.drones})
-            log.write("/timing", t, {"k": k, "now": self.clock.now() if not self.clock.realtime else None,
+            log.write("/timing", t, {"k": k, "now": self._now,
                                      "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
                                      "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
             if passed.any() or lap_done.any():

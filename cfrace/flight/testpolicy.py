@@ -80,3 +80,48 @@ def make_hold_policy(path: str | Path, layout_name: str, track: str, obstacles: 
     path.parent.mkdir(parents=True, exist_ok=True)
     onnx.save_model(model, str(path))
     return path
+
+
+def make_sized_hold_policy(path: str | Path, layout_name: str, track: str, obstacles: bool, *,
+                           hidden=(512, 512, 256, 128), seek: float = 0.0, seed: int = 0,
+                           profile: str = "cf2x_paper") -> Path:
+    """The hold controller inside an MLP of the paper's actor size (dense random weights that do
+    not reach the output), so inference costs what a trained actor costs: ReLU pairs carry the
+    4 controller outputs through, relu(h) - relu(-h) = h, for `cfrace bench loop`."""
+    import onnx
+
+    from cfrace import __version__
+    from cfrace.drone import load_profile
+    from cfrace.env.actions import action_map_constants
+    from cfrace.env.observations import LAYOUTS
+    from cfrace.export import build_model
+
+    layout = LAYOUTS[layout_name]
+    prof = load_profile(profile)
+    consts = action_map_constants(prof)
+    w_lin, b_lin = hold_policy_layers(layout, consts["max_thrust_weights"], consts["max_rates_deg"], seek=seek)
+    rng = np.random.default_rng(seed)
+    layers, size_in = [], layout.dim
+    for j, h in enumerate(hidden):
+        w = (rng.normal(size=(h, size_in)) / np.sqrt(size_in)).astype(np.float32)
+        b = np.zeros(h, np.float32)
+        if j == 0:
+            w[:4], w[4:8], b[:4], b[4:8] = w_lin, -w_lin, b_lin, -b_lin
+        else:
+            w[:8] = 0.0
+            w[:, :8] = 0.0
+            w[:8, :8] = np.eye(8, dtype=np.float32)
+        layers += [("linear", w, b), ("relu", None, None)]
+        size_in = h
+    w_out = np.zeros((4, size_in), np.float32)
+    w_out[:, :4], w_out[:, 4:8] = np.eye(4), -np.eye(4)
+    layers.append(("linear", w_out, np.zeros(4, np.float32)))
+    meta = {"method": "ours" if layout.opponent else "ds", "track": getattr(track, "name", track),
+            "obstacles": bool(obstacles), "obs_layout": layout.name, "obs_dim": layout.dim, **consts,
+            "policy_hz": 50.0, "drone_profile": prof.name, "train_steps": 0, "seed": seed,
+            "cfrace_version": __version__, "test_kind": f"hold(seek={seek}) in {list(hidden)}"}
+    model = build_model(layers, None, None, meta, layout.dim)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    onnx.save_model(model, str(path))
+    return path

@@ -1,0 +1,92 @@
+"""`cfrace bench loop`: the flight loop's timing, real time, two drones at 100 Hz against the sim.
+
+Set-up as in a real flight: the simulated Crazyflies run in their own process (`cfrace sim
+serve`, like real drones they do not share the flight process), the flight process runs the
+unchanged `cfrace fly` code: the real cflib client over UDP, the `sim://` pose stream as mocap,
+the flight log written every tick. Policies: the shipped ours/ds policies of the track when they
+exist, else the linear hold controller inside an MLP of the paper's actor size
+([512, 512, 256, 128]) so inference costs what a trained actor costs.
+Goals on this machine: compute p99 <= 1 ms, period jitter p99 <= 0.5 ms, inference <= 0.2 ms.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from cfrace.errors import LinkError
+from cfrace.flight.config import FlightConfig
+from cfrace.flight.runner import run_race
+from cfrace.paths import POLICIES_DIR
+
+GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_ms": 0.2}
+
+
+def _free_base_port() -> int:
+    """A base port with base-1 .. base+1 free (pose port, two drones)."""
+    for _ in range(50):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if not 1025 < base < 65000:
+            continue
+        try:
+            socks = []
+            for p in (base - 1, base, base + 1):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise LinkError("no free UDP ports for the simulated drones")
+
+
+def bench_policies(track: str, workdir: Path) -> tuple[str, str, str]:
+    ours, ds = POLICIES_DIR / f"ours_{track}.onnx", POLICIES_DIR / f"ds_{track}.onnx"
+    if ours.exists() and ds.exists():
+        return str(ours), str(ds), "shipped"
+    from cfrace.flight.testpolicy import make_sized_hold_policy
+
+    ego = make_sized_hold_policy(workdir / "ego.onnx", "race42", track, False)
+    opp = make_sized_hold_policy(workdir / "opp.onnx", "solo36", track, False, seed=1)
+    return str(ego), str(opp), "hold controller in a [512, 512, 256, 128] MLP"
+
+
+def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
+               log: bool = True) -> dict:
+    """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
+    with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
+        work = Path(tmp)
+        ego, opp, kind = bench_policies(track, work)
+        base = _free_base_port()
+        cmd = [sys.executable, "-m", "cfrace.cli.main", "sim", "serve", "--track", track, "--drones", "2",
+               "--port", str(base), "--profile", profile]
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            cfg = FlightConfig(track=track, ego=ego, opp=opp, profile=profile, laps=1000, timeout_s=duration_s,
+                               uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
+                               mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
+                               connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None)
+            result = run_race(cfg)
+        finally:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    loop = result["loop"]
+    met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
+    return {"duration_s": duration_s, "policies": kind, "end": result["end"], "loop": loop,
+            "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
+            "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}
