@@ -8,7 +8,7 @@ import torch
 
 from cfrace.drone import load_profile
 from cfrace.sim.simulator import CrashRules, Simulator
-from cfrace.simcf.npsim import GATE_FRAME, FLOOR, NumpySim
+from cfrace.simcf.npsim import ARENA, CEILING, FLOOR, GATE_FRAME, NumpySim
 from cfrace.track import load_track
 
 
@@ -67,10 +67,10 @@ def test_obstacle_drone_contacts_and_floor_match():
 
 
 def test_floor_grace_and_arena_rules_match():
-    track, profile = load_track("lemniscate"), load_profile("cf21bl")
-    pos = np.array([[0.0, 3.0, 0.5], [2.3, 4.0, 1.0], [-1.0, 8.5, 2.9]])
+    track, profile = load_track("lemniscate"), load_profile("cf2x_paper")
+    pos = np.array([[0.0, 3.0, 0.3], [2.3, 4.0, 1.0], [-1.0, 8.5, 2.9]])
     vel = np.array([[0.0, 0.0, -0.5], [2.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     w = profile.weight
-    _, ns = run_both(track, profile, pos, vel, 30, lambda t: [w * 0.9, w, w * 1.1],
-                     lambda t: [[0.0, 0.0, 0.0]] * 3)
-    assert ns.crashed.all()
+    _, ns = run_both(track, profile, pos, vel, 25, lambda t: [w * 0.9, w, w * 1.1],
+                     lambda t: [[0.0, 0.0, 0.0]] * 3, rules=CrashRules(floor_grace_s=0.3))
+    assert ns.crashed.all() and list(ns.reason) == [FLOOR, ARENA, CEILING]
