@@ -140,6 +140,14 @@ def test_setpoint_and_stop_packets(ep, fleet):
     assert b"not emulated" in b"".join(p[1:] for p in warn)
 
 
+def test_non_finite_setpoints_are_dropped(ep, fleet):
+    warn = ep.handle(packet(crtp.COMMANDER, 0, struct.pack("<fffH", float("nan"), 0.0, 0.0, 0)))
+    assert b"NaN" in b"".join(p[1:] for p in warn)
+    assert fleet.status(0)["setpoints_received"] == 0 and fleet.status(0)["locked"]
+    with pytest.raises(ValueError):
+        fleet.handle_setpoint(0, 0.0, float("inf"), 0.0, 0)
+
+
 def test_garbage_never_raises(ep):
     rng = random.Random(1)
     for _ in range(3000):

@@ -42,6 +42,32 @@ def test_raw_udp_roundtrip_and_counters(fleet):
         c.close()
 
 
+def test_log_blocks_churn_in_real_time():
+    """Blocks created, started and deleted at a high rate while the clock thread sends log data:
+    data flows and no packet handling fails."""
+    f = SimFleet("lemniscate", "cf2x_paper", 1)
+    with SimCrazyflieServer(f, base_port=0) as server:
+        c = udp_client(server.ports[0])
+        c.settimeout(0.0)
+        op = struct.pack("<BH", 0x07, 2)                         # stateEstimate.z as float
+        for k in range(300):
+            bid = k % 5
+            c.send(crtp.packet(crtp.LOG, 1, bytes([6, bid]) + op))
+            c.send(crtp.packet(crtp.LOG, 1, bytes([3, bid, 1])))   # start, 10 ms
+            c.send(crtp.packet(crtp.LOG, 1, bytes([2, (bid + 2) % 5])))
+            time.sleep(0.001)
+        time.sleep(0.05)
+        data = []
+        while True:
+            try:
+                data.append(c.recv(64))
+            except BlockingIOError:
+                break
+        c.close()
+    assert server.errors == 0
+    assert any(d[0] == crtp.packet(crtp.LOG, 2)[0] for d in data)   # log data did flow
+
+
 def test_lockstep_mode_does_not_advance_time(fleet):
     with SimCrazyflieServer(fleet, base_port=0, realtime=False):
         t0 = fleet.time

@@ -11,7 +11,9 @@ memory count, param TOC (v2) and the read of every parameter, and echo pings eve
 from __future__ import annotations
 
 import errno
+import math
 import struct
+import threading
 import zlib
 from dataclasses import dataclass, field
 
@@ -98,9 +100,14 @@ class CrtpEndpoint:
         self.rx = 0          #: datagrams received
         self.tx = 0          #: datagrams produced
         self.setpoints = 0   #: legacy setpoints received
+        self._lock = threading.Lock()   # handle() runs on the receiver thread, due_packets() on the clock
 
     # -------------------------------------------------------------- dispatch
     def handle(self, data: bytes) -> list[bytes]:
+        with self._lock:
+            return self._handle(data)
+
+    def _handle(self, data: bytes) -> list[bytes]:
         self.rx += 1
         if not data:
             return []
@@ -299,6 +306,8 @@ class CrtpEndpoint:
     def _commander(self, channel: int, payload: bytes) -> list[bytes]:
         if channel == 0 and len(payload) >= 14:
             roll, pitch, yaw, thrust = struct.unpack_from("<fffH", payload, 0)
+            if not all(math.isfinite(v) for v in (roll, pitch, yaw)):
+                return self._warn_once("a setpoint with NaN/inf values (dropped; later ones too)")
             self.setpoints += 1
             self.fleet.handle_setpoint(self.index, roll, pitch, yaw, thrust)
         return []
@@ -348,6 +357,10 @@ class CrtpEndpoint:
     def due_packets(self) -> list[bytes]:
         """Log data of the started blocks whose period has elapsed (simulated time), and console
         lines of firmware events."""
+        with self._lock:
+            return self._due_packets()
+
+    def _due_packets(self) -> list[bytes]:
         out = [p for line in self.fleet.drain_events(self.index) for p in console_packets(line + "\n")]
         t = self.fleet.time
         due = [(bid, b) for bid, b in self.blocks.items() if b.started and t >= b.next_due]

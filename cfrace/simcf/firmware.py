@@ -262,6 +262,8 @@ class SimFleet:
     # ---------------------------------------------------------------- inputs
     def handle_setpoint(self, i: int, roll: float, pitch: float, yawrate: float, thrust: int) -> None:
         """A legacy RPYT setpoint exactly as decoded from the CRTP packet (deg or deg/s, counts)."""
+        if not all(math.isfinite(v) for v in (roll, pitch, yawrate)):
+            raise ValueError(f"simcf: non-finite setpoint ({roll}, {pitch}, {yawrate}) for drone {i}")
         with self.lock:
             fw = self._fw[self._check(i)]
             thrust = int(thrust)
@@ -443,7 +445,7 @@ class SimFleet:
                     "crashed": bool(self._crashed[i]), "setpoint_age": age,
                     "setpoints_received": fw.setpoints_received, "packets_received": fw.packets_received,
                     "thrust_counts": fw.setpoint.thrust_counts if fw.setpoint else 0,
-                    "thrust": float(self._cmd_thrust[i])}
+                    "thrust": float(self._command(i)[0])}
 
     def supervisor_bitfield(self, i: int) -> int:
         """The firmware's supervisor.info bits (see cflib Supervisor.STATES)."""
