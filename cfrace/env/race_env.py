@@ -1,0 +1,229 @@
+"""Batched race environment over the simulator: E worlds, A agents (2 multi-agent, 1 single-agent).
+
+Hooks in a fixed order per step: apply actions (action map) -> simulate 10 x 2 ms -> race
+bookkeeping -> reward terms -> dones -> observe -> auto-reset finished worlds.
+Terminated (crash) and truncated (time-out) stay apart; a crashed drone stays out (frozen, alive =
+False) until its world resets, which happens once every drone of the world is done.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from cfrace.drone import DroneProfile
+from cfrace.env.actions import action_to_command
+from cfrace.env.observations import build_observations, critic_observations, layout_for
+from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
+from cfrace.sim.simulator import CrashRules, Simulator
+from cfrace.track import Track
+
+POLICY_DT = 0.02  #: s, 50 Hz
+SUBSTEPS = 10
+
+
+@dataclass
+class StepResult:
+    obs: torch.Tensor           # (E, A, obs_dim) next observation (after auto-reset)
+    critic: torch.Tensor        # (E, A, critic_dim)
+    reward: torch.Tensor        # (E, A)
+    terminated: torch.Tensor    # (E, A) bool, crashed in this step
+    truncated: torch.Tensor     # (E, A) bool, time-out in this step (alive agents)
+    alive: torch.Tensor         # (E, A) bool, the agent acted in this step
+    final_critic: torch.Tensor  # (E, A, critic_dim) critic obs of the reached state (before reset)
+    terms: dict[str, torch.Tensor]
+    stats: dict[str, float] = field(default_factory=dict)
+
+
+class RaceEnv:
+    def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
+                 device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
+                 compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
+                 rules: CrashRules = CrashRules()):
+        if method not in MULTI_AGENT:
+            raise ValueError(f"unknown method {method!r}")
+        self.track, self.profile, self.method = track, profile, method
+        self.obstacles = obstacles and bool(track.obstacles)
+        self.num_envs = num_envs
+        self.num_agents = 2 if MULTI_AGENT[method] else 1
+        self.device = torch.device(device)
+        self.randomize, self.start_mode, self.scales = randomize, start, rewards
+        self.max_steps = int(round(episode_s / POLICY_DT))
+        self.sim = Simulator(track, profile, num_envs, self.num_agents, obstacles=self.obstacles, device=self.device,
+                             seed=seed, compile=compile, rules=rules)
+        self.layout = layout_for(self.num_agents == 2, self.obstacles)
+        self.obs_dim = self.layout.dim
+        self.critic_dim = self.obs_dim * self.num_agents
+        self.gen = torch.Generator(device="cpu").manual_seed(seed)
+        g = track.gate_array()
+        self.gates = torch.as_tensor(g, dtype=torch.float32, device=self.device)           # (G, 4)
+        seg = torch.linalg.vector_norm(self.gates[:, :3] - self.gates.roll(1, 0)[:, :3], dim=-1)
+        seg[0] = torch.linalg.vector_norm(self.gates[0, :3] - self.gates[-1, :3])
+        self.cum = torch.cat([torch.zeros(1, device=self.device), seg[1:].cumsum(0)])     # to gate g from gate 0
+        self.lap_len = float(seg.sum())
+        e, a, dev = num_envs, self.num_agents, self.device
+        self.steps = torch.zeros(e, dtype=torch.int64, device=dev)
+        self.start_gate = torch.zeros(e, dtype=torch.int64, device=dev)
+        self.laps_paid = torch.zeros(e, dtype=torch.int64, device=dev)
+        self.prev_pos = torch.zeros(e, a, 3, device=dev)
+        self.prev_track_pos = torch.zeros(e, a, device=dev)
+        self.ep_return = torch.zeros(e, a, device=dev)
+        self.ep_lead = torch.zeros(e, a, device=dev)
+        self.ep_first_lap = torch.full((e, a), -1.0, device=dev)
+        self._stats: dict[str, list] = {}
+
+    # ------------------------------------------------------------------ helpers
+    def _rand(self, *shape) -> torch.Tensor:
+        return torch.rand(*shape, generator=self.gen).to(self.device)
+
+    def track_position(self) -> torch.Tensor:
+        """(E, A) m flown along the gate polyline since the start gate (p of the overtaking term)."""
+        g = self.gates.shape[0]
+        absolute = self.start_gate.unsqueeze(-1) + self.sim.race.gates_passed     # index of the target gate
+        coord = (absolute // g).float() * self.lap_len + self.cum[absolute % g]
+        start = self.cum[self.start_gate].unsqueeze(-1)
+        return coord - start - self.dist_to_target()
+
+    def dist_to_target(self, pos: torch.Tensor | None = None) -> torch.Tensor:
+        pos = self.sim.pos if pos is None else pos
+        return torch.linalg.vector_norm(pos - self.gates[self.sim.race.target][..., :3], dim=-1)
+
+    def observe(self) -> tuple[torch.Tensor, torch.Tensor]:
+        s = self.sim
+        obs = build_observations(s.pos, s.vel, s.rot(), s.race.target, s.gate_corners, self.layout)
+        critic = critic_observations(obs) if self.num_agents == 2 else obs
+        return obs, critic
+
+    # ------------------------------------------------------------------ reset
+    def reset(self) -> tuple[torch.Tensor, torch.Tensor]:
+        self._reset_worlds(torch.arange(self.num_envs, device=self.device))
+        return self.observe()
+
+    def _spawn(self, n: int):
+        """Start poses for n worlds: a random gate start (before a gate, on its +n side) or a ground
+        start before gate 0. Drones side by side. Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
+        sp, a, g = self.track.spawn, self.num_agents, self.gates.shape[0]
+        if self.start_mode == "ground":
+            ground = torch.ones(n, dtype=torch.bool)
+        elif self.start_mode == "gate":
+            ground = torch.zeros(n, dtype=torch.bool)
+        else:
+            ground = torch.rand(n, generator=self.gen) < sp.ground_start_prob
+        gate_idx = torch.randint(0, g, (n,), generator=self.gen)
+        gate_idx = torch.where(ground, torch.zeros_like(gate_idx), gate_idx).to(self.device)
+        gate = self.gates[gate_idx]                                                  # (n, 4)
+        yaw = gate[:, 3]
+        normal = torch.stack([torch.cos(yaw), torch.sin(yaw), torch.zeros_like(yaw)], -1)
+        side = torch.stack([-torch.sin(yaw), torch.cos(yaw), torch.zeros_like(yaw)], -1)
+        lo, hi = sp.gate_distance
+        ground_d = self.device
+        dist = torch.where(ground.to(ground_d), torch.full((n,), sp.ground_distance, device=ground_d),
+                           lo + (hi - lo) * self._rand(n))
+        jitter = (self._rand(n, 2) * 2 - 1) * sp.lateral
+        centre = gate[:, :3] + normal * dist.unsqueeze(-1) + side * jitter[:, :1]
+        centre[:, 2] = centre[:, 2] + jitter[:, 1]
+        if a == 2:
+            offs = torch.tensor([-0.5, 0.5], device=self.device) * sp.opponent_offset
+            swap = self._rand(n) < 0.5
+            offs = torch.where(swap.unsqueeze(-1), offs.flip(0), offs)
+            pos = centre.unsqueeze(1) + side.unsqueeze(1) * offs.unsqueeze(-1)
+        else:
+            pos = centre.unsqueeze(1)
+        z_rest = self.sim.z_rest
+        pos[..., 2] = torch.where(ground.to(self.device).unsqueeze(-1), torch.full_like(pos[..., 2], z_rest),
+                                  pos[..., 2].clamp_min(0.3))
+        heading = yaw + math.pi + (self._rand(n) * 2 - 1) * 0.3                   # face along -n
+        half = (heading / 2).unsqueeze(-1).expand(n, a)
+        quat = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], -1)
+        return pos, quat, gate_idx
+
+    def _reset_worlds(self, ids: torch.Tensor) -> None:
+        n, a = ids.shape[0], self.num_agents
+        if n == 0:
+            return
+        pos, quat, gate_idx = self._spawn(n)
+        self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
+        if self.randomize:
+            u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
+            scales = dict(k_aero=u(0.5, 2.0, 3), kp=u(0.85, 1.15, 1).expand(n, a, 3),
+                          ki=u(0.85, 1.15, 1).expand(n, a, 3), kd=u(0.7, 1.2, 1).expand(n, a, 3))
+            if a == 1:
+                scales["tau_m"] = u(0.2, 2.0, 1)
+            self.sim.set_scales(ids, **scales)
+        self.steps[ids] = 0
+        self.start_gate[ids] = gate_idx
+        self.laps_paid[ids] = 0
+        self.prev_pos[ids] = self.sim.pos[ids]
+        self.prev_track_pos[ids] = self.track_position()[ids]
+        self.ep_return[ids] = 0.0
+        self.ep_lead[ids] = 0.0
+        self.ep_first_lap[ids] = -1.0
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: torch.Tensor) -> StepResult:
+        sim = self.sim
+        actions = actions.to(self.device).clamp(-1.0, 1.0)
+        alive = ~sim.race.crashed.clone()
+        thrust, rates = action_to_command(actions, self.profile.mass, self.profile.max_thrust_weights,
+                                          self.profile.max_rates_deg)
+        laps_before = sim.race.laps.clone()
+        ev = sim.step(thrust, rates, SUBSTEPS)
+        self.steps += 1
+        # race bookkeeping: progress, leader, lap bonus once per lap per race
+        d_now = self.dist_to_target()
+        d_prev = self.dist_to_target(self.prev_pos)
+        progress = torch.where(alive & ~ev.crashed_now, d_prev - d_now, torch.zeros_like(d_now))
+        now_alive = ~sim.race.crashed
+        lead = leading(sim.race.gates_passed, d_now, now_alive)
+        lap_done = sim.race.laps > laps_before
+        new_lap = lap_done & (sim.race.laps > self.laps_paid.unsqueeze(-1)) & lead
+        self.laps_paid = torch.maximum(self.laps_paid, torch.where(new_lap, sim.race.laps, 0).amax(-1))
+        track_pos = self.track_position()
+        ot = overtaking(track_pos, self.prev_track_pos) if self.num_agents == 2 else torch.zeros_like(progress)
+        ot = torch.where(alive, ot, torch.zeros_like(ot))
+        terms = reward_terms(self.method, RewardInputs(actions, ev.gates, new_lap, lead, ev.contact, ev.crashed_now,
+                                                       progress, ot, POLICY_DT), self.scales)
+        terms = {k: torch.where(alive, v, torch.zeros_like(v)) for k, v in terms.items()}
+        reward = sum(terms.values())
+        self.prev_pos = sim.pos.clone()
+        self.prev_track_pos = track_pos
+        # dones
+        terminated = ev.crashed_now & alive
+        timeout = (self.steps >= self.max_steps).unsqueeze(-1)
+        truncated = timeout & alive & ~terminated
+        obs_final, critic_final = self.observe()
+        world_done = timeout.squeeze(-1) | sim.race.crashed.all(-1)
+        # episode statistics
+        self.ep_return += reward
+        self.ep_lead += (lead & now_alive).float()
+        first = lap_done & (self.ep_first_lap < 0)
+        self.ep_first_lap = torch.where(first, self.steps.unsqueeze(-1).float() * POLICY_DT, self.ep_first_lap)
+        stats = self._collect_stats(world_done)
+        done_ids = world_done.nonzero().squeeze(-1)
+        self._reset_worlds(done_ids)
+        obs, critic = self.observe() if done_ids.numel() else (obs_final, critic_final)
+        return StepResult(obs, critic, reward, terminated, truncated, alive, critic_final, terms, stats)
+
+    def _collect_stats(self, done: torch.Tensor) -> dict[str, float]:
+        if not bool(done.any()):
+            return {}
+        r, steps = self.sim.race, self.steps[done].float().clamp_min(1)
+        out = {
+            "episode_return": self.ep_return[done].mean().item(),
+            "gates_per_s": (r.gates_passed[done].float() / (steps.unsqueeze(-1) * POLICY_DT)).mean().item(),
+            "success": (r.laps[done] >= 1).float().mean().item(),
+            "crash_rate": r.crashed[done].float().mean().item(),
+            "episode_s": (steps * POLICY_DT).mean().item(),
+        }
+        lap = r.lap_last[done]
+        if bool((~lap.isnan()).any()):
+            out["lap_time_s"] = lap[~lap.isnan()].mean().item()
+        for i in range(self.num_agents):
+            out[f"return_agent{i}"] = self.ep_return[done][:, i].mean().item()
+        if self.num_agents == 2:
+            out["lead_share_agent0"] = (self.ep_lead[done][:, 0] / steps).mean().item()
+            score = r.gates_passed[done].float() * 1000 - torch.nan_to_num(self.ep_first_lap[done], nan=0.0)
+            out["win_share_agent0"] = (score[:, 0] > score[:, 1]).float().mean().item()
+        return out
