@@ -246,5 +246,13 @@ def test_hover_lifts_off_the_same_in_every_backend():
             f.handle_setpoint(0, 0, 0, 0, counts)
             f.advance(0.02)
         heights.append(f.state(0)["pos"][2])
-    assert heights[0] > 0.1
+    assert heights[0] > 0.1 and f.status(0)["crash_reason"] == ""
     assert heights[0] == pytest.approx(heights[1], abs=1e-3) and heights[0] == pytest.approx(heights[2], abs=1e-3)
+
+
+def test_unpowered_drone_falls_and_crashes_on_the_floor():
+    f = make(start_positions=[[0.0, 4.0, 1.5]])
+    f.advance(0.7)                                  # no setpoint ever: motors off, free fall
+    st = f.status(0)
+    assert st["watchdog"] == "idle" and st["crashed"] and st["crash_reason"] == "floor"
+    assert f.supervisor_bitfield(0) & (1 << 7)

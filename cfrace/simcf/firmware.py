@@ -144,6 +144,12 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+def _crash_reason(code: int) -> str:
+    from cfrace.sim.simulator import REASONS
+
+    return REASONS.get(code, str(code)) if code else ""
+
+
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
@@ -237,6 +243,7 @@ class SimFleet:
         self._quat = np.array(s.quat, np.float64)        # (N, 4) wxyz
         self._omega = np.array(s.omega, np.float64)      # (N, 3) rad/s body
         self._crashed = np.array(s.crashed, bool)        # (N,)
+        self._reason = np.array(s.reason, np.int64)      # (N,) simulator crash reason code
 
     def reset(self) -> None:
         """Back to the start grid, every drone rebooted (simulated time keeps running)."""
@@ -442,7 +449,8 @@ class SimFleet:
             age = None if fw.last_setpoint_time is None else self.time - fw.last_setpoint_time
             return {"armed": fw.armed, "locked": fw.thrust_locked, "watchdog": fw.watchdog,
                     "emergency_stopped": bool(fw.emergency), "emergency_reason": fw.emergency,
-                    "crashed": bool(self._crashed[i]), "setpoint_age": age,
+                    "crashed": bool(self._crashed[i]), "crash_reason": _crash_reason(int(self._reason[i])),
+                    "setpoint_age": age,
                     "setpoints_received": fw.setpoints_received, "packets_received": fw.packets_received,
                     "thrust_counts": fw.setpoint.thrust_counts if fw.setpoint else 0,
                     "thrust": float(self._command(i)[0])}
@@ -525,6 +533,6 @@ class TorchSimAdapter:
                       substeps=substeps)
 
     def __getattr__(self, name):
-        if name in ("pos", "vel", "quat", "omega", "crashed"):
+        if name in ("pos", "vel", "quat", "omega", "crashed", "reason"):
             return getattr(self.sim, name)[0].detach().cpu().numpy()
         raise AttributeError(name)
