@@ -101,7 +101,7 @@ class RaceEnv:
         self._reset_worlds(torch.arange(self.num_envs, device=self.device))
         return self.observe()
 
-    def _spawn(self, n: int):
+    def spawn(self, n: int):
         """Start poses for n worlds: a random gate start (before a gate, on its +n side) or a ground
         start before gate 0. Drones side by side. Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
         sp, a, g = self.track.spawn, self.num_agents, self.gates.shape[0]
@@ -143,7 +143,7 @@ class RaceEnv:
         n, a = ids.shape[0], self.num_agents
         if n == 0:
             return
-        pos, quat, gate_idx = self._spawn(n)
+        pos, quat, gate_idx = self.spawn(n)
         self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
         if self.randomize:
             u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
