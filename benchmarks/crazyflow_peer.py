@@ -41,16 +41,17 @@ def run(total: int, per_world: int, calls: int, steps_per_call: int) -> dict:
     states = sim.data.states
     sim.data = sim.data.replace(states=states.replace(pos=states.pos.at[..., 2].set(1.0), vel=states.vel * 0.0))
     jax.block_until_ready(sim.data.states.pos)
-    t0 = time.perf_counter()
+    cpu0, t0 = time.process_time(), time.perf_counter()
     for _ in range(calls):
         sim.attitude_control(cmd)
         sim.step(steps_per_call)
     jax.block_until_ready(sim.data.states.pos)
     seconds = time.perf_counter() - t0
+    cpu = time.process_time() - cpu0
     z = float(jnp.mean(sim.data.states.pos[..., 2]))
     physics_steps = calls * steps_per_call
     return {"worlds": worlds, "drones": per_world, "total_drones": worlds * per_world,
-            "physics_steps": physics_steps, "seconds": seconds, "mean_z_m": z,
+            "physics_steps": physics_steps, "seconds": seconds, "mean_z_m": z, "cpu_per_wall": cpu / seconds,
             "drone_steps_per_s": worlds * per_world * physics_steps / seconds}
 
 

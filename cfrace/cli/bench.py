@@ -2,7 +2,8 @@
 
 `cfrace bench sim` measures the batched simulator in drone-steps per second: one drone advanced by
 one 2 ms physics step with the full model (motors, rate PID, drag, floor, arena, gate frames and
-gate passing, obstacles, drone-drone contacts), eager and torch.compile'd, and runs the crazyflow
+gate passing, obstacles, drone-drone contacts) with each backend (fused C kernel, torch eager,
+torch.compile), and runs the crazyflow
 simulator (JAX, benchmarks/crazyflow_peer.py, in its own venv) on the same numbers of drones.
 """
 
@@ -45,17 +46,47 @@ def hover_start(track, worlds: int, drones: int):
     return pos.expand(worlds, drones, 3).clone()
 
 
-def measure_sim(worlds: int, drones: int, *, compile: bool, steps: int, warmup: int, substeps: int,
+MODES = ("c", "eager", "compiled")  #: fused C kernel, torch eager, torch.compile
+
+
+def available_modes(compile: bool) -> list[str]:
+    """Simulator modes to measure: the fused C kernel when the simulator has one and it builds here,
+    torch eager always, torch.compile when asked."""
+    import inspect
+
+    from cfrace.sim import simulator
+
+    modes = []
+    if "backend" in inspect.signature(simulator.Simulator).parameters:
+        try:
+            from cfrace.sim import ckernel
+
+            if ckernel.available():
+                modes.append("c")
+        except ImportError:
+            pass
+    return modes + ["eager"] + (["compiled"] if compile else [])
+
+
+def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int, substeps: int,
                 track: str, profile: str) -> dict:
-    """Time ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after ``warmup`` calls."""
+    """Time ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after ``warmup`` calls.
+    mode: "c" (fused C kernel), "eager" (torch) or "compiled" (torch.compile)."""
+    import inspect
+
     import torch
 
     from cfrace.drone import load_profile
     from cfrace.sim.simulator import Simulator
     from cfrace.track import load_track
 
+    if mode not in MODES:
+        raise ConfigError(f"unknown simulator mode {mode!r} (known: {', '.join(MODES)})")
     trk, prof = load_track(track), load_profile(profile)
-    sim = Simulator(trk, prof, worlds, drones, obstacles=True, compile=compile)
+    kwargs = {"compile": mode == "compiled"}
+    if "backend" in inspect.signature(Simulator).parameters:
+        kwargs["backend"] = "c" if mode == "c" else "torch"
+    sim = Simulator(trk, prof, worlds, drones, obstacles=True, **kwargs)
     sim.reset(torch.arange(worlds), hover_start(trk, worlds, drones))
     thrust = torch.full((worlds, drones), prof.weight)                  # (W, D) N, hover
     rates = torch.zeros(worlds, drones, 3)                               # (W, D, 3) rad/s
@@ -70,7 +101,7 @@ def measure_sim(worlds: int, drones: int, *, compile: bool, steps: int, warmup: 
     cpu = time.process_time() - cpu0
     drone_steps = worlds * drones * substeps * steps
     return {"worlds": worlds, "drones": drones, "total_drones": worlds * drones,
-            "mode": "compiled" if compile else "eager", "drone_steps_per_s": drone_steps / seconds,
+            "mode": mode, "drone_steps_per_s": drone_steps / seconds,
             "seconds": seconds, "policy_steps": steps, "substeps": substeps, "warmup_s": warm,
             "cpu_per_wall": cpu / seconds, "crashed_fraction": float(sim.crashed.float().mean()),
             "mean_z_m": float(sim.pos[..., 2].mean())}
@@ -140,27 +171,28 @@ def _rate(x: Optional[float]) -> str:
 
 
 def summarize(results: list[dict], peer: list[dict]) -> list[dict]:
-    """Per size: eager, compiled, best cfrace rate, crazyflow rate and the ratio best/crazyflow."""
+    """Per size: the rate of each mode, the best cfrace rate, crazyflow's and the ratio best/crazyflow."""
     rows = []
     for w, d in dict.fromkeys((r["worlds"], r["drones"]) for r in results):
         by_mode = {r["mode"]: r["drone_steps_per_s"] for r in results if (r["worlds"], r["drones"]) == (w, d)}
         best_mode = max(by_mode, key=by_mode.get)
         cf = next((p["drone_steps_per_s"] for p in peer if p["total_drones"] == w * d), None)
-        rows.append({"worlds": w, "drones": d, "total_drones": w * d, "eager": by_mode.get("eager"),
-                     "compiled": by_mode.get("compiled"), "best": by_mode[best_mode], "best_mode": best_mode,
+        rows.append({"worlds": w, "drones": d, "total_drones": w * d, **{m: by_mode.get(m) for m in MODES},
+                     "best": by_mode[best_mode], "best_mode": best_mode,
                      "crazyflow": cf, "ratio": by_mode[best_mode] / cf if cf else None})
     return rows
 
 
 def summary_table(rows: list[dict]) -> Table:
     table = Table(title="simulator speed: drone-steps per second (one drone, one 2 ms step)")
-    for col in ("worlds", "drones/world", "drones", "cfrace eager", "cfrace compiled", "cfrace best",
-                "crazyflow", "cfrace / crazyflow"):
+    modes = [m for m in MODES if any(r[m] is not None for r in rows)]
+    for col in ("worlds", "x drones", "= drones", *[f"cfrace {m}" for m in modes], "cfrace best",
+                "crazyflow", "cfrace/crazyflow"):
         table.add_column(col, justify="right")
     for r in rows:
         ratio = "-" if r["ratio"] is None else f"{r['ratio']:.2f}x"
-        table.add_row(str(r["worlds"]), str(r["drones"]), str(r["total_drones"]), _rate(r["eager"]),
-                      _rate(r["compiled"]), _rate(r["best"]), _rate(r["crazyflow"]), ratio)
+        table.add_row(str(r["worlds"]), str(r["drones"]), str(r["total_drones"]), *[_rate(r[m]) for m in modes],
+                      _rate(r["best"]), _rate(r["crazyflow"]), ratio)
     return table
 
 
@@ -191,7 +223,8 @@ def sim_cmd(
     profile: str = typer.Option("cf2x_paper", help="drone profile name or path"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="also write all numbers to this JSON file"),
 ) -> None:
-    """Simulator drone-steps per second for each world count, eager and compiled, against crazyflow."""
+    """Simulator drone-steps per second for each world count (C kernel, torch eager, torch.compile)
+    against crazyflow."""
     import torch
 
     sizes = _ints(worlds, "worlds")
@@ -201,22 +234,23 @@ def sim_cmd(
     console.print(f"[bold]cfrace bench sim[/bold] on {machine['cpu']} ({machine['cores']} cores, torch "
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
-    modes = [False] + ([True] if compile else [])
+    modes = available_modes(compile)
+    console.print(f"modes: {', '.join(modes)}")
     results, errors = [], {}
     for w in sizes:
         for mode in modes:
-            if mode and "compiled" in errors:
+            if mode in errors:
                 continue
             try:
-                r = measure_sim(w, drones, compile=mode, steps=steps, warmup=warmup, substeps=substeps,
+                r = measure_sim(w, drones, mode=mode, steps=steps, warmup=warmup, substeps=substeps,
                                 track=track, profile=profile)
             except CfraceError:
                 raise
-            except Exception as exc:  # torch.compile missing a compiler, etc.: report, keep eager
-                if not mode:
+            except Exception as exc:  # torch.compile missing a compiler, etc.: report, keep the others
+                if mode == "eager":
                     raise
-                errors["compiled"] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-                console.print(f"[yellow]torch.compile unavailable: {errors['compiled']}[/yellow]")
+                errors[mode] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+                console.print(f"[yellow]{mode} unavailable: {errors[mode]}[/yellow]")
                 continue
             results.append(r)
             console.print(f"  {w:>5} worlds x {drones} drones, {r['mode']:>8}: {_rate(r['drone_steps_per_s'])} "
