@@ -17,7 +17,8 @@ import threading
 import zlib
 from dataclasses import dataclass, field
 
-from cfrace.simcf.firmware import PARAM_BY_NAME, PARAM_TYPES, PARAMS, SimFleet
+from cfrace.simcf.firmware import SimFleet
+from cfrace.simcf.params import PARAM_BY_NAME, PARAM_TYPES, PARAMS
 
 PROTOCOL_VERSION = 12     #: what the current firmware reports; cflib 0.1.34 needs >= 12 for the supervisor port
 FIRMWARE_VERSION = "cfrace-simcf"

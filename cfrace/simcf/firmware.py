@@ -35,6 +35,8 @@ import numpy as np
 
 from cfrace.drone import DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.simcf.params import PARAM_BY_NAME, coerce_param, default_params
+from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.track import Track, load_track
 
 DT = 0.002                 #: s, physics step of the simulator (500 Hz)
@@ -46,51 +48,6 @@ ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has bee
 ANGLE_KP = 6.0             #: 1/s, attitude P gain (firmware attitude PID Kp)
 ANGLE_RATE_LIMIT = math.radians(720.0)  #: rad/s, clamp of the angle loop's rate output
 CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the angle loop's period)
-
-
-@dataclass(frozen=True)
-class ParamSpec:
-    name: str        #: "group.name"
-    ctype: str       #: one of PARAM_TYPES
-    default: float
-    readonly: bool = False
-    doc: str = ""
-
-
-#: CRTP parameter type codes (firmware param.h; cflib ParamTocElement.types): ctype -> (code, struct)
-PARAM_TYPES = {"int8_t": (0x00, "<b"), "int16_t": (0x01, "<h"), "int32_t": (0x02, "<i"),
-               "float": (0x06, "<f"), "uint8_t": (0x08, "<B"), "uint16_t": (0x09, "<H"),
-               "uint32_t": (0x0A, "<I")}
-
-#: The emulated parameters, in TOC order.
-PARAMS: tuple[ParamSpec, ...] = (
-    ParamSpec("flightmode.stabModeRoll", "uint8_t", 1, doc="0 rate, 1 angle (firmware default 1)"),
-    ParamSpec("flightmode.stabModePitch", "uint8_t", 1, doc="0 rate, 1 angle (firmware default 1)"),
-    ParamSpec("flightmode.stabModeYaw", "uint8_t", 0, doc="0 rate (default), 1 angle"),
-    ParamSpec("stabilizer.estimator", "uint8_t", 2, doc="reported only (2 = Kalman); ground truth is used"),
-    ParamSpec("stabilizer.controller", "uint8_t", 1, doc="reported only (1 = PID)"),
-    ParamSpec("stabilizer.stop", "uint8_t", 0, doc="nonzero -> emergency stop"),
-    ParamSpec("commander.enHighLevel", "uint8_t", 0, doc="accepted, no effect (as in the firmware)"),
-    ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
-              doc="simulator info: 1 if motors need an arming request"),
-    ParamSpec("simcf.bodyIndex", "uint8_t", 0, readonly=True, doc="simulator info: drone index"),
-)
-PARAM_BY_NAME = {p.name: p for p in PARAMS}
-
-
-def _int_range(ctype: str) -> tuple[int, int]:
-    bits = int("".join(c for c in ctype if c.isdigit()))
-    return (0, 2 ** bits - 1) if ctype.startswith("u") else (-(2 ** (bits - 1)), 2 ** (bits - 1) - 1)
-
-
-def coerce_param(spec: ParamSpec, value) -> float | int:
-    """A value as the firmware would store it (ints wrap like the C types, floats as float32)."""
-    if spec.ctype == "float":
-        return float(np.float32(value))
-    lo, hi = _int_range(spec.ctype)
-    v = int(value)
-    span = hi - lo + 1
-    return (v - lo) % span + lo
 
 
 @dataclass
@@ -128,13 +85,6 @@ class DroneFirmware:
         self.armed = self.auto_armed
 
 
-def _default_params(index: int, arming_required: bool) -> dict:
-    values = {p.name: coerce_param(p, p.default) for p in PARAMS}
-    values["supervisor.armingReq"] = int(arming_required)
-    values["simcf.bodyIndex"] = index
-    return values
-
-
 def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     """wxyz world-from-body -> (roll, pitch, yaw) rad, ZYX, right-handed (pitch + = nose down)."""
     w, x, y, z = (float(v) for v in q)
@@ -142,12 +92,6 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, yaw
-
-
-def _crash_reason(code: int) -> str:
-    from cfrace.sim.simulator import REASONS
-
-    return REASONS.get(code, str(code)) if code else ""
 
 
 def _wrap(a: float) -> float:
@@ -195,32 +139,17 @@ class SimFleet:
                 raise ConfigError(f"simcf: start_positions must have shape ({self.n}, 3), got {pos.shape}")
         self._start_pos = pos
         self.lock = threading.RLock()
-        custom = sim is not None
         if sim is None:
-            from cfrace.sim.simulator import CrashRules
-
-            # A real drone may sit on the floor and leave the arena: only impacts, gate frames and
-            # long contacts end in a crash (the simulator then freezes the drone, motors off).
-            rules = crash_rules or CrashRules(floor_grace_s=None, arena=False)
-            if backend == "auto":
-                from cfrace.sim import ckernel
-
-                backend = "c" if ckernel.available() else "numpy"
-            if backend == "numpy":
-                from cfrace.simcf.npsim import NumpySim
-
-                sim = NumpySim(self.track, self.profile, self.n, obstacles=obstacles, rules=rules)
-            elif backend in ("c", "torch"):
-                sim = TorchSimAdapter(self.track, self.profile, self.n, obstacles=obstacles, rules=rules, seed=seed,
-                                      backend=backend)
-            else:
-                raise ConfigError(f"simcf: unknown backend {backend!r} (auto, c, torch or numpy)")
-        self.backend = "custom" if custom else backend   #: which physics runs: c, torch, numpy or custom
+            sim, backend = make_physics(self.track, self.profile, self.n, backend=backend, obstacles=obstacles,
+                                        crash_rules=crash_rules, seed=seed)
+        else:
+            backend = "custom"
         self.sim = sim
+        self.backend = backend   #: which physics runs: c, torch, numpy or custom
         self._steps = 0          # physics steps done since construction
         self._pending = 0.0      # s of requested time not yet simulated (< DT)
         self._cmd_thrust = np.zeros(self.n)   # N, collective thrust commanded in the last chunk
-        self._fw = [DroneFirmware(_default_params(i, self.arming_required), not self.arming_required)
+        self._fw = [DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
                     for i in range(self.n)]
         self._reset_physics()
 
@@ -256,7 +185,7 @@ class SimFleet:
         """Power-cycle drone i's firmware: parameters to defaults, thrust locked, disarmed."""
         with self.lock:
             old = self._fw[self._check(i)]
-            fw = DroneFirmware(_default_params(i, self.arming_required), not self.arming_required)
+            fw = DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
             fw.packets_received = old.packets_received
             fw.events.append("SYS: reboot")
             self._fw[i] = fw
@@ -449,7 +378,7 @@ class SimFleet:
             age = None if fw.last_setpoint_time is None else self.time - fw.last_setpoint_time
             return {"armed": fw.armed, "locked": fw.thrust_locked, "watchdog": fw.watchdog,
                     "emergency_stopped": bool(fw.emergency), "emergency_reason": fw.emergency,
-                    "crashed": bool(self._crashed[i]), "crash_reason": _crash_reason(int(self._reason[i])),
+                    "crashed": bool(self._crashed[i]), "crash_reason": crash_reason(int(self._reason[i])),
                     "setpoint_age": age,
                     "setpoints_received": fw.setpoints_received, "packets_received": fw.packets_received,
                     "thrust_counts": fw.setpoint.thrust_counts if fw.setpoint else 0,
@@ -504,35 +433,3 @@ class SimFleet:
             fw = self._fw[self._check(i)]
             out, fw.events = fw.events, []
             return out
-
-
-class TorchSimAdapter:
-    """cfrace.sim.simulator.Simulator (one world) behind the NumpySim interface: numpy in and out.
-    The training simulator itself; real-time capable with its C kernel (backend "c", one thread),
-    not with its torch path (several ms per 2 ms step for one world; see npsim.py)."""
-
-    def __init__(self, track: Track, profile: DroneProfile, drones: int, *, obstacles: bool, rules, seed: int = 0,
-                 backend: str = "c"):
-        from cfrace.sim.simulator import Simulator
-
-        self.sim = Simulator(track, profile, worlds=1, drones=drones, obstacles=obstacles, seed=seed, rules=rules,
-                             backend=backend, threads=1)
-
-    def reset(self, pos, vel, quat, target) -> None:
-        import torch
-
-        f32 = torch.float32
-        self.sim.reset(torch.zeros(1, dtype=torch.int64), torch.tensor(pos, dtype=f32)[None],
-                       torch.tensor(vel, dtype=f32)[None], torch.tensor(quat, dtype=f32)[None],
-                       torch.tensor(target, dtype=torch.int64)[None])
-
-    def step(self, thrust, rates, substeps: int) -> None:
-        import torch
-
-        self.sim.step(torch.tensor(thrust, dtype=torch.float32)[None], torch.tensor(rates, dtype=torch.float32)[None],
-                      substeps=substeps)
-
-    def __getattr__(self, name):
-        if name in ("pos", "vel", "quat", "omega", "crashed", "reason"):
-            return getattr(self.sim, name)[0].detach().cpu().numpy()
-        raise AttributeError(name)
