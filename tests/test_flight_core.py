@@ -265,3 +265,195 @@ def test_fast_progress_matches_the_simulator_rule(track):
         assert np.array_equal(a.target, b.target) and np.array_equal(a.laps, b.laps)
         assert a.lap_times == b.lap_times
     assert passes > 15 and hits >= 1   # the comparison covered both outcomes
+
+
+# ---------------------------------------------------------------------------------------------- observations
+
+def test_flight_observations_agree_with_the_simulator_and_env(track):
+    """The same states give the same observations in the env (build_observations on the simulator
+    state) and in the flight loop (ObservationBuilder on estimates); with zero-noise mocap through
+    the estimator, positions/attitude/gates agree to float32 and velocity to the filter's lag."""
+    from cfrace.drone import load_profile
+    from cfrace.env.observations import LAYOUTS, build_observations
+    from cfrace.flight.estimator import Estimate, PoseEstimator
+    from cfrace.flight.loop import ObservationBuilder
+    from cfrace.flight.mocap import MocapFrame, Pose
+    from cfrace.flight.testpolicy import hold_policy_layers
+    from cfrace.sim.simulator import Simulator
+
+    profile = load_profile(PROFILE)
+    sim = Simulator(track, profile, worlds=1, drones=2, obstacles=False)
+    start = torch.tensor([[[1.3, 2.2, 0.5], [1.7, 2.2, 0.6]]])
+    yaw = math.pi / 2                     # facing gate 0
+    quat = torch.tensor([[[math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]] * 2])
+    sim.reset(torch.tensor([0]), start, quat=quat)
+    layout = LAYOUTS["race42"]
+    # drone 0 seeks gate 0 (passes it), drone 1 holds its place (they would collide otherwise)
+    wb = [hold_policy_layers(layout, profile.max_thrust_weights, profile.max_rates_deg, seek=s) for s in (3.0, 0.0)]
+    corners = torch.as_tensor(track.gate_corners(), dtype=torch.float32)
+    builder = ObservationBuilder(track.gate_corners())
+    est = PoseEstimator(["cf1", "cf2"], stale_after_s=0.15)
+    progress = FastRaceProgress(track.gate_array(), 2)
+    from cfrace.env.actions import action_to_command
+
+    worst = np.zeros(3)
+    for k in range(200):                  # 2 s at 100 Hz (gate 0 is passed at ~1.2 s)
+        pos, vel, rot = sim.pos[0], sim.vel[0], sim.rot()[0]
+        env_obs = build_observations(pos, vel, rot, sim.target[0], corners, layout)     # (2, 42)
+        frame = MocapFrame(k * 0.01, {n: Pose(pos[i].double().numpy(), sim.quat[0, i].double().numpy())
+                                      for i, n in enumerate(["cf1", "cf2"])}, k + 1)
+        e = est.update(frame, k * 0.01)
+        progress.update(k * 0.01, np.stack([e["cf1"].pos, e["cf2"].pos]))
+        assert progress.target.tolist() == sim.target[0].tolist(), k
+        exact = [Estimate(pos[i].double().numpy(), vel[i].double().numpy(), rot[i].double().numpy(),
+                          None, 0.0, 0.0, True) for i in range(2)]
+        for i, name in enumerate(["cf1", "cf2"]):
+            o_exact = builder(layout, exact[i], int(progress.target[i]), exact[1 - i])
+            assert np.array_equal(o_exact, env_obs[i].numpy())          # same function, same inputs
+            o_flight = builder(layout, e[name], int(progress.target[i]), e[["cf1", "cf2"][1 - i]])
+            d = np.abs(o_flight - env_obs[i].numpy())
+            if k > 5:   # after the velocity filter settled
+                worst = np.maximum(worst, [d[3:12].max(), d[12:36].max(), np.r_[d[:3], d[39:42]].max()])
+        act = torch.stack([torch.as_tensor(env_obs[i].numpy() @ w.T + b) for i, (w, b) in enumerate(wb)]).clamp(-1, 1)
+        thrust, rates = action_to_command(act, profile.mass, profile.max_thrust_weights, profile.max_rates_deg)
+        sim.step(thrust[None].float(), rates[None].float(), substeps=5)
+    assert worst[0] < 1e-5 and worst[1] < 1e-5      # attitude and gate corners
+    assert worst[2] < 0.15                          # velocity terms: finite-difference filter lag, m/s
+    assert sim.gates_passed[0, 0] >= 1 and not sim.crashed[0].any()   # it flew through gate 0 (target switched)
+
+
+# ---------------------------------------------------------------------------------------------- loop logic
+
+class ScriptedMocap:
+    """Frames from precomputed paths (one row per loop tick), both bodies level."""
+
+    name = "scripted"
+
+    def __init__(self, paths: dict, clock):
+        self.paths, self.clock, self.seq = paths, clock, 0
+
+    def read(self, timeout_s=0.0):
+        k = int(round(self.clock.now() / self.clock.dt))
+        from cfrace.flight.mocap import MocapFrame, Pose
+
+        self.seq += 1
+        poses = {b: Pose(p[min(k, len(p) - 1)], np.array([1.0, 0, 0, 0])) for b, p in self.paths.items()}
+        return MocapFrame(k * self.clock.dt, poses, self.seq)
+
+    def close(self):
+        pass
+
+
+class CountingPolicy:
+    def __init__(self, dim):
+        self.calls, self.dim = 0, dim
+
+    def __call__(self, obs):
+        assert obs.shape == (1, self.dim) and obs.dtype == np.float32
+        self.calls += 1
+        return np.array([[-0.2, 0.0, 0.0, 0.0]], np.float32)
+
+
+def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
+    from cfrace.drone import load_profile
+    from cfrace.env.observations import LAYOUTS
+    from cfrace.flight.config import SafetyConfig
+    from cfrace.flight.estimator import PoseEstimator
+    from cfrace.flight.loop import Drone, FlightLoop, ObservationBuilder
+    from cfrace.flight.safety import Fence
+
+    clock = clock or LockstepClock(0.01)
+    prof = load_profile(PROFILE)
+    safety = safety or SafetyConfig(speed_max_mps=50.0, floor_grace_s=1e9)
+    drones = []
+    for name, body, lay in (("ego", "cf1", "race42"), ("opp", "cf2", "solo36")):
+        link = RecordingLink(f"null://{name}", clock=clock.now)
+        link.connect()
+        meta = {"max_thrust_weights": 3.15, "max_rates_deg": [100.0, 100.0, 200.0], "method": name}
+        drones.append(Drone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
+                            prof.thrust_curve, decimation=2))
+    mocap = ScriptedMocap(paths, clock)
+    loop = FlightLoop(drones=drones, mocap=mocap, estimator=PoseEstimator(["cf1", "cf2"], max_speed_mps=50.0),
+                      progress=FastRaceProgress(track.gate_array(), 2), obs_builder=ObservationBuilder(track.gate_corners()),
+                      clock=clock, fence=Fence.from_track(track, 5.0), safety_cfg=safety, laps=laps,
+                      timeout_s=timeout_s, link_clock=clock.now)
+    for d in drones:   # the scripted paths never answer on links: keep them heard
+        d.link.quality.last_rx = float("inf")
+    return loop
+
+
+def test_loop_race_winner_laps_and_decimation(track):
+    fast, slow = gate_path(track, 6.0, laps=2), gate_path(track, 4.0, laps=2)
+    loop = make_loop(track, {"cf1": fast, "cf2": slow}, laps=2)
+    res = loop.run()
+    assert res.end == "finished" and res.winner == "ego"
+    ego, opp = res.drones
+    assert ego["laps"] == 2 and ego["gates_passed"] == 12 and len(ego["lap_times"]) == 2
+    assert opp["laps"] == 1 and opp["gates_passed"] < 12
+    # the lap time is the path length / speed (first lap timed from the start)
+    assert ego["lap_times"][1] == pytest.approx((len(fast) - 1) / 2 * 0.01, rel=0.1)
+    ticks = res.ticks
+    assert loop.drones[0].policy.calls == (ticks + 1) // 2          # 50 Hz policy in a 100 Hz loop
+    for d in loop.drones:                                            # a setpoint every tick until the end
+        assert len(d.link.sent) == ticks and d.link.stops >= 1
+    assert res.safety_events == []
+
+
+def test_loop_ends_in_a_draw_when_both_drones_are_stopped(track):
+    from cfrace.flight.config import SafetyConfig
+
+    # both fly out of a tight fence (the track arena + 0.3 m) at different times
+    out1 = np.linspace([0.0, 5.0, 1.0], [0.0, 5.0, 3.5], 200)
+    out2 = np.linspace([1.0, 5.0, 1.0], [3.5, 5.0, 1.0], 300)
+    loop = make_loop(track, {"cf1": out1, "cf2": out2})
+    loop.fence = type(loop.fence).from_track(track, 0.3)
+    res = loop.run()
+    assert res.end == "all_stopped" and res.winner == "draw"
+    assert [e["kind"] for e in res.safety_events] == ["geofence", "geofence"]
+    assert [e["drone"] for e in res.safety_events] == ["ego", "opp"]
+    assert all(d["stopped"] and d["stop_kind"] == "geofence" for d in res.drones)
+    # after its stop a drone gets no more setpoints
+    assert len(loop.drones[0].link.sent) < len(loop.drones[1].link.sent)
+
+
+def test_loop_timeout(track):
+    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
+    res = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.5).run()
+    assert res.end == "timeout" and res.winner == "draw" and res.ticks == 51
+
+
+def test_real_time_loop_does_not_burst_after_a_stall(track):
+    """A 35 ms stall in real time: the missed ticks are skipped, never sent late in a burst."""
+    clock = RealClock(0.01)
+    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
+    loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.4, clock=clock)
+
+    class Stall:
+        fired = False
+
+        def before_tick(self, lp, t):
+            if t > 0.1 and not self.fired:
+                self.fired = True
+                time.sleep(0.035)
+
+        def filter_obs(self, d, obs):
+            return obs
+
+        def filter_action(self, d, act, t):
+            return act
+
+    loop.faults = Stall()
+    ticks, sends = [], []
+    wait = clock.wait_next
+    clock.wait_next = lambda: (ticks.append(wait()), ticks[-1])[1]
+    link = loop.drones[0].link
+    orig = link.send
+    link.send = lambda *a: (sends.append(ticks[-1].k), orig(*a))
+    res = loop.run()
+    ks = [t.k for t in ticks]
+    assert ks == sorted(set(ks))                          # each deadline at most once, in order
+    jump = [b - a for a, b in zip(ks, ks[1:]) if b - a > 1]
+    assert jump and max(jump) >= 3                        # the stall: ticks dropped, not caught up
+    assert sends == ks                                    # exactly one setpoint per executed tick
+    assert all(t.t >= t.k * 0.01 for t in ticks)          # never early
+    assert any(e["kind"] == "tick_skipped" for e in res.safety_events)

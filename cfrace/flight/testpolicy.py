@@ -21,8 +21,12 @@ G = 9.81
 
 
 def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek: float = 0.0,
-                       height_offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """(W (4, D), b (4,)) of the linear controller for ``layout`` (cfrace.env.observations.ObsLayout)."""
+                       height_offset: float = 0.0, through: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(W (4, D), b (4,)) of the linear controller for ``layout`` (cfrace.env.observations.ObsLayout).
+
+    With seek > 0 the horizontal target is the point ``through`` m beyond the target gate's centre
+    along -n (n from the corners: y_gate = c0 - c1 for a 1 m opening, n = y_gate x z, z ~ body z),
+    so the drone flies through the gate instead of stopping in it."""
     d = layout.dim
     o = 3 if layout.world_position else 0
     vx, vy, vz = o + 0, o + 1, o + 2
@@ -42,14 +46,23 @@ def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek
     k_att = 6.0                                     # 1/s, angle error -> rate
     k_pos, k_vel = 0.08 * seek, 0.25                 # rad per m, rad per m/s
     rate_scale = [math.radians(v) for v in max_rates_deg]
-    # pitch (about +y, nose down +) accelerates +x: theta_d = k_pos gx - k_vel vx; theta ~ -R20
+    # target point in body frame, linear in the corners: tx = mean cx - a n_x, ty = mean cy - a n_y
+    # with n_x = c0y - c1y, n_y = -(c0x - c1x)
+    tx = np.zeros(d)
+    ty = np.zeros(d)
     for c in range(4):
-        w[2, corner[c][0]] += k_att * k_pos / 4.0 / rate_scale[1]
+        tx[corner[c][0]] += 0.25
+        ty[corner[c][1]] += 0.25
+    tx[corner[0][1]] -= through
+    tx[corner[1][1]] += through
+    ty[corner[0][0]] += through
+    ty[corner[1][0]] -= through
+    # pitch (about +y, nose down +) accelerates +x: theta_d = k_pos tx - k_vel vx; theta ~ -R20
+    w[2] += k_att * k_pos * tx / rate_scale[1]
     w[2, vx] -= k_att * k_vel / rate_scale[1]
     w[2, r(2, 0)] += k_att / rate_scale[1]
-    # roll (about +x) accelerates -y: phi_d = -(k_pos gy - k_vel vy); phi ~ R21
-    for c in range(4):
-        w[1, corner[c][1]] -= k_att * k_pos / 4.0 / rate_scale[0]
+    # roll (about +x) accelerates -y: phi_d = -(k_pos ty - k_vel vy); phi ~ R21
+    w[1] -= k_att * k_pos * ty / rate_scale[0]
     w[1, vy] += k_att * k_vel / rate_scale[0]
     w[1, r(2, 1)] -= k_att / rate_scale[0]
     return w.astype(np.float32), b.astype(np.float32)
