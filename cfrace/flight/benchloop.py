@@ -69,7 +69,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         work = Path(tmp)
         ego, opp, kind = bench_policies(track, work)
         base = _free_base_port()
-        cmd = [sys.executable, "-m", "cfrace.cli.main", "sim", "serve", "--track", track, "--drones", "2",
+        cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track, "--drones", "2",
                "--port", str(base), "--profile", profile]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -1,0 +1,224 @@
+"""Whole-stack runs: `cfrace sim dry-run` (lockstep and real time through cflib), replay, and bad
+input that must be refused with one line before anything is sent to a drone."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cfrace.errors import CfraceError, MocapError, PolicyError
+from cfrace.flight.config import FlightConfig
+from cfrace.flight.dryrun import dry_run
+from cfrace.flight.flightlog import read_log
+from cfrace.flight.replay import replay_log
+from cfrace.flight.testpolicy import make_hold_policy
+
+PROFILE = "cf2x_paper"
+
+
+@pytest.fixture(scope="module")
+def pols(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pols")
+    return {"ego": str(make_hold_policy(d / "ego.onnx", "race42", "lemniscate", False)),
+            "opp": str(make_hold_policy(d / "opp.onnx", "solo36", "lemniscate", False)),
+            "complex": str(make_hold_policy(d / "cx.onnx", "race42", "complex", False)),
+            "dir": d}
+
+
+def cfg(pols, tmp_path, **kw):
+    base = dict(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
+                timeout_s=3.0, log=tmp_path / "flight.mcap")
+    base.update(kw)
+    return FlightConfig(**base)
+
+
+def check_stopped_and_logged(result, log_path):
+    for d in result["drones_final"]:
+        assert d["motors_off"] and d["thrust_n"] == 0.0, d
+    data = read_log(log_path)
+    assert data.complete and data.summary is not None and data.summary["end"] == result["end"]
+    return data
+
+
+@pytest.fixture(scope="module")
+def lockstep_run(pols, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("lockstep")
+    result = dry_run(cfg(pols, tmp), lockstep=True)
+    return result, tmp / "flight.mcap"
+
+
+def test_lockstep_dry_run_flies_and_logs(lockstep_run):
+    result, log = lockstep_run
+    assert result["end"] == "timeout" and result["winner"] == "draw" and result["safety_events"] == []
+    data = check_stopped_and_logged(result, log)
+    for topic in ("/mocap/pose", "/estimate", "/obs", "/action", "/setpoint", "/timing", "/link", "/race"):
+        assert data.count(topic) > 0, topic
+    assert data.count("/timing") == 301 and data.count("/obs") == 151        # 100 Hz loop, 50 Hz policy
+    z = [m["cf1"]["pos"][2] for _, m in data.messages("/estimate")]
+    assert z[0] < 0.05 and max(z) > 0.6                                        # took off from the floor
+    assert result["loop"]["ticks"] == 301 and result["loop"]["skipped"] == 0
+    assert data.meta["policies"]["ego"]["obs_layout"] == "race42"
+
+
+def test_replay_reproduces_the_observations_exactly(lockstep_run):
+    _, log = lockstep_run
+    r = replay_log(log)
+    assert r["identical"] and r["observations"] == 2 * 151 and r["mismatched"] == 0
+
+
+def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
+    """The check can fail: replaying with frames of another flight does not match."""
+    import shutil
+
+    from cfrace.flight import replay as rp
+
+    _, log = lockstep_run
+    copy = tmp_path / "copy.mcap"
+    shutil.copy(log, copy)
+    orig = rp.frame_from_msg
+
+    def shifted(msg):
+        f = orig(msg)
+        for p in f.poses.values():
+            p.pos[0] += 0.01
+        return f
+    rp.frame_from_msg = shifted
+    try:
+        r = replay_log(copy)
+    finally:
+        rp.frame_from_msg = orig
+    assert not r["identical"] and r["mismatched"] > 100
+
+
+def test_real_time_dry_run_through_cflib(pols, tmp_path):
+    result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False)
+    assert result["end"] == "timeout"
+    # on a loaded machine a tick can be skipped (reported, action none); nothing may stop a drone
+    assert all(e["action"] == "none" for e in result["safety_events"]), result["safety_events"]
+    data = check_stopped_and_logged(result, tmp_path / "flight.mcap")
+    loop = result["loop"]
+    assert loop["ticks"] + loop["skipped"] >= 195 and loop["compute_p99_ms"] > 0
+    assert data.meta["uris"][0].startswith("udp://127.0.0.1:")
+    links = [m for _, m in data.messages("/link")]
+    assert links[-1]["cf1"]["connected"] and links[-1]["cf1"]["sent"] > 150
+    assert any(m["cf1"]["latency_ms"] is not None for m in links)          # cflib echo pings answered
+    z = [m["cf2"]["pos"][2] for _, m in data.messages("/estimate")]
+    assert max(z) > 0.5
+
+
+# ------------------------------------------------------------------------------- refused before flying
+
+def _fleet_and_race(pols, tmp_path, **kw):
+    from cfrace.flight.runner import run_race
+    from cfrace.simcf.firmware import SimFleet
+
+    c = cfg(pols, tmp_path, **kw)
+    fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
+    try:
+        run_race(c, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"])
+    finally:
+        for i in range(2):
+            assert fleet.status(i)["setpoints_received"] == 0         # nothing was sent
+            assert fleet.get_param(i, "flightmode.stabModeRoll") == 1   # not even the set-up
+
+
+def test_mismatched_policy_is_refused_before_anything_flies(pols, tmp_path):
+    with pytest.raises(PolicyError, match="trained on track 'complex', not 'lemniscate'"):
+        _fleet_and_race(pols, tmp_path, ego=pols["complex"])
+    with pytest.raises(PolicyError, match="without obstacles, but the race is with"):
+        _fleet_and_race(pols, tmp_path, obstacles=True)
+
+
+def test_corrupt_policy_is_refused(pols, tmp_path):
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"\x08\x07garbage" * 10)
+    with pytest.raises(PolicyError, match="not a valid ONNX model"):
+        _fleet_and_race(pols, tmp_path, opp=str(bad))
+
+
+def test_unknown_body_is_refused(pols, tmp_path):
+    with pytest.raises(MocapError, match="unknown mocap body 'cf9'"):
+        _fleet_and_race(pols, tmp_path, bodies=("cf1", "cf9"))
+
+
+def run_cli(args, monkeypatch, capsys):
+    """The real entry point in-process: returns (exit code, stdout, stderr)."""
+    from cfrace.cli.main import main
+
+    monkeypatch.setattr(sys, "argv", ["cfrace", *args])
+    with pytest.raises(SystemExit) as e:
+        main()
+    out = capsys.readouterr()
+    return e.value.code, out.out, out.err
+
+
+@pytest.fixture()
+def server():
+    from cfrace.simcf.firmware import SimFleet
+    from cfrace.simcf.server import SimCrazyflieServer
+
+    s = SimCrazyflieServer(SimFleet("lemniscate", PROFILE, 2, obstacles=False), base_port=0).start()
+    yield s
+    s.stop()
+
+
+def _free_port():
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("case", ["unknown_body", "mismatched_onnx", "corrupt_onnx", "malformed_replay",
+                                  "truncated_replay", "radio_without_crazyradio", "udp_nothing_listening"])
+def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, tmp_path, monkeypatch, capsys):
+    _, log = lockstep_run
+    args = dict(track="lemniscate", ego=pols["ego"], opp=pols["opp"], uris=",".join(server.uris),
+                mocap=f"replay://{log}", profile=PROFILE, log=str(tmp_path / "f.mcap"), bodies="cf1,cf2")
+    expect = {"unknown_body": "unknown mocap body 'cf9'", "mismatched_onnx": "trained on track 'complex'",
+              "corrupt_onnx": "not a valid ONNX model", "malformed_replay": "not an MCAP flight log",
+              "truncated_replay": "replay://", "radio_without_crazyradio": "no Crazyradio found",
+              "udp_nothing_listening": "nothing listens there"}[case]
+    if case == "unknown_body":
+        args["bodies"] = "cf1,cf9"
+    elif case == "mismatched_onnx":
+        args["opp"] = pols["complex"]
+    elif case == "corrupt_onnx":
+        (tmp_path / "x.onnx").write_bytes(b"not onnx at all")
+        args["ego"] = str(tmp_path / "x.onnx")
+    elif case == "malformed_replay":
+        (tmp_path / "bad.mcap").write_bytes(b"hello, this is not mcap" * 5)
+        args["mocap"] = f"replay://{tmp_path / 'bad.mcap'}"
+    elif case == "truncated_replay":
+        (tmp_path / "cut.mcap").write_bytes(log.read_bytes()[:40])
+        args["mocap"] = f"replay://{tmp_path / 'cut.mcap'}"
+    elif case == "radio_without_crazyradio":
+        args["uris"] = "radio://0/80/2M/E7E7E7E7E7,radio://0/80/2M/E7E7E7E7E8"
+    elif case == "udp_nothing_listening":
+        args["uris"] = f"udp://127.0.0.1:{_free_port()},{server.uris[1]}"
+    argv = ["fly", "--quiet"] + [x for k, v in args.items() for x in (f"--{k}", v)]
+    code, out, err = run_cli(argv, monkeypatch, capsys)
+    assert code == 2, (out, err)
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and expect in lines[0], err
+    assert "Traceback" not in err
+    for s in server.stats():               # nothing was sent to the simulated drones that do exist
+        assert s["setpoints"] == 0, s
+    if case != "udp_nothing_listening":
+        assert all(server.fleet.status(i)["packets_received"] == 0 for i in range(2))
+
+
+def test_fly_cli_subprocess_unreachable_uri(pols, lockstep_run):
+    """The installed command, a real process: one line, exit code 2."""
+    _, log = lockstep_run
+    p1, p2 = _free_port(), _free_port()
+    r = subprocess.run([sys.executable, "-c", "from cfrace.cli.main import main; main()", "fly", "--track", "lemniscate", "--ego", pols["ego"],
+                        "--opp", pols["opp"], "--uris", f"udp://127.0.0.1:{p1},udp://127.0.0.1:{p2}",
+                        "--mocap", f"replay://{log}", "--profile", PROFILE, "--quiet",
+                        "--log", str(pols["dir"] / "x.mcap")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines() == [f"error: udp://127.0.0.1:{p1}: nothing listens there (connection refused)"]
