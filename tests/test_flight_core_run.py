@@ -141,7 +141,7 @@ def test_corrupt_policy_is_refused(pols, tmp_path):
 
 def test_unknown_body_is_refused(pols, tmp_path):
     with pytest.raises(MocapError, match="unknown mocap body 'cf9'"):
-        _fleet_and_race(pols, tmp_path, bodies=("cf1", "cf9"))
+        _fleet_and_race(pols, tmp_path, bodies=("cf1", "cf9"), mocap_timeout_s=0.3)
 
 
 def run_cli(args, monkeypatch, capsys):

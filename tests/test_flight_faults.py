@@ -1,0 +1,144 @@
+"""Faults through the real stack in simulation: each ends with every simulated drone stopped
+(firmware status: motors off), a complete flight log with /summary and the safety event logged."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cfrace.errors import ConfigError
+from cfrace.flight.config import FlightConfig
+from cfrace.flight.dryrun import dry_run
+from cfrace.flight.faults import parse_faults
+from cfrace.flight.flightlog import read_log
+from cfrace.flight.testpolicy import make_hold_policy
+
+PROFILE = "cf2x_paper"
+
+
+@pytest.fixture(scope="module")
+def pols(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pols")
+    return {"ego": str(make_hold_policy(d / "ego.onnx", "race42", "lemniscate", False)),
+            "opp": str(make_hold_policy(d / "opp.onnx", "solo36", "lemniscate", False))}
+
+
+def run(pols, tmp_path, faults, *, lockstep=True, timeout_s=3.0):
+    cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
+                       timeout_s=timeout_s, log=tmp_path / "f.mcap")
+    result = dry_run(cfg, lockstep=lockstep, faults=faults)
+    for d in result["drones_final"]:
+        assert d["motors_off"] and d["thrust_n"] == 0.0, d
+    data = read_log(tmp_path / "f.mcap")
+    assert data.complete and data.summary["end"] == result["end"]
+    logged = [(m["kind"], m["drone"], m["action"]) for _, m in data.messages("/safety")]
+    assert logged == [(e["kind"], e["drone"], e["action"]) for e in result["safety_events"]]
+    assert any(m.get("kind") == "fault" for _, m in data.messages("/event"))
+    return result, data, logged
+
+
+# fault, the event it must log (kind, drone, action), drones stopped by it, race end
+CASES = [
+    ("mocap_dropout_short@1.5", ("mocap_dropout", "ego", "none"), [], "timeout"),
+    ("mocap_dropout_long@1.5", ("mocap_stale", "ego", "stop_drone"), ["ego"], "timeout"),
+    ("pose_outlier@1.5", ("pose_outlier", "ego", "none"), [], "timeout"),
+    ("geofence@1.5", ("geofence", "ego", "stop_drone"), ["ego"], "timeout"),
+    ("nan_policy@1.5:opp", ("non_finite", "opp", "stop_drone"), ["opp"], "timeout"),
+    ("link_loss@1.5", ("link_lost", "ego", "stop_drone"), ["ego"], "timeout"),
+    ("stall_50ms@1.5", ("tick_skipped", None, "none"), [], "timeout"),
+    ("stall_200ms@1.5", ("loop_overrun", None, "stop_all"), ["ego", "opp"], "loop_overrun"),
+    ("sigterm@1.5", ("operator_kill", None, "stop_all"), ["ego", "opp"], "operator_kill"),
+    ("sigint@1.5", ("operator_kill", None, "stop_all"), ["ego", "opp"], "operator_kill"),
+]
+
+
+@pytest.mark.parametrize("fault, event, stopped, end", CASES, ids=[c[0] for c in CASES])
+def test_fault_lockstep(pols, tmp_path, fault, event, stopped, end):
+    result, data, logged = run(pols, tmp_path, fault)
+    assert event in logged, logged
+    assert result["end"] == end
+    by_fault = {d["name"] for d in result["drones"] if d["stopped"] and d["stop_kind"] not in ("timeout",)}
+    assert by_fault == set(stopped), result["drones"]
+    t_event = next(e["t"] for e in result["safety_events"] if (e["kind"], e["drone"], e["action"]) == event)
+    assert 1.5 <= t_event < 2.5
+    if fault.startswith("link_loss"):
+        # the stop cannot reach the drone: the firmware's own watchdog turned the motors off
+        assert result["drones_final"][0]["watchdog"] == "shutdown"
+        assert 1.9 <= t_event <= 2.1               # silence for link_timeout_s = 0.5 s
+    if fault.startswith("mocap_dropout_long"):
+        assert t_event == pytest.approx(1.5 + 0.15, abs=0.02)   # mocap_stale_s = 0.15 s
+    if fault.startswith(("sigterm", "sigint")):
+        assert result["operator_kill"] == ("SIGTERM" if "term" in fault else "SIGINT")
+        assert result["duration_s"] < 1.6
+    if not stopped:   # rode through: the drones flew on to the end at their height
+        z = [m["cf1"]["pos"][2] for _, m in data.messages("/estimate")]
+        assert min(z[-50:]) > 0.6
+
+
+def test_fault_specs():
+    fs = parse_faults("geofence@2,link_loss@3.5:opp")
+    assert [(f.kind, f.t, f.drone) for f in fs] == [("geofence", 2.0, "ego"), ("link_loss", 3.5, "opp")]
+    for bad in ("geofence", "warp@1", "geofence@x", "geofence@1:me", "geofence@-1"):
+        with pytest.raises(ConfigError, match="--faults"):
+            parse_faults(bad)
+
+
+def test_faults_real_time_through_cflib(pols, tmp_path):
+    """Real time, real cflib over UDP: a real link loss (a relay drops every datagram), a NaN
+    policy and a 50 ms stall, in one race."""
+    result, data, logged = run(pols, tmp_path, "link_loss@1.0:opp,nan_policy@1.5,stall_50ms@2.0",
+                               lockstep=False, timeout_s=3.0)
+    assert ("link_lost", "opp", "stop_drone") in logged and ("non_finite", "ego", "stop_drone") in logged
+    assert ("tick_skipped", None, "none") in logged
+    assert result["end"] == "all_stopped"
+    lost = next(e for e in result["safety_events"] if e["kind"] == "link_lost")
+    assert 1.3 <= lost["t"] <= 1.8                     # silence detected after ~0.5 s
+    assert result["drones_final"][1]["watchdog"] == "shutdown"
+
+
+def _dry_run_process(pols, tmp_path):
+    log = tmp_path / "f.mcap"
+    cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "dry-run",
+           "--track", "lemniscate", "--ego", pols["ego"], "--opp", pols["opp"], "--profile", PROFILE,
+           "--quiet", "--timeout-s", "30", "--log", str(log), "--json", str(tmp_path / "r.json")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:   # wait until the race is running (the log grows)
+        if log.exists():
+            try:
+                if read_log(log).count("/timing") > 100:
+                    return proc, log
+            except Exception:
+                pass
+        if proc.poll() is not None:
+            raise AssertionError(proc.stderr.read())
+        time.sleep(0.2)
+    proc.kill()
+    raise AssertionError("the dry-run did not start")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["SIGTERM", "Ctrl-C"])
+def test_real_signal_mid_race_stops_everything(pols, tmp_path, sig, code):
+    import json
+
+    proc, log = _dry_run_process(pols, tmp_path)
+    os.kill(proc.pid, sig)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == code, err
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert result["end"] == "operator_kill" and result["operator_kill"] == signal.Signals(sig).name
+    for d in result["drones_final"]:
+        assert d["motors_off"] and not d["armed"], d
+    data = read_log(log)
+    assert data.complete and data.summary["operator_kill"] == signal.Signals(sig).name
+    assert ("operator_kill", None, "stop_all") in [(m["kind"], m["drone"], m["action"])
+                                                   for _, m in data.messages("/safety")]
+    stops = [m for _, m in data.messages("/event") if m.get("kind") == "stop"]
+    assert {m["drone"] for m in stops} == {"ego", "opp"}
+    assert "operator_kill" in out
