@@ -69,8 +69,9 @@ def available_modes(compile: bool) -> list[str]:
 
 
 def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int, substeps: int,
-                track: str, profile: str) -> dict:
-    """Time ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after ``warmup`` calls.
+                track: str, profile: str, repeats: int = 3) -> dict:
+    """Time ``repeats`` x ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after
+    ``warmup`` calls; the rate is that of the fastest repeat (the median is kept too).
     mode: "c" (fused C kernel), "eager" (torch) or "compiled" (torch.compile)."""
     import inspect
 
@@ -94,16 +95,20 @@ def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int,
     for _ in range(warmup):
         sim.step(thrust, rates, substeps)
     warm = time.perf_counter() - t0
-    cpu0, t0 = time.process_time(), time.perf_counter()
-    for _ in range(steps):
-        sim.step(thrust, rates, substeps)
-    seconds = time.perf_counter() - t0
-    cpu = time.process_time() - cpu0
+    walls, cpus = [], []
+    for _ in range(repeats):  # best of `repeats`: the machine may be shared
+        cpu0, t0 = time.process_time(), time.perf_counter()
+        for _ in range(steps):
+            sim.step(thrust, rates, substeps)
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - cpu0)
     drone_steps = worlds * drones * substeps * steps
-    return {"worlds": worlds, "drones": drones, "total_drones": worlds * drones,
-            "mode": mode, "drone_steps_per_s": drone_steps / seconds,
-            "seconds": seconds, "policy_steps": steps, "substeps": substeps, "warmup_s": warm,
-            "cpu_per_wall": cpu / seconds, "crashed_fraction": float(sim.crashed.float().mean()),
+    best = min(range(repeats), key=walls.__getitem__)
+    return {"worlds": worlds, "drones": drones, "total_drones": worlds * drones, "mode": mode,
+            "drone_steps_per_s": drone_steps / walls[best],
+            "median_drone_steps_per_s": drone_steps / sorted(walls)[len(walls) // 2],
+            "seconds": walls, "policy_steps": steps, "substeps": substeps, "repeats": repeats, "warmup_s": warm,
+            "cpu_per_wall": cpus[best] / walls[best], "crashed_fraction": float(sim.crashed.float().mean()),
             "mean_z_m": float(sim.pos[..., 2].mean())}
 
 
@@ -212,12 +217,13 @@ def sim_cmd(
     drones: int = typer.Option(2, min=1, help="drones per world"),
     steps: int = typer.Option(30, min=1, help="timed policy steps (each `substeps` physics steps)"),
     warmup: int = typer.Option(3, min=1, help="untimed policy steps first (torch.compile compiles here)"),
+    repeats: int = typer.Option(3, min=1, help="timed repeats per size and mode; the fastest counts"),
     substeps: int = typer.Option(10, min=1, help="physics steps of 2 ms per policy step"),
     compile: bool = typer.Option(True, "--compile/--no-compile", help="also measure torch.compile"),
     peer: Optional[bool] = typer.Option(None, "--peer/--no-peer",
                                         help="run the crazyflow peer (default: when a peer python is found)"),
     peer_python_path: Optional[Path] = typer.Option(None, "--peer-python", help="python of the crazyflow venv"),
-    peer_calls: int = typer.Option(3, min=1, help="timed sim.step(1000) calls per size on the peer"),
+    peer_calls: int = typer.Option(3, min=1, help="timed sim.step(1000) calls per size on the peer; the fastest counts"),
     threads: int = typer.Option(0, min=0, help="CPU threads for torch (and XLA); 0 keeps the defaults"),
     track: str = typer.Option("complex", help="track name or path"),
     profile: str = typer.Option("cf2x_paper", help="drone profile name or path"),
@@ -243,7 +249,7 @@ def sim_cmd(
                 continue
             try:
                 r = measure_sim(w, drones, mode=mode, steps=steps, warmup=warmup, substeps=substeps,
-                                track=track, profile=profile)
+                                track=track, profile=profile, repeats=repeats)
             except CfraceError:
                 raise
             except Exception as exc:  # torch.compile missing a compiler, etc.: report, keep the others
