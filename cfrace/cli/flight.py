@@ -31,13 +31,14 @@ def print_result(result: dict, con: Console = out) -> None:
     drones = result.get("drones") or []
     if drones:
         t = Table(title="drones")
-        for col in ("drone", "body", "policy", "laps", "gates", "lap times s", "max m/s", "mean m/s", "stopped"):
-            t.add_column(col)
+        for col in ("drone", "policy", "laps (gates)", "lap times s", "speed max / mean m/s", "result"):
+            t.add_column(col, overflow="fold")
         for d in drones:
-            t.add_row(d["name"], d["body"], str(d.get("method")), str(d["laps"]), str(d["gates_passed"]),
-                      ", ".join(f"{x:.2f}" for x in d["lap_times"]) or "-", f"{d['speed_max']:.2f}",
-                      "-" if d["speed_mean"] is None else f"{d['speed_mean']:.2f}",
-                      f"{d['stop_kind']} @ {d['stop_t']:.2f} s" if d["stopped"] and d["stop_t"] is not None else "no")
+            mean = "-" if d["speed_mean"] is None else f"{d['speed_mean']:.1f}"
+            res = (f"stopped: {d['stop_kind']} at {d['stop_t']:.2f} s"
+                   if d["stopped"] and d["stop_t"] is not None and d["stop_kind"] != end else "flew to the end")
+            t.add_row(f"{d['name']} ({d['body']})", str(d.get("method")), f"{d['laps']} ({d['gates_passed']})",
+                      ", ".join(f"{x:.2f}" for x in d["lap_times"]) or "-", f"{d['speed_max']:.1f} / {mean}", res)
         con.print(t)
     loop = result.get("loop")
     if loop:

@@ -9,7 +9,8 @@ inferences the last command is re-sent.
 
 What one tick measures (all in /timing): ``late_s`` (start against its absolute deadline),
 ``period_s`` (start to start), ``compute_s`` (start to the last setpoint handed to the links: the
-latency the loop adds) and ``infer_s`` per drone (observation + ONNX).
+latency the loop adds), ``compute_cpu_s`` (the CPU time the loop thread spent on it: the same
+without the time other processes took the CPU) and ``infer_s`` per drone (observation + ONNX).
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from cfrace.flight.link import thrust_to_counts
 from cfrace.flight.mocap import frame_to_msg
 
 perf = time.perf_counter
+thread_time = time.thread_time   # CPU time of this thread: the tick's own cost, without preemption
 
 
 class KillSwitch:
@@ -70,21 +72,21 @@ class Drone:
 
 class ObservationBuilder:
     """The training observation (cfrace.env.observations.build_observation) from estimates.
-    float32 torch like the simulator; small tensors, so a call costs tens of microseconds."""
+    float32 torch like the simulator, on tiny tensors: one numpy concatenate + from_numpy per call
+    and cached target-index tensors keep a call at ~60 us (measured; docs/flight.md)."""
 
     def __init__(self, gate_corners: np.ndarray):
         self.corners = torch.as_tensor(np.asarray(gate_corners), dtype=torch.float32)  # (G, 4, 3)
+        self._targets = [torch.tensor(i) for i in range(self.corners.shape[0])]
+        self._no_opp = np.zeros(6)
 
     def __call__(self, layout: ObsLayout, est, target: int, opp=None) -> np.ndarray:
-        f = torch.float32
         with torch.inference_mode():
-            pos = torch.as_tensor(est.pos, dtype=f)
-            vel = torch.as_tensor(est.vel, dtype=f)
-            rot = torch.as_tensor(est.rot, dtype=f)
-            opp_pos = opp_vel = None
-            if layout.opponent:
-                opp_pos, opp_vel = torch.as_tensor(opp.pos, dtype=f), torch.as_tensor(opp.vel, dtype=f)
-            obs = build_observation(pos, vel, rot, torch.tensor(int(target)), self.corners, layout, opp_pos, opp_vel)
+            o = (opp.pos, opp.vel) if layout.opponent else (self._no_opp,)
+            st = torch.from_numpy(np.concatenate([est.pos, est.vel, np.ravel(est.rot), *o]).astype(np.float32))
+            pos, vel, rot = st[0:3], st[3:6], st[6:15].view(3, 3)
+            opp_pos, opp_vel = (st[15:18], st[18:21]) if layout.opponent else (None, None)
+            obs = build_observation(pos, vel, rot, self._targets[int(target)], self.corners, layout, opp_pos, opp_vel)
         return obs.numpy()
 
 
@@ -163,7 +165,7 @@ class FlightLoop:
     # ------------------------------------------------------------------ the loop
     def run(self) -> LoopResult:
         n = len(self.drones)
-        late_l, period_l, compute_l, infer_l = [], [], [], [[] for _ in range(n)]
+        late_l, period_l, compute_l, cpu_l, infer_l = [], [], [], [], [[] for _ in range(n)]
         end, winner = "", "draw"
         self.clock.start()
         self.running = True
@@ -173,6 +175,7 @@ class FlightLoop:
             while True:
                 tick = self.clock.wait_next()
                 t_start = perf()
+                cpu_start = thread_time()
                 k, t = tick.k, tick.t
                 self.t = t
                 if self.faults is not None:
@@ -212,6 +215,7 @@ class FlightLoop:
                         r = d.rates_dps
                         d.link.send(r[0], r[1], r[2], d.counts)
                 t_sent = perf()
+                cpu_l.append(thread_time() - cpu_start)
                 # ---------------------------------------------- after the send: bookkeeping
                 compute = t_sent - t_start
                 late_l.append(tick.late_s)
@@ -220,8 +224,8 @@ class FlightLoop:
                 compute_l.append(compute)
                 for i in range(n):
                     infer_l[i].append(infer[i])
-                self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, infer,
-                                  policy_tick)
+                self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu_l[-1],
+                                  infer, policy_tick)
                 # ---------------------------------------------- race end
                 if self.kill.reason is not None:
                     end = "operator_kill"
@@ -244,10 +248,11 @@ class FlightLoop:
             self.stop_all(self.t, end or "exception")
         return LoopResult(end=end, winner=winner, t_end=self.t, ticks=len(compute_l), skipped=self.clock.skipped,
                           timing={"late": np.asarray(late_l), "period": np.asarray(period_l),
-                                  "compute": np.asarray(compute_l), "infer": [np.asarray(x) for x in infer_l]},
+                                  "compute": np.asarray(compute_l), "compute_cpu": np.asarray(cpu_l),
+                                  "infer": [np.asarray(x) for x in infer_l]},
                           safety_events=self.events, drones=self.drone_results())
 
-    def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, infer,
+    def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu, infer,
                      policy_tick) -> None:
         # safety: log each violation once per episode (it re-arms when it clears)
         present = set()
@@ -287,6 +292,7 @@ class FlightLoop:
                                        for d in self.drones})
             log.write("/timing", t, {"k": k, "now": self._now,
                                      "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
+                                     "compute_cpu_s": cpu,
                                      "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
             if passed.any() or lap_done.any():
                 log.write("/race", t, self.race_state())
