@@ -457,3 +457,21 @@ def test_real_time_loop_does_not_burst_after_a_stall(track):
     assert sends == ks                                    # exactly one setpoint per executed tick
     assert all(t.t >= t.k * 0.01 for t in ticks)          # never early
     assert any(e["kind"] == "tick_skipped" for e in res.safety_events)
+
+
+def test_live_view_renders_every_drone(track):
+    import io
+
+    from rich.console import Console
+
+    from cfrace.flight.liveview import LiveView
+
+    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
+    loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.2)
+    buf = io.StringIO()
+    con = Console(file=buf, width=120, force_terminal=False)
+    loop.view = LiveView(title="test race", laps=3, every_ticks=5, console=con)
+    with loop.view:
+        loop.run()
+    text = buf.getvalue()
+    assert "test race" in text and "ego" in text and "opp" in text and "0/3" in text and "flying" in text

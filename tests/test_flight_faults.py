@@ -142,3 +142,45 @@ def test_real_signal_mid_race_stops_everything(pols, tmp_path, sig, code):
     stops = [m for _, m in data.messages("/event") if m.get("kind") == "stop"]
     assert {m["drone"] for m in stops} == {"ego", "opp"}
     assert "operator_kill" in out
+
+
+def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, tmp_path):
+    from cfrace.flight.faults import FaultInjector
+    from cfrace.flight.runner import run_race
+    from cfrace.simcf.firmware import SimFleet
+
+    class Boom(FaultInjector):
+        def filter_action(self, drone, act, t):
+            if t >= 1.2:
+                raise RuntimeError("policy runtime exploded")
+            return act
+
+    cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
+                       timeout_s=3.0, log=tmp_path / "f.mcap")
+    fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
+    with pytest.raises(RuntimeError, match="exploded"):
+        run_race(cfg, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"], injector=Boom([], {}))
+    for _ in range(5):
+        fleet.advance(0.01)
+    for i in range(2):
+        s = fleet.status(i)
+        assert s["thrust"] == 0.0 and not s["armed"], s
+    data = read_log(tmp_path / "f.mcap")
+    assert data.complete and "exploded" in data.summary["error"]
+    assert {m["drone"] for _, m in data.messages("/event") if m.get("kind") == "stop"} == {"ego", "opp"}
+
+
+@pytest.mark.slow
+def test_bench_loop_against_a_sim_serve_process():
+    """`cfrace bench loop`: `cfrace sim serve` in its own process, the fly code over cflib/UDP
+    and the sim:// pose stream; every figure is measured."""
+    from cfrace.flight.benchloop import bench_loop
+
+    r = bench_loop(2.0, profile=PROFILE)
+    loop = r["loop"]
+    assert r["end"] == "timeout" and loop["ticks"] + loop["skipped"] >= 195
+    for key in ("compute_ms", "compute_cpu_ms", "period_jitter_ms", "late_ms"):
+        assert 0 < loop[key]["p50"] <= loop[key]["p99"] <= loop[key]["max"], key
+    assert set(loop["inference_ms"]) == {"ego", "opp"} and loop["inference_p99_ms"] > 0
+    assert set(r["goals_met"]) == {"compute_p99_ms", "period_jitter_p99_ms", "inference_p99_ms"}
+    assert all(e["action"] == "none" for e in r["safety_events"])
