@@ -1,9 +1,142 @@
-"""`cfrace` commands: evaluate."""
+"""`cfrace eval`, `cfrace race`, `cfrace tournament`: thin commands over cfrace.evaluate."""
 
 from __future__ import annotations
 
+import json
+import os
+import sys
+from pathlib import Path
+from typing import List, Optional
+
 import typer
+from rich.console import Console
+from rich.table import Table
+
+# tables are wide: piped output gets 160 columns unless COLUMNS says otherwise
+console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 160)
+
+_TRACK = typer.Option(..., "--track", help="track name (tracks/NAME.yaml) or path")
+_OBST = typer.Option(False, "--obstacles", help="race with the track's obstacles")
+_LAPS = typer.Option(3, "--laps", min=1, help="laps per run / race")
+_SEED = typer.Option(0, "--seed", help="seed of the start poses")
+_LIMIT = typer.Option(None, "--time-limit", min=0.1, help="s per run / race (default 15 s per lap)")
+_PROFILE = typer.Option(None, "--profile", help="drone profile (default: the one the policies name)")
+_JSON = typer.Option(None, "--json", help="write the results to this JSON file")
+
+
+def _write_json(path: Optional[Path], data: dict) -> None:
+    if path is None:
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=2) + "\n")
+    console.print(f"wrote {path}")
+
+
+def _f(v, spec: str = ".2f") -> str:
+    return "–" if v is None else format(v, spec)
+
+
+def eval_cmd(
+    policies: List[str] = typer.Argument(..., help="policy paths or short names (ours, ds, ss, dm)"),
+    track: str = _TRACK, obstacles: bool = _OBST,
+    runs: int = typer.Option(50, "--runs", min=1, help="runs per policy"),
+    laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
+    json_out: Optional[Path] = _JSON,
+    md_out: Optional[Path] = typer.Option(None, "--md", help="write the table as markdown to this file"),
+    plot: Optional[Path] = typer.Option(None, "--plot", help="folder for trajectory PNGs (one per policy)"),
+) -> None:
+    """Single-agent benchmark (paper Table I): N runs of L laps per policy from random gate starts."""
+    from cfrace.evaluate.single import evaluate, markdown_table
+
+    r = evaluate(list(policies), track, obstacles, runs, laps, seed, time_limit, profile, plot)
+    t = Table(title=f"single-agent benchmark: {r.track}{' with obstacles' if r.obstacles else ''}, {r.runs} runs x "
+                    f"{r.laps} laps, seed {r.seed} ({r.wall_s:.1f} s)")
+    for col in ("policy", "method", "Avg. TTC [s]", "Avg. speed [m/s]", "Collisions", "Success [%]", "best lap [s]",
+                "max speed [m/s]", "crashes", "time-outs"):
+        t.add_column(col, justify="left" if col in ("policy", "method") else "right")
+    for row in r.rows:
+        t.add_row(row["name"], row["method"], _f(row["lap_time_s"]), _f(row["avg_speed_mps"]), str(row["collisions"]),
+                  f"{100 * row['success_rate']:.0f}", _f(row["best_lap_s"]), _f(row["max_speed_mps"]),
+                  str(row["crashes"]), str(row["timeouts"]))
+    console.print(t)
+    _write_json(json_out, r.to_json())
+    if md_out is not None:
+        md_out.parent.mkdir(parents=True, exist_ok=True)
+        md_out.write_text(markdown_table(r))
+        console.print(f"wrote {md_out}")
+    for p in r.plots:
+        console.print(f"wrote {p}")
+
+
+def race_cmd(
+    track: str = _TRACK,
+    ego: str = typer.Option(..., "--ego", help="ego policy (drone 0): path or short name"),
+    opp: str = typer.Option(..., "--opp", help="opponent policy (drone 1): path or short name"),
+    obstacles: bool = _OBST,
+    races: int = typer.Option(50, "--races", min=1, help="races (half of them swap the starting slots)"),
+    laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
+    json_out: Optional[Path] = _JSON,
+    plot: Optional[Path] = typer.Option(None, "--plot", help="folder for trajectory and speed-profile PNGs"),
+) -> None:
+    """Head-to-head races: the first to complete the laps wins; a crash of both is a draw."""
+    from cfrace.evaluate.race import race
+
+    r = race(track, ego, opp, obstacles, races, laps, seed, time_limit, profile, plot)
+    rates = r.rates()
+    c = rates["counts"]
+    t = Table(title=f"{r.ego} (ego) vs {r.opp} (opp) on {r.track}{' with obstacles' if r.obstacles else ''}: "
+                    f"{r.races} races x {r.laps} laps ({r.wall_s:.1f} s)")
+    t.add_column("figure")
+    t.add_column(r.ego, justify="right")
+    t.add_column(r.opp, justify="right")
+    t.add_row("win rate", f"{rates['ego_win_rate']:.0%}", f"{rates['opp_win_rate']:.0%}")
+    t.add_row("lap time [s]", _f(r.ego_stats["lap_time_s"]), _f(r.opp_stats["lap_time_s"]))
+    t.add_row("avg speed [m/s]", _f(r.ego_stats["avg_speed_mps"]), _f(r.opp_stats["avg_speed_mps"]))
+    t.add_row("crashes", str(r.ego_stats["crashes"]), str(r.opp_stats["crashes"]))
+    t.add_row("collisions", str(r.ego_stats["collisions"]), str(r.opp_stats["collisions"]))
+    console.print(t)
+    console.print(f"draws {rates['draw_rate']:.0%}: both crashed {c['draw_both_crashed']}, time-out "
+                  f"{c['draw_timeout']}, tie {c['draw_tie']}")
+    if r.speed_profile:
+        for key, label in (("vs_live_opponent", "vs live opponent"), ("vs_crashed_opponent", "vs crashed opponent")):
+            s = r.speed_profile[key]
+            console.print(f"{r.ego} speed {label}: max {_f(s['max_mps'])} m/s, mean {_f(s['mean_mps'])} m/s, "
+                          f"at the finish {_f(s['finish_speed_mps'])} m/s")
+    _write_json(json_out, r.to_json())
+    for p in r.plots:
+        console.print(f"wrote {p}")
+
+
+def tournament_cmd(
+    policies: List[str] = typer.Argument(..., help="two or more policy paths or short names"),
+    track: str = _TRACK, obstacles: bool = _OBST,
+    races: int = typer.Option(50, "--races", min=1, help="races per pair (half swap the starting slots)"),
+    laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
+    json_out: Optional[Path] = _JSON,
+    heatmap: Optional[Path] = typer.Option(None, "--heatmap", help="write the win-rate heatmap PNG here"),
+) -> None:
+    """Every pair races; a matrix of win rates (row vs column), draws apart, like the paper's Fig. 6."""
+    from cfrace.evaluate.race import tournament
+
+    r = tournament(list(policies), track, obstacles, races, laps, seed, time_limit, profile, heatmap)
+    t = Table(title=f"tournament on {r.track}{' with obstacles' if r.obstacles else ''}: {r.races} races x {r.laps} "
+                    f"laps per pair, win rate of row vs column (draws) ({r.wall_s:.1f} s)")
+    t.add_column("policy")
+    for n in r.policies:
+        t.add_column(n, justify="right")
+    t.add_column("average", justify="right")
+    for i, n in enumerate(r.policies):
+        cells = ["–" if r.win_rate[i][j] is None else f"{r.win_rate[i][j]:.0%} ({r.draw_rate[i][j]:.0%})"
+                 for j in range(len(r.policies))]
+        t.add_row(n, *cells, _f(r.average_win_rate()[i], ".0%"))
+    console.print(t)
+    _write_json(json_out, r.to_json())
+    for p in r.plots:
+        console.print(f"wrote {p}")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to the top-level app."""
+    """Add `eval`, `race` and `tournament`."""
+    app.command("eval")(eval_cmd)
+    app.command("race")(race_cmd)
+    app.command("tournament")(tournament_cmd)

@@ -1,0 +1,200 @@
+"""Evaluation plots (matplotlib Agg, PNG): trajectories over the track coloured by speed, the
+ego's speed against a live vs a crashed opponent (paper Fig. 8 a-b) and the tournament heatmap."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from cfrace.evaluate.entrants import Entrant
+from cfrace.evaluate.metrics import RunSummary, speed_stats
+from cfrace.evaluate.rollout import Recording
+from cfrace.sim.simulator import REASONS
+from cfrace.track import Track
+from cfrace.trackplot import draw_track
+
+CMAP = "turbo"
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def _trace(rec: Recording, world: int, drone: int):
+    """(xyz (N, 3), speed (N,), t (N,)) of a recorded world's drone while it was racing."""
+    k = rec.recorded.index(world)
+    act = rec.active[:, world, drone]
+    n = int(np.flatnonzero(act)[-1]) + 1 if act.any() else 0
+    return rec.pos[:n, k, drone], rec.speed[:n, world, drone], rec.t[:n]
+
+
+def _speed_path(ax, xyz: np.ndarray, speed: np.ndarray, norm, lw: float = 2.0):
+    from matplotlib.collections import LineCollection
+
+    if len(xyz) < 2:
+        return None
+    seg = np.stack([xyz[:-1, :2], xyz[1:, :2]], axis=1)
+    lc = LineCollection(seg, cmap=CMAP, norm=norm, linewidths=lw, zorder=5)
+    lc.set_array(0.5 * (speed[:-1] + speed[1:]))
+    ax.add_collection(lc)
+    ax.plot(*xyz[0, :2], "o", color="black", ms=5, zorder=6)
+    return lc
+
+
+def _mark_end(ax, xyz: np.ndarray, crashed: bool, color: str = "black") -> None:
+    if len(xyz) and crashed:
+        ax.plot(*xyz[-1, :2], "x", color=color, ms=10, mew=2.5, zorder=7)
+
+
+def _pick(worlds, s: RunSummary, drone: int = 0) -> int:
+    """The first world where the drone finished, else the one it raced longest in."""
+    worlds = list(worlds)
+    done = [w for w in worlds if s.finished[w, drone]]
+    return done[0] if done else max(worlds, key=lambda w: s.flight_time[w, drone])
+
+
+def _lap_text(s: RunSummary, w: int, d: int) -> str:
+    laps = s.lap_times[w, d]
+    laps = laps[~np.isnan(laps)]
+    txt = "laps " + ", ".join(f"{x:.2f}" for x in laps) + " s" if laps.size else "no lap"
+    if s.crashed[w, d]:
+        txt += f"; crash ({REASONS[int(s.crash_reason[w, d])]}) at {s.crash_time[w, d]:.2f} s"
+    return txt
+
+
+def solo_trajectory_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Entrant], rec: Recording,
+                          s: RunSummary, runs: int) -> list[Path]:
+    """One top-view PNG per policy: a recorded run (several laps), coloured by speed."""
+    from matplotlib.colors import Normalize
+
+    plt = _plt()
+    plot_dir = Path(plot_dir)
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    out = []
+    for k, e in enumerate(entrants):
+        w = _pick([x for x in rec.recorded if k * runs <= x < (k + 1) * runs], s)
+        xyz, v, _ = _trace(rec, w, 0)
+        fig, ax = plt.subplots(figsize=(6.5, 7.0))
+        draw_track(ax, track, obstacles, "top")
+        norm = Normalize(0.0, max(float(v.max()) if v.size else 1.0, 1.0))
+        lc = _speed_path(ax, xyz, v, norm)
+        _mark_end(ax, xyz, bool(s.crashed[w, 0]))
+        if lc is not None:
+            fig.colorbar(lc, ax=ax, label="speed [m/s]", shrink=0.8)
+        st = speed_stats(v, np.ones_like(v, bool))
+        ax.set_title(f"{e.name} on {track.name}{' with obstacles' if obstacles else ''}, run {w - k * runs}\n"
+                     f"{_lap_text(s, w, 0)}\nmean {st['mean_mps'] or 0:.2f} m/s, max {st['max_mps'] or 0:.2f} m/s",
+                     fontsize=9)
+        path = plot_dir / f"trajectory_{_safe(e.name)}.png"
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        out.append(path)
+    return out
+
+
+def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Entrant], rec: Recording,
+               s: RunSummary, races: int, profile: dict) -> list[Path]:
+    """race_trajectories.png (a: ego vs a live opponent, b: vs a crashed one, coloured by speed) and
+    speed.png (the ego's speed over time in both, with max and mean)."""
+    from matplotlib.colors import Normalize
+
+    plt = _plt()
+    plot_dir = Path(plot_dir)
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    live_w = _pick([w for w in rec.recorded if w < races], s)
+    extra = [w for w in rec.recorded if w >= races]
+    crash_w = _pick(extra, s) if extra else None
+    cases = [("a", "live opponent", live_w)] + ([("b", "crashed opponent", crash_w)] if crash_w is not None else [])
+    traces = {c: _trace(rec, w, 0) for c, _, w in cases}
+    vmax = max([float(tr[1].max()) for tr in traces.values() if tr[1].size] + [1.0])
+    norm = Normalize(0.0, vmax)
+    ego, opp = entrants[0].name, entrants[1].name
+    fig, axes = plt.subplots(1, len(cases), figsize=(6.0 * len(cases), 6.8), squeeze=False)
+    lc = None
+    for ax, (tag, label, w) in zip(axes[0], cases):
+        draw_track(ax, track, obstacles, "top")
+        xyz, v, _ = traces[tag]
+        lc = _speed_path(ax, xyz, v, norm) or lc
+        _mark_end(ax, xyz, bool(s.crashed[w, 0]))
+        oxyz, _, _ = _trace(rec, w, 1) if rec.active[:, w, 1].any() else (rec.pos[:1, rec.recorded.index(w), 1], 0, 0)
+        ax.plot(oxyz[:, 0], oxyz[:, 1], "--", color="grey", lw=1.0, zorder=4, label=f"opponent ({opp})")
+        _mark_end(ax, oxyz, bool(rec.crashed[-1, w, 1]), "dimgrey")
+        ax.legend(loc="lower right", fontsize=7)
+        ax.set_title(f"({tag}) {ego} vs {label}, race {w if w < races else w - races}\n{_lap_text(s, w, 0)}", fontsize=9)
+    if lc is not None:
+        fig.colorbar(lc, ax=list(axes[0]), label=f"{ego} speed [m/s]", shrink=0.8)
+    traj = plot_dir / "race_trajectories.png"
+    fig.savefig(traj, dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(len(cases), 1, figsize=(9.0, 3.2 * len(cases)), squeeze=False, sharex=True)
+    keys = {"a": "vs_live_opponent", "b": "vs_crashed_opponent"}
+    for ax, (tag, label, w) in zip(axes[:, 0], cases):
+        _, v, t = traces[tag]
+        st = speed_stats(v, np.ones_like(v, bool))
+        agg = profile[keys[tag]]
+        ax.plot(t, v, color="tab:blue" if tag == "a" else "tab:orange", lw=1.3)
+        if st["max_mps"] is not None:
+            ax.axhline(st["mean_mps"], color="black", ls=":", lw=1.0)
+        stamps = rec.lap_stamp[:, w, 0][rec.active[:, w, 0]]
+        for x in stamps[~np.isnan(stamps)]:
+            ax.axvline(x, color="green", lw=0.8, alpha=0.6)
+        down = np.flatnonzero(rec.crashed[:, w, 1])
+        if down.size:
+            ax.axvline(rec.t[down[0]], color="red", lw=1.0, ls="--", label="opponent crashed")
+            ax.legend(loc="lower right", fontsize=7)
+        fmt = lambda x: "–" if x is None else f"{x:.2f}"
+        ax.set_title(f"({tag}) {ego} vs {label}, race {w if w < races else w - races}: this race max "
+                     f"{fmt(st['max_mps'])} / mean {fmt(st['mean_mps'])} m/s; all races max {fmt(agg['max_mps'])} "
+                     f"/ mean {fmt(agg['mean_mps'])} m/s", fontsize=8)
+        ax.set_ylabel("speed [m/s]")
+        ax.set_ylim(0.0, vmax * 1.08)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("time [s] (green: lap completed)")
+    fig.tight_layout()
+    speed = plot_dir / "speed.png"
+    fig.savefig(speed, dpi=110)
+    plt.close(fig)
+    return [traj, speed]
+
+
+def plot_heatmap(path: Path, names: list[str], win: list[list[float | None]], draw: list[list[float | None]],
+                 title: str = "") -> Path:
+    """Win rate of the row policy against the column policy (draws in small print), diagonal blank."""
+    plt = _plt()
+    n = len(names)
+    m = np.array([[np.nan if x is None else 100.0 * x for x in row] for row in win])
+    fig, ax = plt.subplots(figsize=(1.3 * n + 2.4, 1.1 * n + 1.6))
+    im = ax.imshow(np.ma.masked_invalid(m), cmap="RdYlGn", vmin=0, vmax=100)
+    for i in range(n):
+        for j in range(n):
+            if i == j:
+                ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, color="lightgrey"))
+                continue
+            ax.text(j, i - 0.08, f"{m[i, j]:.0f}%", ha="center", va="center", fontsize=11, weight="bold")
+            ax.text(j, i + 0.25, f"draw {100 * draw[i][j]:.0f}%", ha="center", va="center", fontsize=7)
+    ax.set_xticks(range(n), names)
+    ax.set_yticks(range(n), names)
+    ax.set_xlabel("opponent (column)")
+    ax.set_ylabel("policy (row)")
+    fig.colorbar(im, ax=ax, label="win rate [%]", shrink=0.8)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,203 @@
+"""Head-to-head races and tournaments, all races of all pairs batched in one simulator.
+
+Race rules (paper Sec. IV-A, docs/evaluation.md): the first drone to complete the laps wins (also
+when the other crashed before); a terminal crash of both is a draw; a time-out with nobody finished
+is a draw too (counted apart). Races come in pairs from one start configuration with the two slots
+swapped, so half of the races swap the starting slots. Drone 0 is always the ego, drone 1 the
+opponent; each is fed the observation layout its own metadata names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cfrace.errors import ConfigError
+from cfrace.evaluate.entrants import Entrant, common_profile, load_entrants, load_race_track
+from cfrace.evaluate.metrics import RunSummary, finish_speed, race_outcomes, race_rates, solo_metrics, speed_stats
+from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
+
+PLOT_RACES = 4        #: races whose positions are recorded for the plots
+CRASHED_OPP_RACES = 10  #: extra worlds (with --plot) where the opponent drops at the start
+
+
+@dataclass
+class RaceResult:
+    track: str
+    obstacles: bool
+    races: int
+    laps: int
+    seed: int
+    time_limit_s: float
+    ego: str
+    opp: str
+    outcomes: np.ndarray                   # (races,) outcome codes (metrics.OUTCOMES)
+    swapped: np.ndarray                    # (races,) bool, the slots were swapped
+    ego_stats: dict
+    opp_stats: dict
+    speed_profile: dict | None = None      # Fig. 8 figures (with --plot)
+    recording: Recording | None = None
+    plots: list[Path] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def rates(self) -> dict:
+        return race_rates(self.outcomes)
+
+    def to_json(self) -> dict:
+        r = self.rates()
+        sw = self.swapped
+        out = {"track": self.track, "obstacles": self.obstacles, "races": self.races, "laps": self.laps,
+               "seed": self.seed, "time_limit_s": self.time_limit_s, "ego_policy": self.ego, "opp_policy": self.opp,
+               "ego_win_rate": r["ego_win_rate"], "opp_win_rate": r["opp_win_rate"], "draw_rate": r["draw_rate"],
+               "counts": r["counts"], "swapped_races": int(sw.sum()),
+               "ego_win_rate_by_slot": {"own_slot": race_rates(self.outcomes[~sw])["ego_win_rate"] if (~sw).any() else None,
+                                        "swapped": race_rates(self.outcomes[sw])["ego_win_rate"] if sw.any() else None},
+               "ego_stats": self.ego_stats, "opp_stats": self.opp_stats, "wall_s": round(self.wall_s, 3)}
+        if self.speed_profile is not None:
+            out["speed_profile"] = self.speed_profile
+        return out
+
+
+def _pair_worlds(pairs: list[tuple[int, int]], races: int, starts: Starts) -> tuple[np.ndarray, Starts]:
+    """Worlds for every pair (ego index, opp index) x ``races``; every pair uses the same starts."""
+    assign = np.array([[i, j] for i, j in pairs for _ in range(races)], dtype=np.int64).reshape(-1, 2)
+    n = len(pairs)
+    rep = lambda x: x.repeat(n, *([1] * (x.dim() - 1)))
+    return assign, Starts(rep(starts.pos), rep(starts.quat), rep(starts.target))
+
+
+def _drone_stats(summary: RunSummary, worlds: slice, drone: int) -> dict:
+    m = solo_metrics(summary, worlds, drone)
+    m["finish_rate"] = m.pop("success_rate")
+    return m
+
+
+def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: int = 50, laps: int = 3,
+         seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
+         plot_dir: Path | None = None, threads: int | None = None) -> RaceResult:
+    """``races`` head-to-head races of ``ego`` (drone 0) against ``opp`` (drone 1)."""
+    import time
+
+    t0 = time.perf_counter()
+    if races < 1 or laps < 1:
+        raise ConfigError("races and laps must be >= 1")
+    track = load_race_track(track_name, obstacles)
+    entrants = load_entrants([ego, opp], track, obstacles)
+    prof = common_profile(entrants, profile)
+    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True)
+    assign, all_starts = _pair_worlds([(0, 1)], races, starts)
+    extra = min(races, CRASHED_OPP_RACES) if plot_dir is not None else 0
+    if extra:  # the same ego from the same starts, the opponent drops at once (motors off)
+        assign = np.concatenate([assign, np.tile([[0, -1]], (extra, 1))])
+        all_starts = Starts(*(torch.cat([a, a[:extra]]) for a in (all_starts.pos, all_starts.quat, all_starts.target)))
+    record = (tuple(range(min(races, PLOT_RACES))) + tuple(range(races, races + min(extra, PLOT_RACES)))
+              if plot_dir is not None else ())
+    limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
+    rec = rollout(track, prof, obstacles, entrants, assign, all_starts, laps, limit, record, seed, threads)
+    s = rec.summary()
+    live = slice(0, races)
+    outcomes = race_outcomes(s.finish_time[live], s.crashed[live])
+    swapped = np.arange(races) % 2 == 1
+    result = RaceResult(track.name, obstacles, races, laps, seed, limit, entrants[0].name, entrants[1].name,
+                        outcomes, swapped, _drone_stats(s, live, 0), _drone_stats(s, live, 1), recording=rec)
+    if plot_dir is not None:
+        from cfrace.evaluate.plots import race_plots
+
+        result.speed_profile = speed_profile(rec, s, races)
+        result.plots = race_plots(plot_dir, track, obstacles, entrants, rec, s, races, result.speed_profile)
+    result.wall_s = time.perf_counter() - t0
+    return result
+
+
+def speed_profile(rec: Recording, s: RunSummary, races: int) -> dict:
+    """Fig. 8 figures of the ego (drone 0): against a live opponent (race worlds, while the
+    opponent is up) vs against a crashed one (extra worlds after the opponent dropped, plus race
+    worlds after the opponent crashed). Max / mean speed m/s, mean speed at the finish."""
+    act, sp, down = rec.active[..., 0], rec.speed[..., 0], rec.crashed[..., 1]
+    fin = finish_speed(rec.speed, rec.lap_stamp, rec.active, s.finished)[:, 0]
+    live_w, extra_w = slice(0, races), slice(races, None)
+    crashed_mask = np.concatenate([act[:, live_w] & down[:, live_w], act[:, extra_w] & down[:, extra_w]], axis=1)
+    crashed_speed = np.concatenate([sp[:, live_w], sp[:, extra_w]], axis=1)
+    live_fin = fin[live_w][~np.asarray(rec.crashed[-1, live_w, 1])]
+    mean = lambda x: float(np.nanmean(x)) if (~np.isnan(x)).any() else None
+    return {
+        "vs_live_opponent": {**speed_stats(sp[:, live_w], act[:, live_w] & ~down[:, live_w]),
+                             "finish_speed_mps": mean(live_fin)},
+        "vs_crashed_opponent": {**speed_stats(crashed_speed, crashed_mask), "finish_speed_mps": mean(fin[extra_w])},
+    }
+
+
+@dataclass
+class TournamentResult:
+    track: str
+    obstacles: bool
+    races: int
+    laps: int
+    seed: int
+    policies: list[str]
+    win_rate: list[list[float | None]]     # [row][col]: row's win rate against col (None on the diagonal)
+    draw_rate: list[list[float | None]]
+    pairs: list[dict]
+    plots: list[Path] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def to_json(self) -> dict:
+        return {"track": self.track, "obstacles": self.obstacles, "races": self.races, "laps": self.laps,
+                "seed": self.seed, "policies": self.policies, "win_rate": self.win_rate, "draw_rate": self.draw_rate,
+                "average_win_rate": self.average_win_rate(), "pairs": self.pairs, "wall_s": round(self.wall_s, 3)}
+
+    def average_win_rate(self) -> list[float | None]:
+        out = []
+        for row in self.win_rate:
+            v = [x for x in row if x is not None]
+            out.append(sum(v) / len(v) if v else None)
+        return out
+
+
+def tournament(policies: list[str], track_name: str, obstacles: bool = False, races: int = 50, laps: int = 3,
+               seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
+               heatmap: Path | None = None, threads: int | None = None) -> TournamentResult:
+    """Every pair of policies races ``races`` times (half with swapped slots), all pairs at once.
+    Cell [i][j] is i's win rate against j; the ordered pair (j, i) is the same races seen from j."""
+    import time
+
+    t0 = time.perf_counter()
+    if len(policies) < 2:
+        raise ConfigError("a tournament needs at least 2 policies")
+    if races < 1 or laps < 1:
+        raise ConfigError("races and laps must be >= 1")
+    track = load_race_track(track_name, obstacles)
+    entrants = load_entrants(policies, track, obstacles)
+    prof = common_profile(entrants, profile)
+    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True)
+    pairs = list(combinations(range(len(entrants)), 2))
+    assign, all_starts = _pair_worlds(pairs, races, starts)
+    limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
+    rec = rollout(track, prof, obstacles, entrants, assign, all_starts, laps, limit, (), seed, threads)
+    s = rec.summary()
+    n = len(entrants)
+    win = [[None] * n for _ in range(n)]
+    draw = [[None] * n for _ in range(n)]
+    pair_rows = []
+    for k, (i, j) in enumerate(pairs):
+        ws = slice(k * races, (k + 1) * races)
+        r = race_rates(race_outcomes(s.finish_time[ws], s.crashed[ws]))
+        win[i][j], win[j][i] = r["ego_win_rate"], r["opp_win_rate"]
+        draw[i][j] = draw[j][i] = r["draw_rate"]
+        pair_rows.append({"ego": entrants[i].name, "opp": entrants[j].name, **r,
+                          "ego_lap_time_s": solo_metrics(s, ws, 0)["lap_time_s"],
+                          "opp_lap_time_s": solo_metrics(s, ws, 1)["lap_time_s"]})
+    result = TournamentResult(track.name, obstacles, races, laps, seed, [e.name for e in entrants], win, draw,
+                              pair_rows)
+    if heatmap is not None:
+        from cfrace.evaluate.plots import plot_heatmap
+
+        title = (f"{track.name}{' with obstacles' if obstacles else ''}: win rate of row vs column "
+                 f"({races} races x {laps} laps)")
+        result.plots = [plot_heatmap(heatmap, result.policies, win, draw, title)]
+    result.wall_s = time.perf_counter() - t0
+    return result

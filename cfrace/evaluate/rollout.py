@@ -1,0 +1,172 @@
+"""Batched evaluation rollouts: W worlds x D drones (runs or races) flown at once by ONNX policies.
+
+Every (world, drone) slot is assigned a policy (or -1: motors off, a drone that drops and crashes,
+the "crashed opponent" of the speed comparison). Each step: for each policy, the observations of
+all its slots are built with the layout its metadata names (opponent block from the other drone of
+the world, or from a parked opponent when flying alone), ONE onnxruntime call gives all their
+actions, the action map uses the policy's own constants; then the simulator steps 10 x 2 ms.
+Nominal parameters (no domain randomisation), default crash rules.
+
+A world stops racing once a drone completed the laps or every drone is down (crashed or finished);
+the loop ends when every world has stopped or at the time limit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cfrace.drone import DroneProfile
+from cfrace.env.actions import action_to_command
+from cfrace.env.observations import build_observation
+from cfrace.env.race_env import RaceEnv
+from cfrace.evaluate.entrants import Entrant
+from cfrace.evaluate.metrics import POLICY_DT, RunSummary, summarize
+from cfrace.sim.simulator import Simulator
+from cfrace.track import Track
+
+SUBSTEPS = 10                 #: 10 x 2 ms = one 50 Hz policy step
+LAP_TIME_LIMIT_S = 15.0       #: default time limit per lap
+OFF_ACTION = (-1.0, 0.0, 0.0, 0.0)  #: motors off: zero thrust, zero rates
+
+
+@dataclass(frozen=True)
+class Starts:
+    pos: torch.Tensor     # (W, D, 3) m
+    quat: torch.Tensor    # (W, D, 4) wxyz
+    target: torch.Tensor  # (W, D) int64 first target gate
+
+
+@dataclass
+class Recording:
+    """Per-step arrays (T steps, W worlds, D drones); positions only for the recorded worlds."""
+
+    t: np.ndarray             # (T,) s, end time of each step
+    active: np.ndarray        # (T, W, D) bool
+    speed: np.ndarray         # (T, W, D) m/s
+    lap_stamp: np.ndarray     # (T, W, D) s, nan without a lap completion
+    contact: np.ndarray       # (T, W, D) bool
+    crashed_now: np.ndarray   # (T, W, D) bool
+    reason: np.ndarray        # (T, W, D) int8
+    crashed: np.ndarray       # (T, W, D) bool, crashed at the end of the step (sticky)
+    pos: np.ndarray           # (T, K, D, 3) m, worlds ``recorded``
+    recorded: tuple[int, ...]
+    nan_actions: np.ndarray   # (W, D) int, steps with non-finite actions (replaced by motors off)
+    laps: int
+    wall_s: float = 0.0
+
+    def summary(self) -> RunSummary:
+        return summarize(self.active, self.speed, self.lap_stamp, self.contact, self.crashed_now, self.reason,
+                         self.laps, POLICY_DT)
+
+    @property
+    def steps(self) -> int:
+        return int(self.t.shape[0])
+
+
+def start_poses(track: Track, profile: DroneProfile, n: int, drones: int, obstacles: bool, seed: int,
+                swap_pairs: bool = False) -> Starts:
+    """n start configurations from the training spawn (RaceEnv.spawn, gate starts only: in front of
+    a random gate, facing it, that gate is the first target). With ``swap_pairs`` (2 drones) start
+    i uses configuration i // 2, with the two slots swapped for odd i (half the races swap)."""
+    env = RaceEnv(track, profile, num_envs=1, method="ours" if drones == 2 else "ds", obstacles=obstacles,
+                  seed=seed, randomize=False, start="gate")
+    m = (n + 1) // 2 if swap_pairs else n
+    pos, quat, gate = env.spawn(m)
+    target = gate.unsqueeze(-1).expand(m, drones).clone()
+    if swap_pairs:
+        idx = torch.arange(n) // 2
+        pos, quat, target = pos[idx].clone(), quat[idx].clone(), target[idx].clone()
+        odd = torch.arange(n) % 2 == 1
+        pos[odd], quat[odd] = pos[odd].flip(1), quat[odd].flip(1)
+    return Starts(pos.cpu(), quat.cpu(), target.cpu())
+
+
+def parked_opponent(track: Track, profile: DroneProfile) -> torch.Tensor:
+    """(3,) where a multi-agent policy flying alone sees its opponent: resting on the floor in the
+    arena corner (x_min, y_min), zero velocity, as if it had crashed out of the way."""
+    a = track.arena
+    return torch.tensor([a.x[0], a.y[0], profile.collision_box[2] / 2.0], dtype=torch.float32)
+
+
+def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list[Entrant], assign: np.ndarray,
+            starts: Starts, laps: int, time_limit_s: float | None = None, record: tuple[int, ...] = (),
+            seed: int = 0, threads: int | None = None) -> Recording:
+    """Fly every world to the end; ``assign`` (W, D) int: entrant index per slot, -1 = motors off."""
+    import time
+
+    assign = np.asarray(assign, dtype=np.int64)
+    w, d = assign.shape
+    limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
+    n_steps = int(math.ceil(limit / POLICY_DT - 1e-9))
+    # one simulator thread by default: on a shared 2-core machine OpenMP threads mostly wait on each other
+    sim = Simulator(track, profile, w, d, obstacles=obstacles, seed=seed, threads=threads or 1)
+    sim.reset(torch.arange(w), starts.pos, quat=starts.quat, target=starts.target)
+    parked = parked_opponent(track, profile)
+    groups = []
+    for p, e in enumerate(entrants):
+        iw, idr = np.nonzero(assign == p)
+        if iw.size == 0:
+            continue
+        if e.layout.opponent and d > 2:
+            raise ValueError("opponent observations need 1 or 2 drones per world")
+        groups.append((e, torch.as_tensor(iw), torch.as_tensor(idr)))
+    off = torch.tensor(OFF_ACTION)
+    off_thrust, _ = action_to_command(off, profile.mass, profile.max_thrust_weights, profile.max_rates_deg)
+    rec_ids = torch.as_tensor(record, dtype=torch.int64)
+    shape = (n_steps, w, d)
+    r = Recording(np.zeros(0), np.zeros(shape, bool), np.zeros(shape, np.float32),
+                  np.full(shape, np.nan, np.float32), np.zeros(shape, bool), np.zeros(shape, bool),
+                  np.zeros(shape, np.int8), np.zeros(shape, bool), np.zeros((n_steps, len(record), d, 3), np.float32),
+                  tuple(record), np.zeros((w, d), np.int64), laps)
+    finished = torch.zeros(w, d, dtype=torch.bool)
+    over = torch.zeros(w, dtype=torch.bool)
+    t0 = time.perf_counter()
+    step = 0
+    with torch.no_grad():
+        for step in range(n_steps):
+            active = ~sim.race.crashed & ~finished & ~over.unsqueeze(-1)
+            thrust = torch.full((w, d), float(off_thrust))
+            rates = torch.zeros(w, d, 3)
+            pos, vel, rot, target = sim.pos, sim.vel, sim.rot(), sim.race.target
+            for e, iw, idr in groups:
+                opp_pos = opp_vel = None
+                if e.layout.opponent:
+                    if d == 2:
+                        opp_pos, opp_vel = pos[iw, 1 - idr], vel[iw, 1 - idr]
+                    else:
+                        opp_pos, opp_vel = parked.expand(iw.shape[0], 3), torch.zeros(iw.shape[0], 3)
+                obs = build_observation(pos[iw, idr], vel[iw, idr], rot[iw, idr], target[iw, idr], sim.gate_corners,
+                                        e.layout, opp_pos, opp_vel)
+                act = torch.from_numpy(e.policy(obs.numpy()))
+                bad = ~torch.isfinite(act).all(-1)
+                if bool(bad.any()):
+                    act[bad] = off
+                    np.add.at(r.nan_actions, (iw[bad].numpy(), idr[bad].numpy()), 1)
+                th, rt = action_to_command(act, profile.mass, e.meta["max_thrust_weights"], e.meta["max_rates_deg"])
+                thrust[iw, idr], rates[iw, idr] = th, rt
+            ev = sim.step(thrust, rates, SUBSTEPS)
+            race = sim.race
+            lap_now = (ev.laps > 0) & active
+            r.active[step] = active.numpy()
+            r.speed[step] = torch.linalg.vector_norm(sim.vel, dim=-1).numpy()
+            r.lap_stamp[step] = torch.where(lap_now, race.lap_start, float("nan")).numpy()
+            r.contact[step] = ev.contact.numpy()
+            r.crashed_now[step] = ev.crashed_now.numpy()
+            r.reason[step] = ev.reason.numpy().astype(np.int8)
+            r.crashed[step] = race.crashed.numpy()
+            if len(record):
+                r.pos[step] = sim.pos[rec_ids].numpy()
+            finished |= (race.laps >= laps) & active
+            over |= finished.any(-1) | (race.crashed | finished).all(-1)
+            if bool(over.all()):
+                break
+    n = step + 1
+    for name in ("active", "speed", "lap_stamp", "contact", "crashed_now", "reason", "crashed", "pos"):
+        setattr(r, name, getattr(r, name)[:n])
+    r.t = (np.arange(n) + 1) * POLICY_DT
+    r.wall_s = time.perf_counter() - t0
+    return r
