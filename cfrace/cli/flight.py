@@ -48,8 +48,10 @@ def print_result(result: dict, con: Console = out) -> None:
         t.add_row("compute (tick start -> setpoints sent)", _ms(loop["compute_ms"]))
         t.add_row("period jitter |period - 10 ms|", _ms(loop["period_jitter_ms"]))
         t.add_row("tick start late", _ms(loop["late_ms"]))
+        for name, s in loop["observation_ms"].items():
+            t.add_row(f"observation {name}", _ms(s))
         for name, s in loop["inference_ms"].items():
-            t.add_row(f"inference {name} (obs + ONNX)", _ms(s))
+            t.add_row(f"inference {name} (ONNX)", _ms(s))
         t.add_row("skipped ticks", str(loop.get("skipped", 0)))
         con.print(t)
     events = result.get("safety_events") or []

@@ -114,7 +114,9 @@ def register(app: typer.Typer) -> None:
             t.add_column(col)
         rows = [("compute latency", loop["compute_ms"], "1.0"), ("period jitter", loop["period_jitter_ms"], "0.5"),
                 ("tick start late", loop["late_ms"], "")]
-        rows += [(f"inference {n}", s, "0.2") for n, s in loop["inference_ms"].items()]
+        rows += [(f"observation {n}", s, "") for n, s in loop["observation_ms"].items()]
+        rows += [(f"inference {n} (ONNX)", s, "0.2") for n, s in loop["inference_ms"].items()]
+        rows += [("compute, CPU time only", loop["compute_cpu_ms"], "")]
         for name, s, goal in rows:
             t.add_row(name, f"{s['p50']:.3f}", f"{s['p99']:.3f}", f"{s['max']:.3f}", goal)
         out.print(t)

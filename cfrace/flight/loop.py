@@ -10,7 +10,8 @@ inferences the last command is re-sent.
 What one tick measures (all in /timing): ``late_s`` (start against its absolute deadline),
 ``period_s`` (start to start), ``compute_s`` (start to the last setpoint handed to the links: the
 latency the loop adds), ``compute_cpu_s`` (the CPU time the loop thread spent on it: the same
-without the time other processes took the CPU) and ``infer_s`` per drone (observation + ONNX).
+without the time other processes took the CPU), and per drone ``obs_s`` (the observation) and
+``infer_s`` (the ONNX run).
 """
 
 from __future__ import annotations
@@ -97,7 +98,7 @@ class LoopResult:
     t_end: float
     ticks: int
     skipped: int
-    timing: dict                     #: arrays: late, period, compute, infer (per drone)
+    timing: dict                     #: arrays: late, period, compute, compute_cpu, infer + obs (per drone)
     safety_events: list
     drones: list
 
@@ -143,15 +144,17 @@ class FlightLoop:
         for i in range(len(self.drones)):
             self._stop(i, t, kind)
 
-    def _policy_step(self, i: int, ests: list, k: int) -> float:
-        """Observation + inference + action map for drone i; returns the seconds it took."""
+    def _policy_step(self, i: int, ests: list, k: int) -> tuple[float, float]:
+        """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
         d = self.drones[i]
         t0 = perf()
         opp = ests[1 - i] if len(ests) == 2 else None
         obs = self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
         if self.faults is not None:
             obs = self.faults.filter_obs(d, obs)
+        t1 = perf()
         act = np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4)
+        t2 = perf()
         if self.faults is not None:
             act = self.faults.filter_action(d, act, self.t)
         thrust, rates = action_to_command(act.astype(np.float64), d.mass, d.meta["max_thrust_weights"],
@@ -160,12 +163,13 @@ class FlightLoop:
         d.thrust_n = float(thrust)
         d.rates_dps = np.degrees(rates)
         d.counts = thrust_to_counts(d.thrust_n, d.thrust_curve) if np.isfinite(d.thrust_n) else 0
-        return perf() - t0
+        return t1 - t0, t2 - t1
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> LoopResult:
         n = len(self.drones)
-        late_l, period_l, compute_l, cpu_l, infer_l = [], [], [], [], [[] for _ in range(n)]
+        late_l, period_l, compute_l, cpu_l = [], [], [], []
+        infer_l, obs_l = [[] for _ in range(n)], [[] for _ in range(n)]
         end, winner = "", "draw"
         self.clock.start()
         self.running = True
@@ -188,11 +192,11 @@ class FlightLoop:
                                 for d, e in zip(self.drones, ests)])
                 safe_pos = np.where(np.isfinite(pos), pos, 0.0)
                 passed, lap_done, hit = self.progress.update(t, safe_pos)
-                infer = [np.nan] * n
+                infer, obs_t = [np.nan] * n, [np.nan] * n
                 policy_tick = False
                 for i, d in enumerate(self.drones):
                     if not d.stopped and k % d.decimation == 0:
-                        infer[i] = self._policy_step(i, ests, k)
+                        obs_t[i], infer[i] = self._policy_step(i, ests, k)
                         policy_tick = True
                 inputs = sf.SafetyInputs(
                     t=t, dt=self.clock.dt, tick_late_s=tick.late_s, operator_kill=self.kill.reason,
@@ -224,8 +228,9 @@ class FlightLoop:
                 compute_l.append(compute)
                 for i in range(n):
                     infer_l[i].append(infer[i])
+                    obs_l[i].append(obs_t[i])
                 self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu_l[-1],
-                                  infer, policy_tick)
+                                  (obs_t, infer), policy_tick)
                 # ---------------------------------------------- race end
                 if self.kill.reason is not None:
                     end = "operator_kill"
@@ -249,11 +254,12 @@ class FlightLoop:
         return LoopResult(end=end, winner=winner, t_end=self.t, ticks=len(compute_l), skipped=self.clock.skipped,
                           timing={"late": np.asarray(late_l), "period": np.asarray(period_l),
                                   "compute": np.asarray(compute_l), "compute_cpu": np.asarray(cpu_l),
-                                  "infer": [np.asarray(x) for x in infer_l]},
+                                  "infer": [np.asarray(x) for x in infer_l], "obs": [np.asarray(x) for x in obs_l]},
                           safety_events=self.events, drones=self.drone_results())
 
     def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu, infer,
                      policy_tick) -> None:
+        obs_t, infer = infer
         # safety: log each violation once per episode (it re-arms when it clears)
         present = set()
         for v in decision.violations:
@@ -293,6 +299,7 @@ class FlightLoop:
             log.write("/timing", t, {"k": k, "now": self._now,
                                      "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
                                      "compute_cpu_s": cpu,
+                                     "obs_s": {d.body: obs_t[i] for i, d in enumerate(self.drones)},
                                      "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
             if passed.any() or lap_done.any():
                 log.write("/race", t, self.race_state())

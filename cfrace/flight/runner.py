@@ -76,7 +76,8 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
     out = {"rate_hz": round(1.0 / dt, 3), "ticks": int(len(timing["compute"])),
            "late_ms": stats(timing["late"]), "period_jitter_ms": stats(jitter),
            "compute_ms": stats(timing["compute"]), "compute_cpu_ms": stats(timing.get("compute_cpu", [])),
-           "inference_ms": {n: stats(x) for n, x in zip(names, timing["infer"])}}
+           "inference_ms": {n: stats(x) for n, x in zip(names, timing["infer"])},
+           "observation_ms": {n: stats(x) for n, x in zip(names, timing.get("obs", [[]] * len(names)))}}
     out["period_jitter_p99_ms"] = out["period_jitter_ms"]["p99"]
     out["compute_p99_ms"] = out["compute_ms"]["p99"]
     out["inference_p99_ms"] = max((v["p99"] or 0.0) for v in out["inference_ms"].values())
