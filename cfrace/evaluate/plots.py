@@ -85,7 +85,7 @@ def solo_trajectory_plots(plot_dir: Path, track: Track, obstacles: bool, entrant
     for k, e in enumerate(entrants):
         w = _pick([x for x in rec.recorded if k * runs <= x < (k + 1) * runs], s)
         xyz, v, _ = _trace(rec, w, 0)
-        fig, ax = plt.subplots(figsize=(6.5, 7.0))
+        fig, ax = plt.subplots(figsize=(6.5, 7.0), layout="constrained")
         draw_track(ax, track, obstacles, "top")
         norm = Normalize(0.0, max(float(v.max()) if v.size else 1.0, 1.0))
         lc = _speed_path(ax, xyz, v, norm)
@@ -97,7 +97,6 @@ def solo_trajectory_plots(plot_dir: Path, track: Track, obstacles: bool, entrant
                      f"{_lap_text(s, w, 0)}\nmean {st['mean_mps'] or 0:.2f} m/s, max {st['max_mps'] or 0:.2f} m/s",
                      fontsize=9)
         path = plot_dir / f"trajectory_{_safe(e.name)}.png"
-        fig.tight_layout()
         fig.savefig(path, dpi=120)
         plt.close(fig)
         out.append(path)
@@ -113,15 +112,16 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
     plt = _plt()
     plot_dir = Path(plot_dir)
     plot_dir.mkdir(parents=True, exist_ok=True)
-    live_w = _pick([w for w in rec.recorded if w < races], s)
+    recorded = [w for w in rec.recorded if w < races]
+    live_w = _pick([w for w in recorded if not s.crashed[w, 1]] or recorded, s)
     extra = [w for w in rec.recorded if w >= races]
-    crash_w = _pick(extra, s) if extra else None
+    crash_w = (races + live_w if races + live_w in extra else _pick(extra, s)) if extra else None
     cases = [("a", "live opponent", live_w)] + ([("b", "crashed opponent", crash_w)] if crash_w is not None else [])
     traces = {c: _trace(rec, w, 0) for c, _, w in cases}
     vmax = max([float(tr[1].max()) for tr in traces.values() if tr[1].size] + [1.0])
     norm = Normalize(0.0, vmax)
     ego, opp = entrants[0].name, entrants[1].name
-    fig, axes = plt.subplots(1, len(cases), figsize=(6.0 * len(cases), 6.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(cases), figsize=(6.0 * len(cases), 6.8), squeeze=False, layout="constrained")
     lc = None
     for ax, (tag, label, w) in zip(axes[0], cases):
         draw_track(ax, track, obstacles, "top")
@@ -157,8 +157,8 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
             ax.legend(loc="lower right", fontsize=7)
         fmt = lambda x: "–" if x is None else f"{x:.2f}"
         ax.set_title(f"({tag}) {ego} vs {label}, race {w if w < races else w - races}: this race max "
-                     f"{fmt(st['max_mps'])} / mean {fmt(st['mean_mps'])} m/s; all races max {fmt(agg['max_mps'])} "
-                     f"/ mean {fmt(agg['mean_mps'])} m/s", fontsize=8)
+                     f"{fmt(st['max_mps'])} / mean {fmt(st['mean_mps'])} m/s; all {agg['races']} such races max "
+                     f"{fmt(agg['max_mps'])} / mean {fmt(agg['mean_mps'])} m/s", fontsize=8)
         ax.set_ylabel("speed [m/s]")
         ax.set_ylim(0.0, vmax * 1.08)
         ax.grid(alpha=0.3)

@@ -86,7 +86,7 @@ def _fmt(v, spec: str) -> str:
 def markdown_table(result: SoloResult) -> str:
     """The rows as a markdown table shaped like the paper's Table I (plus the extra columns)."""
     title = (f"Single-agent benchmark, {result.track}{' with obstacles' if result.obstacles else ''}: "
-             f"{result.runs} runs x {result.laps} laps, seed {result.seed}, time limit {result.time_limit_s:g} s")
+             f"{result.runs} runs x {result.laps} lap{'s' if result.laps > 1 else ''}, seed {result.seed}, time limit {result.time_limit_s:g} s")
     head = ("| policy | method | Avg. TTC [s] | Avg. speed [m/s] | Collisions | Success [%] "
             "| best lap [s] | max speed [m/s] | crashes (reasons) | time-outs |")
     lines = [f"**{title}**", "", head, "|" + "---|" * 10]
