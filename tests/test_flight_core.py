@@ -246,11 +246,11 @@ def gate_path(track, speed: float, dt: float = 0.01, laps: int = 1, lateral: flo
 
 def test_fast_progress_matches_the_simulator_rule(track):
     rng = np.random.default_rng(0)
-    paths = [gate_path(track, 3.0, laps=2), gate_path(track, 5.0, laps=2, lateral=0.45),
-             gate_path(track, 4.0, lateral=0.55)]
-    for trial in range(6):   # random walks around the gates: passes, misses and frame hits
-        start = track.gate_array()[trial % 6, :3] + rng.normal(0, 0.3, 3)
-        paths.append(start + np.cumsum(rng.normal(0, 0.08, (600, 3)), axis=0))
+    paths = [gate_path(track, 5.0, laps=2), gate_path(track, 8.0, laps=2, lateral=0.45),
+             gate_path(track, 6.0, lateral=0.55)]
+    for trial in range(4):   # random walks around the gates: passes, misses and frame hits
+        start = track.gate_array()[trial, :3] + rng.normal(0, 0.3, 3)
+        paths.append(start + np.cumsum(rng.normal(0, 0.08, (300, 3)), axis=0))
     n = min(len(p) for p in paths[:2])
     pairs = [np.stack([paths[0][:n], paths[1][:n]], 1)] + [np.stack([p, p[::-1]], 1) for p in paths[2:]]
     hits = passes = 0

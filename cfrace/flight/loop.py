@@ -232,10 +232,7 @@ class FlightLoop:
                 self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu_l[-1],
                                   (obs_t, infer), policy_tick)
                 # ---------------------------------------------- race end
-                if self.kill.reason is not None:
-                    end = "operator_kill"
-                    break
-                if decision.stop_all:
+                if decision.stop_all:   # includes the operator kill (a signal seen by this tick's check)
                     end = next(v.kind for v in decision.violations if v.action == sf.STOP_ALL)
                     break
                 done = [i for i in range(n) if self.progress.laps[i] >= self.laps and not self.drones[i].stopped]
