@@ -1,0 +1,53 @@
+"""Print the markdown table of docs/benchmarks.md from `cfrace bench sim --json` files.
+
+    /work/venv/bin/python benchmarks/sim_table.py benchmarks/results/sim_threads1.json [more.json ...]
+
+Rates are drone-steps per second (one drone, one 2 ms physics step), the fastest of the repeats;
+the median is in brackets when it differs by more than 10 %.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+MODES = ("c", "eager", "compiled")
+
+
+def rate(x: float | None, median: float | None = None) -> str:
+    if x is None:
+        return "-"
+    text = f"{x / 1e6:.2f} M" if x >= 1e5 else f"{x / 1e3:.1f} k"
+    if median is not None and abs(median - x) > 0.1 * x:
+        text += f" ({median / 1e6:.2f} M)" if median >= 1e5 else f" ({median / 1e3:.1f} k)"
+    return text
+
+
+def table(doc: dict) -> str:
+    results, peer = doc["results"], doc.get("peer", [])
+    modes = [m for m in MODES if any(r["mode"] == m for r in results)]
+    head = ["worlds", "drones", *[f"cfrace {m}" for m in modes], "crazyflow", "best cfrace / crazyflow"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for w, d in dict.fromkeys((r["worlds"], r["drones"]) for r in results):
+        rs = {r["mode"]: r for r in results if (r["worlds"], r["drones"]) == (w, d)}
+        cf = next((p for p in peer if p["total_drones"] == w * d), None)
+        best = max(r["drone_steps_per_s"] for r in rs.values())
+        cells = [str(w), f"{d} x {w} = {w * d}"]
+        cells += [rate(rs[m]["drone_steps_per_s"], rs[m].get("median_drone_steps_per_s")) if m in rs else "-"
+                  for m in modes]
+        cells.append(rate(cf["drone_steps_per_s"], cf.get("median_drone_steps_per_s")) if cf else "-")
+        cells.append(f"{best / cf['drone_steps_per_s']:.2f}x" if cf else "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    m = doc["machine"]
+    lines.append("")
+    lines.append(f"{m['cpu']}, {m['cores']} cores, torch {m['torch']} with {m['torch_threads']} thread(s), "
+                 f"{m['date']}, load average {m['loadavg_start'][0]:.1f} at start, "
+                 f"{m.get('loadavg_end', [float('nan')])[0]:.1f} at end.")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    for path in sys.argv[1:]:
+        print(f"<!-- {path} -->")
+        print(table(json.loads(open(path).read())))
+        print()
