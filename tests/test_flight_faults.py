@@ -91,7 +91,7 @@ def test_fault_specs():
 def test_faults_real_time_through_cflib(pols, tmp_path):
     """Real time, real cflib over UDP: a real link loss (a relay drops every datagram), a NaN
     policy and a 50 ms stall, in one race."""
-    result, data, logged = run(pols, tmp_path, "link_loss@1.0:opp,nan_policy@1.5,stall_50ms@2.0",
+    result, data, logged = run(pols, tmp_path, "stall_50ms@0.8,link_loss@1.0:opp,nan_policy@1.5",
                                lockstep=False, timeout_s=3.0)
     assert ("link_lost", "opp", "stop_drone") in logged and ("non_finite", "ego", "stop_drone") in logged
     assert ("tick_skipped", None, "none") in logged
