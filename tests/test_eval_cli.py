@@ -147,6 +147,11 @@ def test_mismatched_policies_are_refused(env, tmp_path):
                                 meta, 42), str(bad))
     with pytest.raises(PolicyError, match="obs_dim is 36"):
         load_entrant(bad, track, False)
+    fast = dict(meta, policy_hz=100.0)
+    onnx.save_model(build_model([("linear", np.zeros((4, 36), np.float32), np.zeros(4, np.float32))], None, None,
+                                fast, 36), str(tmp_path / "100hz.onnx"))
+    with pytest.raises(PolicyError, match="runs at 100 Hz"):
+        load_entrant(tmp_path / "100hz.onnx", track, False)
     other = make_test_policy(tmp_path / "bl.onnx", "solo36", "straight", False, profile="cf21bl")
     with pytest.raises(PolicyError, match="different drone profiles"):
         common_profile(load_entrants([str(slow), str(other)], track, False))

@@ -17,6 +17,8 @@ from cfrace.export import METHODS
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.track import Track, load_track
 
+POLICY_HZ = 50.0  #: Hz, the rate evaluation steps policies at (10 x 2 ms physics steps)
+
 
 @dataclass(frozen=True)
 class Entrant:
@@ -46,6 +48,8 @@ def load_entrant(name_or_path: str | Path, track: Track, obstacles: bool) -> Ent
     layout = LAYOUTS[policy.meta["obs_layout"]]
     if layout.dim != policy.obs_dim:  # validate_meta guarantees this; keep the promise explicit
         raise PolicyError(f"{path}: observation size {policy.obs_dim} does not fit layout {layout.name}")
+    if abs(policy.meta["policy_hz"] - POLICY_HZ) > 1e-6:
+        raise PolicyError(f"{path}: runs at {policy.meta['policy_hz']:g} Hz, evaluation steps policies at {POLICY_HZ:g} Hz")
     text = str(name_or_path)
     name = text if text in METHODS else path.stem
     return Entrant(name, path, policy, layout)
