@@ -12,6 +12,10 @@ from typing import NamedTuple
 
 import torch
 
+#: m; touching (a contact) reaches this far beyond the push-out distance, so that a drone resting
+#: against a wall or another drone stays in contact
+CONTACT_MARGIN = 1e-3
+
 
 class Boxes(NamedTuple):
     centre: torch.Tensor  # (B, 3) m
@@ -68,6 +72,7 @@ def push_out_of_boxes(pos: torch.Tensor, vel: torch.Tensor, b: Boxes, radius: fl
         outside = dist > 1e-9
         n_local = torch.where(outside, diff / dist.clamp_min(1e-9), inside_n)
         hit = (dist.squeeze(-1) < radius)
+        touch = (dist.squeeze(-1) < radius + CONTACT_MARGIN)
         new_local = clamped + n_local * radius
         local = torch.where(hit.unsqueeze(-1), new_local, local)
         # back to world
@@ -78,7 +83,7 @@ def push_out_of_boxes(pos: torch.Tensor, vel: torch.Tensor, b: Boxes, radius: fl
                                n_local[..., 2]], dim=-1)
         vn = (vel * n_world).sum(-1, keepdim=True)
         vel = torch.where(hit.unsqueeze(-1) & (vn < 0), vel - vn * n_world, vel)
-        contact = contact | hit
+        contact = contact | touch
     return pos, vel, contact
 
 
@@ -93,10 +98,11 @@ def drone_contacts(pos: torch.Tensor, vel: torch.Tensor, active: torch.Tensor, r
     eye = torch.eye(n, dtype=torch.bool, device=pos.device)
     pair = active.unsqueeze(-1) & active.unsqueeze(-2) & ~eye
     touching = pair & (dist < 2.0 * radius)
+    contact = pair & (dist < 2.0 * (radius + CONTACT_MARGIN))
     normal = diff / dist.clamp_min(1e-6).unsqueeze(-1)          # from j to i
     depth = (2.0 * radius - dist).clamp_min(0.0) * touching
     pos = pos + 0.5 * (depth.unsqueeze(-1) * normal).sum(-2)
     rel_vn = ((vel.unsqueeze(-2) - vel.unsqueeze(-3)) * normal).sum(-1)   # (W, D, D) closing if < 0
     closing = touching & (rel_vn < 0)
     vel = vel - 0.5 * ((rel_vn * closing).unsqueeze(-1) * normal).sum(-2)
-    return pos, vel, touching.any(-1)
+    return pos, vel, contact.any(-1)

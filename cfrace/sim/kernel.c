@@ -59,6 +59,8 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
   for (int g = 0; g < G; g++) { gcos[g] = cosf(gates[4 * g + 3]); gsin[g] = sinf(gates[4 * g + 3]); }
   /* a bar can only be touched within this distance of its gate centre */
   const float reach = outer * 1.41421356f + radius + 0.05f, reach2 = reach * reach, r2 = radius * radius;
+  /* touching (contact) extends 1 mm beyond the push-out distance, so resting against a wall is contact */
+  const float rc = radius + 1e-3f, rc2 = rc * rc;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int w = 0; w < W; w++) {
     for (int i = 0; i < D; i++) {
@@ -186,6 +188,8 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
             df[a] = l[a] - cl[a];
             d2 += df[a] * df[a];
           }
+          if (!(d2 < rc2)) continue;
+          contact[i] = 1;
           if (!(d2 < r2)) continue;
           float dist = sqrtf(d2);
           if (dist > 1e-9f) {
@@ -203,7 +207,6 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
           float nw[3] = {c * nloc[0] - s * nloc[1], s * nloc[0] + c * nloc[1], nloc[2]};
           float vn = nvel[i][0] * nw[0] + nvel[i][1] * nw[1] + nvel[i][2] * nw[2];
           if (vn < 0.f) for (int a = 0; a < 3; a++) nvel[i][a] -= vn * nw[a];
-          contact[i] = 1;
         }
       }
       /* drone-drone contacts among drones not crashed before this step (simultaneous) */
@@ -216,7 +219,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
             if (j == i || was_crashed[j]) continue;
             float d[3] = {npos[i][0] - npos[j][0], npos[i][1] - npos[j][1], npos[i][2] - npos[j][2]};
             float dist = sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-            if (!(dist < 2.f * radius)) continue;
+            if (!(dist < 2.f * rc)) continue;
             contact[i] = 1;
             float inv_d = 1.f / fmaxf(dist, 1e-6f), depth = fmaxf(2.f * radius - dist, 0.f);
             float nrm[3] = {d[0] * inv_d, d[1] * inv_d, d[2] * inv_d};
