@@ -53,6 +53,7 @@ def dry_run_cmd(
     timeout_s: float = typer.Option(60.0, help="End the race (draw) after this many seconds of race time."),
     mocap_noise_m: float = typer.Option(0.0, help="Gaussian mocap position noise (m)."),
     seed: int = typer.Option(0),
+    rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
@@ -61,7 +62,8 @@ def dry_run_cmd(
     from cfrace.flight.dryrun import dry_run
 
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
-                       bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep)
+                       bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
+                       rt_priority=rt_priority)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m, console=console)
     print_result(result)
     write_json(result, json_out)
@@ -100,13 +102,14 @@ def register(app: typer.Typer) -> None:
         track: str = typer.Option("lemniscate", help="Track name."),
         profile: str = typer.Option("cf21bl", help="Drone profile."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
+        rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
     ):
         """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
         from rich.table import Table
 
         from cfrace.flight.benchloop import bench_loop
 
-        r = bench_loop(duration_s, track=track, profile=profile)
+        r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
                         f"({r['policies']}), ms")
@@ -121,6 +124,7 @@ def register(app: typer.Typer) -> None:
             t.add_row(name, f"{s['p50']:.3f}", f"{s['p99']:.3f}", f"{s['max']:.3f}", goal)
         out.print(t)
         out.print("goals met: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in r["goals_met"].items())
-                  + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs)")
+                  + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs"
+                  + (", loop thread SCHED_FIFO)" if r["rt_fifo"] else ")"))
         if json_out is not None:
             json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")

@@ -63,7 +63,7 @@ def bench_policies(track: str, workdir: Path) -> tuple[str, str, str]:
 
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
-               log: bool = True) -> dict:
+               log: bool = True, rt_priority: int = 0) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
@@ -77,7 +77,8 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
             cfg = FlightConfig(track=track, ego=ego, opp=opp, profile=profile, laps=1000, timeout_s=duration_s,
                                uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
-                               connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None)
+                               connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
+                               rt_priority=rt_priority)
             result = run_race(cfg)
         finally:
             proc.send_signal(signal.SIGTERM)
@@ -87,6 +88,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "policies": kind, "end": result["end"], "loop": loop,
+    return {"duration_s": duration_s, "policies": kind, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

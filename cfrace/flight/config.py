@@ -65,6 +65,7 @@ class FlightConfig:
     rate_hz: float = 100.0                       #: Hz, control loop (setpoints streamed every tick)
     quiet: bool = False                          #: no live view
     view_hz: float = 4.0                         #: Hz, live view refresh
+    rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def __post_init__(self):
@@ -80,6 +81,8 @@ class FlightConfig:
             raise ConfigError(f"uris: every drone needs its own URI, got {list(self.uris)}")
         if not (1.0 <= self.rate_hz <= 1000.0):
             raise ConfigError(f"rate_hz: must be in [1, 1000], got {self.rate_hz}")
+        if not 0 <= self.rt_priority <= 99:
+            raise ConfigError(f"rt_priority: must be in [0, 99], got {self.rt_priority}")
         if self.timeout_s <= 0:
             raise ConfigError(f"timeout_s: must be > 0, got {self.timeout_s}")
 
@@ -114,6 +117,8 @@ def load_flight_file(path: str | Path) -> dict:
     for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
         if r.has(key):
             out[key] = r.number(key, positive=True)
+    if r.has("rt_priority"):
+        out["rt_priority"] = int(r.number("rt_priority", min=0, max=99))
     if r.has("laps"):
         out["laps"] = int(r.number("laps", min=1))
     if r.has("obstacles"):
