@@ -366,12 +366,12 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
     prof = load_profile(PROFILE)
     safety = safety or SafetyConfig(speed_max_mps=50.0, floor_grace_s=1e9)
     drones = []
-    for name, body, lay in (("ego", "cf1", "race42"), ("opp", "cf2", "solo36")):
+    for phase, (name, body, lay) in enumerate((("ego", "cf1", "race42"), ("opp", "cf2", "solo36"))):
         link = RecordingLink(f"null://{name}", clock=clock.now)
         link.connect()
         meta = {"max_thrust_weights": 3.15, "max_rates_deg": [100.0, 100.0, 200.0], "method": name}
         drones.append(Drone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
-                            prof.thrust_curve, decimation=2))
+                            prof.thrust_curve, decimation=2, phase=phase))
     mocap = ScriptedMocap(paths, clock)
     loop = FlightLoop(drones=drones, mocap=mocap, estimator=PoseEstimator(["cf1", "cf2"], max_speed_mps=50.0),
                       progress=FastRaceProgress(track.gate_array(), 2), obs_builder=ObservationBuilder(track.gate_corners()),
@@ -393,7 +393,8 @@ def test_loop_race_winner_laps_and_decimation(track):
     # the lap time is the path length / speed (first lap timed from the start)
     assert ego["lap_times"][1] == pytest.approx((len(fast) - 1) / 2 * 0.01, rel=0.1)
     ticks = res.ticks
-    assert loop.drones[0].policy.calls == (ticks + 1) // 2          # 50 Hz policy in a 100 Hz loop
+    assert loop.drones[0].policy.calls == (ticks + 1) // 2          # 50 Hz policy in a 100 Hz loop,
+    assert loop.drones[1].policy.calls == ticks // 2                 # staggered by one tick
     for d in loop.drones:                                            # a setpoint every tick until the end
         assert len(d.link.sent) == ticks and d.link.stops >= 1
     assert res.safety_events == []

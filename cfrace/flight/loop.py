@@ -4,8 +4,10 @@
 Rates: setpoints are streamed to every drone on every tick (100 Hz) and the safety check runs
 every tick, so a stop reaches a drone within one period and a lost radio packet is replaced
 10 ms later; the policies run at their metadata ``policy_hz`` (50 Hz: inference on every 2nd
-tick, both drones on the same tick), as in training where one action holds for 20 ms. Between
-inferences the last command is re-sent.
+tick), as in training where one action holds for 20 ms; between inferences the last command is
+re-sent. The drones' inferences are staggered (ego on even ticks, opponent on odd ticks): each
+still acts at 50 Hz on a fresh observation, and no tick carries two inferences, which halves the
+worst per-tick compute.
 
 What one tick measures (all in /timing): ``late_s`` (start against its absolute deadline),
 ``period_s`` (start to start), ``compute_s`` (start to the last setpoint handed to the links: the
@@ -56,12 +58,13 @@ class Drone:
     mass: float                #: kg, flown drone (thrust in N = weights x m g)
     thrust_curve: object       #: profile.thrust_curve
     decimation: int = 2        #: loop ticks per policy step
+    phase: int = 0             #: the policy runs on ticks with k % decimation == phase
     stopped: bool = False
     stop_kind: str = ""
     stop_t: float = float("nan")
     stop_k: int = -1
     frozen_pos: np.ndarray | None = None
-    action: np.ndarray = field(default_factory=lambda: np.full(4, np.nan, np.float32))
+    action: np.ndarray | None = None   #: (4,) last policy output; None before the first inference
     obs: np.ndarray | None = None
     thrust_n: float = 0.0
     rates_dps: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -193,16 +196,16 @@ class FlightLoop:
                 safe_pos = np.where(np.isfinite(pos), pos, 0.0)
                 passed, lap_done, hit = self.progress.update(t, safe_pos)
                 infer, obs_t = [np.nan] * n, [np.nan] * n
-                policy_tick = False
+                computed = [False] * n
                 for i, d in enumerate(self.drones):
-                    if not d.stopped and k % d.decimation == 0:
+                    if not d.stopped and k % d.decimation == d.phase % d.decimation:
                         obs_t[i], infer[i] = self._policy_step(i, ests, k)
-                        policy_tick = True
+                        computed[i] = True
                 inputs = sf.SafetyInputs(
                     t=t, dt=self.clock.dt, tick_late_s=tick.late_s, operator_kill=self.kill.reason,
                     drones=tuple(sf.DroneInputs(
                         pos=e.pos, vel=e.vel, rot=e.rot, est_valid=bool(e.valid), est_age_s=float(e.age_s),
-                        obs=d.obs if policy_tick else None, action=d.action,
+                        obs=d.obs if computed[i] else None, action=d.action,
                         link_connected=d.link.quality.connected,
                         link_rx_age_s=d.link.quality.rx_age(self.link_clock()),
                         gate_crash=bool(hit[i])) for i, (d, e) in enumerate(zip(self.drones, ests))))
@@ -230,7 +233,7 @@ class FlightLoop:
                     infer_l[i].append(infer[i])
                     obs_l[i].append(obs_t[i])
                 self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu_l[-1],
-                                  (obs_t, infer), policy_tick)
+                                  (obs_t, infer), computed)
                 # ---------------------------------------------- race end
                 if decision.stop_all:   # includes the operator kill (a signal seen by this tick's check)
                     end = next(v.kind for v in decision.violations if v.action == sf.STOP_ALL)
@@ -255,7 +258,7 @@ class FlightLoop:
                           safety_events=self.events, drones=self.drone_results())
 
     def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu, infer,
-                     policy_tick) -> None:
+                     computed) -> None:
         obs_t, infer = infer
         # safety: log each violation once per episode (it re-arms when it clears)
         present = set()
@@ -286,10 +289,10 @@ class FlightLoop:
                 log.write("/mocap/pose", t, {**frame_to_msg(frame), "k": k})
             log.write("/estimate", t, {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
                                            "valid": e.valid} for b, e in est_map.items()})
-            if policy_tick:
-                log.write("/obs", t, {"k": k, **{d.body: d.obs for d in self.drones
-                                                 if not d.stopped and d.obs is not None}})
-                log.write("/action", t, {"k": k, **{d.body: d.action for d in self.drones if not d.stopped}})
+            if any(computed):
+                done = [d for c, d in zip(computed, self.drones) if c]
+                log.write("/obs", t, {"k": k, **{d.body: d.obs for d in done}})
+                log.write("/action", t, {"k": k, **{d.body: d.action for d in done}})
             log.write("/setpoint", t, {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n,
                                                 "thrust_counts": d.counts, "rates_dps": d.rates_dps}
                                        for d in self.drones})

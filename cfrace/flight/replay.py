@@ -116,7 +116,7 @@ def replay_log(path: str | Path) -> dict:
         link.connect()
     drones = [Drone(name=n, body=bodies[i], policy=pols[i], layout=LAYOUTS[pols[i].meta["obs_layout"]], link=links[i],
                     meta=pols[i].meta, mass=profile.mass, thrust_curve=profile.thrust_curve,
-                    decimation=int(round(float(meta["rate_hz"]) / pols[i].meta["policy_hz"])))
+                    decimation=int(round(float(meta["rate_hz"]) / pols[i].meta["policy_hz"])), phase=i)
               for i, n in enumerate(DRONE_NAMES)]
     collect = _Collect()
     loop = FlightLoop(drones=drones, mocap=_LogFrames(frames, clock), estimator=PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s),

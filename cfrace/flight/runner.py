@@ -194,7 +194,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                 m = dict(pol.meta, path=str(path))
                 drones.append(Drone(name=name, body=cfg.bodies[i], policy=pol, layout=LAYOUTS[m["obs_layout"]],
                                     link=links[i], meta=m, mass=profile.mass, thrust_curve=profile.thrust_curve,
-                                    decimation=int(round(cfg.rate_hz / m["policy_hz"]))))
+                                    decimation=int(round(cfg.rate_hz / m["policy_hz"])), phase=i))
             if injector is not None:
                 for d in drones:
                     injector.cutters.setdefault(d.name, getattr(d.link, "cut_link", None))
