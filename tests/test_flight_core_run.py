@@ -110,6 +110,9 @@ def test_real_time_dry_run_through_cflib(pols, tmp_path):
     assert any(m["cf1"]["latency_ms"] is not None for m in links)          # cflib echo pings answered
     z = [m["cf2"]["pos"][2] for _, m in data.messages("/estimate")]
     assert max(z) > 0.5
+    # a real-time log replays exactly too: frames by tick, loop-clock times from /timing
+    r = replay_log(tmp_path / "flight.mcap")
+    assert r["identical"] and r["observations"] > 150
 
 
 # ------------------------------------------------------------------------------- refused before flying
