@@ -70,6 +70,8 @@ def test_replay_reproduces_the_observations_exactly(lockstep_run):
     _, log = lockstep_run
     r = replay_log(log)
     assert r["identical"] and r["observations"] == 151 + 150 and r["mismatched"] == 0
+    r = replay_log(log, via_replay_source=True)     # the same through the mocap source replay://LOG?speed=0
+    assert r["identical"] and r["observations"] == 151 + 150
 
 
 def test_replay_detects_a_different_flight(lockstep_run, tmp_path):

@@ -76,11 +76,13 @@ def dry_run_cmd(
 def replay_cmd(
     log: Path = typer.Argument(..., help="A flight log written by cfrace fly / cfrace sim dry-run."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+    via_replay_source: bool = typer.Option(False, help="Read the frames through the mocap source "
+                                                       "replay://LOG?speed=0 (one frame per tick logs)."),
 ):
     """Re-run a logged flight lockstep and check that every logged observation is reproduced exactly."""
     from cfrace.flight.replay import replay_log
 
-    r = replay_log(log)
+    r = replay_log(log, via_replay_source=via_replay_source)
     verdict = "[green]identical[/green]" if r["identical"] else "[red]MISMATCH[/red]"
     out.print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
               f"({r['mismatched']} differ, max |diff| {r['max_abs_diff']:.3g})")

@@ -84,8 +84,12 @@ class _Collect:
                     self.obs[(k, body)] = np.asarray(v, dtype=np.float32)
 
 
-def replay_log(path: str | Path) -> dict:
-    """Re-run a logged flight lockstep; returns counts and whether every observation matched."""
+def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
+    """Re-run a logged flight lockstep; returns counts and whether every observation matched.
+
+    via_replay_source: read the frames through the mocap source ``replay://LOG?speed=0`` (one
+    frame per read) instead of by tick index; needs a log with exactly one frame per tick (a
+    lockstep dry-run without mocap faults)."""
     from cfrace.policy import OnnxPolicy
 
     data = read_log(path)
@@ -111,6 +115,14 @@ def replay_log(path: str | Path) -> dict:
             if body != "k" and v is not None:
                 logged[(int(m["k"]), body)] = np.asarray(v, dtype=np.float32)
     clock = _ReplayClock(ticks, dt)
+    source = _LogFrames(frames, clock)
+    if via_replay_source:
+        from cfrace.flight.mocap import open_mocap
+
+        if sorted(frames) != [int(m["k"]) for m in ticks]:
+            raise LogError(f"{path}: not one mocap frame per tick; replay it by tick (without via_replay_source)")
+        source = open_mocap(f"replay://{path}?speed=0", bodies=bodies)
+        source.open()
     links = [RecordingLink(f"null://{n}", clock=clock.now) for n in DRONE_NAMES]
     for link in links:
         link.connect()
@@ -119,7 +131,7 @@ def replay_log(path: str | Path) -> dict:
                     decimation=int(round(float(meta["rate_hz"]) / pols[i].meta["policy_hz"])), phase=i)
               for i, n in enumerate(DRONE_NAMES)]
     collect = _Collect()
-    loop = FlightLoop(drones=drones, mocap=_LogFrames(frames, clock), estimator=PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s),
+    loop = FlightLoop(drones=drones, mocap=source, estimator=PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s),
                       progress=FastRaceProgress(track.gate_array(), len(drones)),
                       obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                       fence=Fence.from_track(track, safety.geofence_margin_m), safety_cfg=safety,
