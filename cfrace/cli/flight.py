@@ -27,7 +27,8 @@ def print_result(result: dict, con: Console = out) -> None:
     """The race result, loop timing figures and safety events as rich tables."""
     end, winner = result.get("end"), result.get("winner")
     con.print(f"[bold]race end:[/bold] {end}   [bold]winner:[/bold] {winner}   "
-              f"duration {result.get('duration_s', 0):.2f} s")
+              f"duration {result.get('duration_s', 0):.2f} s   (track {result.get('track')}, "
+              f"drone profile {result.get('profile')})")
     drones = result.get("drones") or []
     if drones:
         t = Table(title="drones")

@@ -40,7 +40,8 @@ def dry_run_cmd(
     ego: str = typer.Option(..., help="Ego policy: ours/ds/ss/dm or an .onnx path."),
     opp: str = typer.Option(..., help="Opponent policy."),
     laps: int = typer.Option(3, help="Laps to win."),
-    profile: str = typer.Option("cf21bl", help="Drone profile (simulated and flown)."),
+    profile: Optional[str] = typer.Option(None, help="Drone profile, simulated and flown (default: the one "
+                                                      "the ego policy was trained for, from its metadata)."),
     obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
     bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
@@ -61,6 +62,9 @@ def dry_run_cmd(
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
 
+    if profile is None:
+        from cfrace.flight.dryrun import training_profile
+        profile = training_profile(track, ego, obstacles)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority)

@@ -50,6 +50,22 @@ def _settle(fleet, lockstep: bool, dt: float):
     return settle
 
 
+def training_profile(track: str, ego: str, obstacles: bool, default: str = "cf21bl") -> str:
+    """The drone profile the ego policy was trained for (metadata drone_profile), if it names a
+    known profile; else ``default``. Policy errors surface later, in the checks before flight."""
+    from cfrace.drone import load_profile
+    from cfrace.errors import CfraceError
+    from cfrace.policy import OnnxPolicy, resolve_policy
+    from cfrace.track import load_track
+
+    try:
+        name = OnnxPolicy(resolve_policy(ego, load_track(track).name, obstacles)).meta["drone_profile"]
+        load_profile(name)
+        return name
+    except (CfraceError, KeyError):
+        return default
+
+
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None) -> dict:
     """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info."""

@@ -215,7 +215,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
             res, fifo = _run_realtime_friendly(loop, 0 if lockstep else cfg.rt_priority)
             result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
-                      "operator_kill": kill.reason, "rt_fifo": fifo,
+                      "operator_kill": kill.reason, "rt_fifo": fifo, "track": track.name, "profile": profile.name,
                       "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
                       "safety_events": res.safety_events, "drones": res.drones,
                       "laps": {d["name"]: d["laps"] for d in res.drones},
