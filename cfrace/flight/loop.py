@@ -307,7 +307,12 @@ class FlightLoop:
                 mono = self.link_clock()
                 log.write("/link", t, {d.body: d.link.quality.as_dict(mono) for d in self.drones})
         if self.view is not None:
-            self.view.maybe_update(self, t, ests)
+            try:
+                self.view.maybe_update(self, t, ests)
+            except Exception as exc:  # noqa: BLE001 - a broken terminal must not end the race
+                self.view = None
+                if log is not None:
+                    log.write("/event", t, {"kind": "view_off", "text": f"live view disabled: {exc}"})
 
     def race_state(self) -> dict:
         p = self.progress
