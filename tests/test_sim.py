@@ -353,3 +353,14 @@ def test_reason_codes_none_for_live():
     put(sim, [1.0, 5.0, 1.0])
     ev = fly(sim, 3)
     assert all(int(e.reason[0, 0]) == NONE for e in ev)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_non_finite_command_means_motors_off(backend):
+    sim = make(backend, worlds=2)
+    put(sim, [1.0, 5.0, 1.0])
+    thrust = torch.tensor([[float("nan")], [PROFILE.weight]])
+    rates = torch.zeros(2, 1, 3)
+    fly(sim, 5, thrust=thrust, rates=rates)
+    assert torch.isfinite(sim.pos).all() and torch.isfinite(sim.quat).all()
+    assert sim.pos[0, 0, 2].item() < 0.95 and abs(sim.pos[1, 0, 2].item() - 1.0) < 0.01

@@ -31,7 +31,8 @@ def _build() -> ctypes.CDLL:
     cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
     if cc is None:
         raise RuntimeError("no C compiler (cc/gcc) found")
-    flags = ["-O3", "-march=native", "-fPIC", "-shared", "-fopenmp", "-fno-math-errno", "-std=c99"]
+    # -ffast-math: about 1.7x on this kernel; inputs are sanitised by Simulator.step (no NaN/inf reaches it)
+    flags = ["-O3", "-march=native", "-ffast-math", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
     key = hashlib.sha256(src + " ".join([cc] + flags).encode()).hexdigest()[:16]
     out = _cache_dir() / f"cfrace_kernel_{key}.so"
     if not out.exists():

@@ -9,6 +9,9 @@
 
 enum { R_NONE = 0, R_FLOOR = 1, R_CEILING = 2, R_ARENA = 3, R_GATE = 4, R_CONTACT = 5 };
 #define MAXD 16
+/* plain compares: one min/max instruction each (fminf/fmaxf carry NaN rules that cost a call) */
+#define MINF(a, b) ((a) < (b) ? (a) : (b))
+#define MAXF(a, b) ((a) > (b) ? (a) : (b))
 
 /* constants: indices into cst[] (filled by ckernel.py, keep in sync) */
 enum {
@@ -86,7 +89,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
         for (int k = 0; k < 3; k++) {
           float err = rates_cmd[3 * n + k] - om[k];
           float ii = pi[k] + err * dt;
-          ii = fminf(fmaxf(ii, -il[k]), il[k]);
+          ii = MINF(MAXF(ii, -il[k]), il[k]);
           pi[k] = ii;
           float dm = (om[k] - op[k]) * inv_dt;
           tau_des[k] = I[k] * (kp[3 * n + k] * err + ki[3 * n + k] * ii - kd[3 * n + k] * dm);
@@ -97,8 +100,8 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
         for (int r = 0; r < 4; r++) {
           const float *m = cst + C_MIX0 + 4 * r;
           float fd = wr[0] * m[0] + wr[1] * m[1] + wr[2] * m[2] + wr[3] * m[3];
-          float wd = sqrtf(fmaxf(fd, 0.f) * inv_keta);
-          wd = fminf(fmaxf(wd, cs[C_WMIN]), cs[C_WMAX]);
+          float wd = sqrtf(MAXF(fd, 0.f) * inv_keta);
+          wd = MINF(MAXF(wd, cs[C_WMIN]), cs[C_WMAX]);
           mo[r] = mo[r] + (wd - mo[r]) * alpha[n];
           f[r] = cs[C_KETA] * mo[r] * mo[r];
           msum += mo[r];
@@ -142,7 +145,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
           npos[i][2] = zrest;
           nvel[i][0] = nvel[i][1] = nvel[i][2] = 0.f;
           om[0] = om[1] = om[2] = 0.f;
-          float yq = 1.f / sqrtf(fmaxf(nq[0] * nq[0] + nq[3] * nq[3], 1e-12f));
+          float yq = 1.f / sqrtf(MAXF(nq[0] * nq[0] + nq[3] * nq[3], 1e-12f));
           nq[0] *= yq; nq[1] = 0.f; nq[2] = 0.f; nq[3] *= yq;
         }
         memcpy(q, nq, sizeof(float) * 4);
@@ -163,7 +166,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
         to_gate(gate, gcos[tg], gsin[tg], npos[i], nl);
         int hit = 0;
         if (pl[0] > 0.f && nl[0] <= 0.f) {
-          float frac = pl[0] / fmaxf(pl[0] - nl[0], 1e-9f);
+          float frac = pl[0] / MAXF(pl[0] - nl[0], 1e-9f);
           float ay = fabsf(pl[1] + frac * (nl[1] - pl[1])), az = fabsf(pl[2] + frac * (nl[2] - pl[2]));
           float dist = sqrtf(nl[0] * nl[0] + nl[1] * nl[1] + nl[2] * nl[2]);
           passed[i] = dist < 1.0f && ay < 0.5f && az < 0.5f;
@@ -184,7 +187,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
           float l[3] = {c * dx + s * dy, -s * dx + c * dy, dz}, cl[3], df[3], nloc[3];
           float d2 = 0.f;
           for (int a = 0; a < 3; a++) {
-            cl[a] = fminf(fmaxf(l[a], -hh[a]), hh[a]);
+            cl[a] = MINF(MAXF(l[a], -hh[a]), hh[a]);
             df[a] = l[a] - cl[a];
             d2 += df[a] * df[a];
           }
@@ -221,7 +224,7 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, c
             float dist = sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
             if (!(dist < 2.f * rc)) continue;
             contact[i] = 1;
-            float inv_d = 1.f / fmaxf(dist, 1e-6f), depth = fmaxf(2.f * radius - dist, 0.f);
+            float inv_d = 1.f / MAXF(dist, 1e-6f), depth = MAXF(2.f * radius - dist, 0.f);
             float nrm[3] = {d[0] * inv_d, d[1] * inv_d, d[2] * inv_d};
             float rv = (nvel[i][0] - nvel[j][0]) * nrm[0] + (nvel[i][1] - nvel[j][1]) * nrm[1] + (nvel[i][2] - nvel[j][2]) * nrm[2];
             for (int a = 0; a < 3; a++) {

@@ -257,9 +257,14 @@ class Simulator:
 
     # ----------------------------------------------------------------- stepping
     def step(self, thrust: torch.Tensor, rates: torch.Tensor, substeps: int = 10) -> StepEvents:
-        """Hold (thrust (W, D) N, rates (W, D, 3) rad/s) for ``substeps`` x 2 ms."""
+        """Hold (thrust (W, D) N, rates (W, D, 3) rad/s) for ``substeps`` x 2 ms.
+        A non-finite command is treated as motors off (thrust 0, rates 0) for that drone."""
         thrust = thrust.to(self.device, torch.float32)
         rates = rates.to(self.device, torch.float32)
+        bad = ~(torch.isfinite(thrust) & torch.isfinite(rates).all(-1))
+        if bool(bad.any()):
+            thrust = torch.where(bad, 0.0, thrust)
+            rates = torch.where(bad.unsqueeze(-1), 0.0, rates)
         if self.backend == "c":
             return StepEvents(*ckernel.step(self._cst, self.state, self.race, self.params, self.geometry, thrust, rates,
                                             substeps, self.threads))
