@@ -16,9 +16,10 @@ from rich.table import Table
 
 console = Console()
 
-_STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "success", "{:.0%}"), ("lap_time_s", "lap s", "{:.2f}"),
-          ("lead_share", "lead", "{:.0%}"), ("win_share_agent0", "wins ego", "{:.0%}"),
-          ("win_share_agent1", "wins adv", "{:.0%}"))
+_STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "lap done", "{:.0%}"), ("crash_rate", "crashed", "{:.0%}"),
+          ("lap_time_s", "lap s", "{:.2f}"), ("lead_share_agent0", "ego leads", "{:.0%}"),
+          ("win_share_agent0", "ego wins", "{:.0%}"), ("lead_share", "lead", "{:.0%}"),
+          ("win_share_agent1", "adv wins", "{:.0%}"))
 
 
 def _fmt(value, spec="{:.3g}") -> str:
@@ -53,6 +54,18 @@ def _figures(metrics: dict, info: dict) -> Table:
     return outer
 
 
+def _line(metrics: dict, info: dict) -> str:
+    """One plain line for non-terminal output (logs)."""
+    n = info["meta"].get("num_agents", 1)
+    parts = [f"it {metrics['iteration']}", f"steps {metrics['env_steps']:,}", f"{info['progress']:.0%}",
+             f"{metrics['fps']:,.0f} steps/s"]
+    parts += [f"reward{a} {_fmt(metrics.get(f'reward_agent{a}'))}" for a in range(n)]
+    parts += [f"return{a} {_fmt(metrics.get(f'return_agent{a}'))}" for a in range(n)]
+    parts += [f"{label} {_fmt(metrics.get('stat_' + key), spec)}" for key, label, spec in _STATS
+              if ("stat_" + key) in metrics]
+    return "  ".join(parts)
+
+
 def train_cmd(
     method: Optional[str] = typer.Option(None, "--method", help="ours | ds | ss | dm (required unless --resume)"),
     track: Optional[str] = typer.Option(None, "--track", help="track name or YAML path (required unless --resume)"),
@@ -68,14 +81,21 @@ def train_cmd(
     profile: Optional[str] = typer.Option(None, "--profile", help="drone profile (default cf2x_paper)"),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     checkpoint_min: float = typer.Option(5.0, "--checkpoint-min", min=0.0, help="minutes between checkpoints"),
+    set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
+    init_from: Optional[Path] = typer.Option(None, "--init-from",
+                                             help="warm-start every actor from this checkpoint or run folder"),
 ) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG."""
     from cfrace.errors import ConfigError
+    from cfrace.rl.config import parse_overrides
     from cfrace.rl.train import TrainConfig, resume_config, train
 
+    overrides = parse_overrides(set_ or [])
     if minutes is None and steps is None:
         minutes = 30.0
     if resume is not None:
+        if overrides:
+            raise ConfigError("--set cannot change the hyperparameters of a resumed run")
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0)
@@ -86,7 +106,8 @@ def train_cmd(
         name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
         cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
                           profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
-                          checkpoint_min * 60.0, threads=threads)
+                          checkpoint_min * 60.0, threads=threads, overrides=overrides,
+                          init_from=str(init_from) if init_from else None)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
@@ -97,6 +118,7 @@ def train_cmd(
     task = progress.add_task("train", total=1.0, it=0, steps=0)
     grid = Table.grid()
     grid.add_row(progress)
+    last_line = [0.0]
     with Live(grid, console=console, refresh_per_second=4, transient=False) as live:
         def update(metrics: dict, info: dict) -> None:
             progress.update(task, completed=info["progress"], it=metrics["iteration"], steps=f"{metrics['env_steps']:,}")
@@ -104,6 +126,9 @@ def train_cmd(
             view.add_row(progress)
             view.add_row(_figures(metrics, info))
             live.update(view)
+            if not console.is_terminal and info["elapsed_s"] - last_line[0] >= 30.0:  # logs to a file: a line
+                last_line[0] = info["elapsed_s"]
+                live.console.print(_line(metrics, info))
 
         result = train(cfg, resume=resume, on_iteration=update)
     how = "stopped by signal, checkpointed" if result.interrupted else "done"

@@ -34,6 +34,7 @@ class IPPOConfig:
     value_coef: float                #: value loss weight
     grad_clip: float                 #: max global grad norm per agent
     init_std: float = 1.0            #: initial action std (Gaussian, state-independent)
+    bound_coef: float = 0.0          #: weight of the action-bound loss mean(sum(relu(|mu| - 1)^2)); 0 = off
     lr_min: float = 1e-5             #: adaptive LR bounds
     lr_max: float = 1e-2
 
@@ -64,15 +65,48 @@ _PAPER = {
 
 # CPU: smaller networks and fewer worlds; the update cost grows with the critic size times the batch,
 # the simulation with the worlds. See docs/training.md for the measurements.
+_CPU_SHARED = {**_SHARED, "value_clip": None}  # few iterations: let the critic follow returns of 10..500 fast
 _CPU = {
     True: IPPOConfig("cpu", (128, 128), (256, 128), num_envs=1024, rollout=16, lr=3e-4, desired_kl=None,
-                     grad_clip=0.5, **_SHARED),
+                     grad_clip=0.5, **_CPU_SHARED),
     False: IPPOConfig("cpu", (128, 128), (256, 128), num_envs=1024, rollout=24, lr=5e-4, desired_kl=0.01,
-                      grad_clip=1.0, **_SHARED),
+                      grad_clip=1.0, **_CPU_SHARED),
 }
 
 
-def preset(name: str, multi_agent: bool, **overrides) -> IPPOConfig:
+def parse_overrides(items: list[str] | tuple[str, ...]) -> tuple[tuple[str, object], ...]:
+    """["epochs=3", "actor_hidden=[64, 64]", "value_clip=null"] -> (("epochs", 3), ...), checked
+    against IPPOConfig's fields (ConfigError on unknown keys or malformed items)."""
+    import yaml
+
+    names = {f.name for f in fields(IPPOConfig)} - {"preset"}
+    out = []
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or key not in names:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(names))}")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise ConfigError(f"--set {item!r}: cannot parse the value") from None
+        if isinstance(value, list):
+            value = tuple(value)
+        out.append((key, value))
+    return tuple(out)
+
+
+def preset(name: str, multi_agent: bool, overrides: tuple[tuple[str, object], ...] = (), **kw) -> IPPOConfig:
+    """The named preset for a multi- or single-agent method; ``kw`` fields set when not None,
+    then ``overrides`` (key, value) pairs applied as given (None allowed, e.g. value_clip=None)."""
+    cfg = _preset(name, multi_agent, **kw)
+    try:
+        return replace(cfg, **dict(overrides))
+    except TypeError as exc:
+        raise ConfigError(f"bad IPPO override: {exc}") from None
+
+
+def _preset(name: str, multi_agent: bool, **overrides) -> IPPOConfig:
     """The named preset for a multi- or single-agent method, with fields overridden (None = keep)."""
     table = {"cpu": _CPU, "paper": _PAPER}.get(name)
     if table is None:

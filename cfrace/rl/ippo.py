@@ -6,7 +6,8 @@ Per minibatch:
     L_clip   = -mean(min(ratio A, clip(ratio, 1 - eps, 1 + eps) A))
     V_clip   = V_old + clip(V - V_old, -eps_v, eps_v)
     L_value  = mean(max((V - R)^2, (V_clip - R)^2))          (plain (V - R)^2 without value clip)
-    L        = L_clip + c_v L_value - c_e H[pi]
+    L_bound  = mean(sum_k relu(|mu_k| - 1)^2)                 (keeps the mean inside the action range)
+    L        = L_clip + c_v L_value - c_e H[pi] + c_b L_bound
 then clip the global grad norm and take an Adam step. With a desired KL the learning rate adapts
 (rsl_rl's rule): KL > 2 kl* -> lr / 1.5, KL < kl* / 2 -> lr * 1.5, within [lr_min, lr_max].
 """
@@ -75,6 +76,8 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
             else:
                 value_loss = (value - ret).square().mean()
             loss = surrogate + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+            if cfg.bound_coef > 0.0:  # the env clips actions: a mean beyond +-1 is not what the drone gets
+                loss = loss + cfg.bound_coef * (dist.mean.abs() - 1.0).clamp_min(0.0).square().sum(-1).mean()
 
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

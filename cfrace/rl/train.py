@@ -49,9 +49,12 @@ class TrainConfig:
     checkpoint_every_s: float = 300.0  #: s between periodic checkpoints
     episode_s: float = 30.0         #: s, race length before truncation
     threads: int | None = None      #: torch intra-op threads; None = 1 on a CPU (see docs/training.md)
+    overrides: tuple = ()           #: ((IPPOConfig field, value), ...) applied over the preset
+    init_from: str | None = None    #: warm-start every actor from this checkpoint (see cfrace/rl/warmstart.py)
 
     def ippo(self) -> IPPOConfig:
-        return preset(self.preset, self.method in MULTI_AGENT_METHODS, num_envs=self.num_envs)
+        return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
+                      num_envs=self.num_envs)
 
 
 @dataclass
@@ -129,6 +132,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
             raise ConfigError(f"--resume {resume}: {key} is {saved[key]!r} in the checkpoint, not {given[key]!r}")
     names = {f.name for f in fields(TrainConfig)}
     keep = {k: v for k, v in saved.items() if k in names}
+    keep["overrides"] = tuple(tuple(p) for p in keep.get("overrides", ()))
     for key in ("minutes", "steps", "device", "threads", "checkpoint_every_s"):
         keep[key] = given.get(key)
     keep["out"] = str(given.get("out") or resume)
@@ -193,6 +197,11 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     if saved is not None:
         exact = runner.load_state_dict(saved["runner"])
         wall_before = float(saved.get("wall_s", 0.0))
+        meta.update({k: v for k, v in saved.get("meta", {}).items() if k.startswith("init_")})
+    elif cfg.init_from:
+        from cfrace.rl.warmstart import warm_start
+
+        meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout")))
     csv_log = CsvLog(out / "metrics.csv", resume_iteration=runner.iteration if saved is not None else None)
     tb = TensorBoardLog(out / "tb", purge_step=runner.iteration + 1 if saved is not None else None)
     title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({ippo.preset} preset)"
