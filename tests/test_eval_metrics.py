@@ -58,6 +58,8 @@ def test_lap_times_speed_and_finish_of_a_scripted_run():
 
 def test_collisions_count_new_contacts_and_gate_frame_hits_while_racing():
     s = Script(100)
+    s.speed[:] = 3.0
+    s.speed[50:] = 0.0                           # the crash step and after: the drone is stopped
     s.contact[[3, 4, 5, 9, 20], 0, 0] = True     # two separate contacts: 3-5 and 9, then 20
     s.crash(50, GATE_FRAME)
     s.contact[60:70, 0, 0] = True                # after the crash: ignored
@@ -67,6 +69,8 @@ def test_collisions_count_new_contacts_and_gate_frame_hits_while_racing():
     assert r.collisions[0, 0] == 4
     assert r.crashed[0, 0] and r.crash_reason[0, 0] == GATE_FRAME
     assert r.crash_time[0, 0] == pytest.approx(51 * DT)
+    assert r.flight_time[0, 0] == pytest.approx(51 * DT) and r.speed_time[0, 0] == pytest.approx(50 * DT)
+    assert r.mean_speed[0, 0] == pytest.approx(3.0)  # the crash step's 0 is left out
     assert not r.finished[0, 0] and not r.timed_out[0, 0]
 
 
@@ -104,8 +108,9 @@ def test_solo_metrics_aggregate_runs_like_table_one():
     assert m["first_lap_s"] == pytest.approx((5 + 6) / 2)
     assert m["flying_lap_s"] == pytest.approx(5.0)
     assert m["best_lap_s"] == pytest.approx(5.0)
-    # pooled over active time: world 0 races 750 steps at 4, world 1 400 at 2, world 2 100 at 4
-    assert m["avg_speed_mps"] == pytest.approx((750 * 4 + 400 * 2 + 100 * 4) / 1250)
+    # pooled over active time without the crash steps: world 0 races 750 steps at 4, world 1 399
+    # at 2, world 2 99 at 4
+    assert m["avg_speed_mps"] == pytest.approx((750 * 4 + 399 * 2 + 99 * 4) / 1248)
     assert m["collisions"] == 1 and m["frame_hits"] == 1
     assert m["crashes"] == 2 and m["crash_reasons"] == {"arena": 1, "gate_frame": 1}
     assert m["laps_completed"] == 4 and m["timeouts"] == 0

@@ -12,7 +12,8 @@ A rollout records, for every 50 Hz policy step i (ending at time t[i]) and every
 Definitions (docs/evaluation.md):
 - lap time: duration of every completed lap; the first lap is timed from the start (t = 0), later
   laps from the previous lap completion. TTC = mean over all completed laps of all runs.
-- average speed: time-weighted mean of |v| over all active steps of all runs.
+- average speed: time-weighted mean of |v| over all active steps of all runs, except the step of a
+  crash (the simulator stops a crashed drone: its speed reads 0 at the end of that step).
 - collisions: rising edges of the contact flag while active (a new obstacle or drone contact) plus
   gate-frame hits (always terminal in the simulator).
 - success: all laps completed (no terminal crash, within the time limit).
@@ -52,6 +53,7 @@ class RunSummary:
     contacts: np.ndarray      # int, new contacts (rising edges) while racing
     frame_hits: np.ndarray    # int, gate-frame hits while racing
     flight_time: np.ndarray   # s, time spent racing
+    speed_time: np.ndarray    # s, time spent racing, without the crash step
     distance: np.ndarray      # m, path length while racing
     max_speed: np.ndarray     # m/s, nan if never active
 
@@ -62,7 +64,7 @@ class RunSummary:
     @property
     def mean_speed(self) -> np.ndarray:
         with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(self.flight_time > 0, self.distance / self.flight_time, np.nan)
+            return np.where(self.speed_time > 0, self.distance / self.speed_time, np.nan)
 
 
 def rising_edges(flag: np.ndarray) -> np.ndarray:
@@ -96,11 +98,13 @@ def summarize(active: np.ndarray, speed: np.ndarray, lap_stamp: np.ndarray, cont
     contacts = (rising_edges(contact.astype(bool)) & active).sum(0).astype(np.int64)
     frame_hits = (crash & (reason == GATE_FRAME)).sum(0).astype(np.int64)
     flight_time = active.sum(0) * dt
-    distance = np.where(active, speed, 0.0).sum(0) * dt
+    moving = active & ~crash
+    distance = np.where(moving, speed, 0.0).sum(0) * dt
     with np.errstate(invalid="ignore"):
-        max_speed = np.where(active.any(0), np.where(active, speed, -np.inf).max(0), np.nan)
+        max_speed = np.where(moving.any(0), np.where(moving, speed, -np.inf).max(0), np.nan)
     return RunSummary(laps_required, lap_times, laps, finished, finish_time, crashed, crash_time, crash_reason,
-                      ~finished & ~crashed, contacts, frame_hits, flight_time, distance, max_speed)
+                      ~finished & ~crashed, contacts, frame_hits, flight_time, moving.sum(0) * dt, distance,
+                      max_speed)
 
 
 def _mean(x: np.ndarray) -> float | None:
@@ -113,7 +117,7 @@ def solo_metrics(s: RunSummary, runs: np.ndarray | slice = slice(None), drone: i
     """The single-agent table row of the runs ``runs`` (world indices) of drone ``drone``."""
     pick = lambda a: a[runs, drone]
     lap_times = s.lap_times[runs, drone]                       # (R, L)
-    flight, dist = pick(s.flight_time), pick(s.distance)
+    flight, dist = pick(s.speed_time), pick(s.distance)
     reasons = pick(s.crash_reason)[pick(s.crashed)]
     n = int(pick(s.finished).shape[0])
     return {

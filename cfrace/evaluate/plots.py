@@ -32,10 +32,13 @@ def _safe(name: str) -> str:
 
 
 def _trace(rec: Recording, world: int, drone: int):
-    """(xyz (N, 3), speed (N,), t (N,)) of a recorded world's drone while it was racing."""
+    """(xyz (N, 3), speed (N,), t (N,)) of a recorded world's drone while it was racing (the speed
+    of a crash step reads 0, the crashed drone is stopped: it is left out)."""
     k = rec.recorded.index(world)
     act = rec.active[:, world, drone]
     n = int(np.flatnonzero(act)[-1]) + 1 if act.any() else 0
+    if n and rec.crashed_now[n - 1, world, drone]:
+        n -= 1
     return rec.pos[:n, k, drone], rec.speed[:n, world, drone], rec.t[:n]
 
 
@@ -152,7 +155,7 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
         for x in stamps[~np.isnan(stamps)]:
             ax.axvline(x, color="green", lw=0.8, alpha=0.6)
         down = np.flatnonzero(rec.crashed[:, w, 1])
-        if down.size:
+        if down.size and t.size and rec.t[down[0]] <= t[-1]:
             ax.axvline(rec.t[down[0]], color="red", lw=1.0, ls="--", label="opponent crashed")
             ax.legend(loc="lower right", fontsize=7)
         fmt = lambda x: "–" if x is None else f"{x:.2f}"
@@ -163,6 +166,7 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
         ax.set_ylim(0.0, vmax * 1.08)
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time [s] (green: lap completed)")
+    axes[-1, 0].set_xlim(0.0, max([float(tr[2][-1]) for tr in traces.values() if tr[2].size] + [0.1]))
     fig.tight_layout()
     speed = plot_dir / "speed.png"
     fig.savefig(speed, dpi=110)

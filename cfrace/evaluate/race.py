@@ -118,7 +118,7 @@ def speed_profile(rec: Recording, s: RunSummary, races: int) -> dict:
     opponent (the race worlds in which the opponent never crashed) vs against a crashed one (the
     extra worlds, where the opponent drops at the start). Max / mean speed m/s over the ego's
     racing steps, mean speed at the finish (the paper's final-gate speed)."""
-    act, sp = rec.active[..., 0], rec.speed[..., 0]
+    act, sp = rec.active[..., 0] & ~rec.crashed_now[..., 0], rec.speed[..., 0]   # the crash step reads 0
     fin = finish_speed(rec.speed, rec.lap_stamp, rec.active, s.finished)[:, 0]
     live = np.zeros(act.shape[1], bool)
     live[:races] = ~s.crashed[:races, 1]
