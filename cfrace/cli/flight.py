@@ -98,6 +98,18 @@ def exit_code(result: dict) -> int:
     return EXIT_CODES.get(result.get("operator_kill") or "", 0) if result.get("end") == "operator_kill" else 0
 
 
+def announce(meta: dict, con: Console = console) -> None:
+    """One line per drone and the limits, printed once everything answered, before arming."""
+    for (name, pol), uri, body in zip(meta["policies"].items(), meta["uris"], meta["bodies"]):
+        con.print(f"{name}: {pol['method']} policy {pol['path']} ({pol['obs_layout']}) -> {uri}, mocap body {body}",
+                  highlight=False)
+    f, s = meta["fence"], meta["safety"]
+    con.print(f"fence x {f.lo[0]:.2f}..{f.hi[0]:.2f}, y {f.lo[1]:.2f}..{f.hi[1]:.2f}, z <= {f.hi[2]:.2f} m; "
+              f"speed <= {s['speed_max_mps']:g} m/s, tilt <= {s['tilt_max_deg']:g} deg, "
+              f"mocap stale {s['mocap_stale_s'] * 1e3:.0f} ms, link silent {s['link_timeout_s'] * 1e3:.0f} ms; "
+              f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
+
+
 def register(app: typer.Typer) -> None:
     """Add `cfrace fly` to the top-level app."""
 
@@ -138,7 +150,7 @@ def register(app: typer.Typer) -> None:
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
-        result = fly(cfg, console=console)
+        result = fly(cfg, console=console, announce=announce)
         print_result(result)
         write_json(result, json_out)
         code = exit_code(result)

@@ -148,12 +148,13 @@ class _Signals:
 
 
 def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=None, mocap_options=None,
-             uris=None, extra_meta=None, settle=None, console=None) -> dict:
+             uris=None, extra_meta=None, settle=None, console=None, announce=None) -> dict:
     """Fly one race (real drones or simulated ones) and return the result dict (see docs/flight.md).
 
     fleet: the in-process SimFleet for `sim` mocap / sim:// links; lockstep: drive it tick by tick.
     injector: a faults.FaultInjector; settle(): called after every drone was stopped, returns a
-    dict stored in the result and the log summary (the dry-run waits for motors off there)."""
+    dict stored in the result and the log summary (the dry-run waits for motors off there).
+    announce(meta): called once every check passed and every link answered, before the set-up."""
     from cfrace.flight.flightlog import FlightLog
 
     track = load_track(cfg.track)
@@ -187,6 +188,8 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                 link.connect(cfg.connect_timeout_s)
             if cfg.log is not None:
                 log = FlightLog(cfg.log, meta)
+            if announce is not None:
+                announce(meta | {"fence": Fence.from_track(track, cfg.safety.geofence_margin_m)})
             for link in links:
                 link.setup()
             drones = []
@@ -258,6 +261,6 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
     return result
 
 
-def fly(cfg: FlightConfig, console=None) -> dict:
+def fly(cfg: FlightConfig, console=None, announce=None) -> dict:
     """`cfrace fly`: real drones (radio:// or udp://) from a mocap system."""
-    return run_race(cfg, console=console)
+    return run_race(cfg, console=console, announce=announce)
