@@ -109,13 +109,18 @@ def register(app: typer.Typer) -> None:
         profile: str = typer.Option("cf21bl", help="Drone profile."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
         rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
+        policies: str = typer.Option("paper", help="paper: a hold controller in the paper's actor size "
+                                                   "[512, 512, 256, 128]; shipped: policies/ours_TRACK vs ds_TRACK."),
     ):
         """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
         from rich.table import Table
 
         from cfrace.flight.benchloop import bench_loop
 
-        r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority)
+        if policies not in ("paper", "shipped"):
+            from cfrace.errors import ConfigError
+            raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
+        r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
                         f"({r['policies']}), ms")

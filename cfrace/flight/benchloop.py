@@ -3,9 +3,10 @@
 Set-up as in a real flight: the simulated Crazyflies run in their own process (`cfrace sim
 serve`, like real drones they do not share the flight process), the flight process runs the
 unchanged `cfrace fly` code: the real cflib client over UDP, the `sim://` pose stream as mocap,
-the flight log written every tick. Policies: the shipped ours/ds policies of the track when they
-exist, else the linear hold controller inside an MLP of the paper's actor size
-([512, 512, 256, 128]) so inference costs what a trained actor costs.
+the flight log written every tick. Policies (--policies): "paper" (default), the linear hold
+controller inside an MLP of the paper's actor size ([512, 512, 256, 128]): inference costs what
+the paper's actor costs and the drones fly the whole run; or "shipped", the track's shipped
+ours/ds policies (smaller actors; a crashed drone stops its samples).
 Goals on this machine: compute p99 <= 1 ms, period jitter p99 <= 0.5 ms, inference <= 0.2 ms.
 """
 
@@ -51,10 +52,16 @@ def _free_base_port() -> int:
     raise LinkError("no free UDP ports for the simulated drones")
 
 
-def bench_policies(track: str, workdir: Path) -> tuple[str, str, str]:
-    ours, ds = POLICIES_DIR / f"ours_{track}.onnx", POLICIES_DIR / f"ds_{track}.onnx"
-    if ours.exists() and ds.exists():
-        return str(ours), str(ds), "shipped"
+def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str, str, str]:
+    """which: "paper" (the hold controller inside the paper's actor size, flies the whole run) or
+    "shipped" (policies/ours_TRACK.onnx vs ds_TRACK.onnx: real inference cost; the run ends early
+    if both crash)."""
+    if which == "shipped":
+        ours, ds = POLICIES_DIR / f"ours_{track}.onnx", POLICIES_DIR / f"ds_{track}.onnx"
+        if not (ours.exists() and ds.exists()):
+            from cfrace.errors import PolicyError
+            raise PolicyError(f"no shipped policies {ours.name} and {ds.name} in {POLICIES_DIR}")
+        return str(ours), str(ds), "shipped ours vs ds"
     from cfrace.flight.testpolicy import make_sized_hold_policy
 
     ego = make_sized_hold_policy(workdir / "ego.onnx", "race42", track, False)
@@ -63,11 +70,11 @@ def bench_policies(track: str, workdir: Path) -> tuple[str, str, str]:
 
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
-               log: bool = True, rt_priority: int = 0) -> dict:
+               log: bool = True, rt_priority: int = 0, policies: str = "paper") -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
-        ego, opp, kind = bench_policies(track, work)
+        ego, opp, kind = bench_policies(track, work, policies)
         base = _free_base_port()
         cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track, "--drones", "2",
                "--port", str(base), "--profile", profile]
