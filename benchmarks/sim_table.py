@@ -3,7 +3,9 @@
     /work/venv/bin/python benchmarks/sim_table.py benchmarks/results/sim_threads1.json [more.json ...]
 
 Rates are drone-steps per second (one drone, one 2 ms physics step), the fastest of the repeats;
-the median is in brackets when it differs by more than 10 %.
+the median is in brackets when it differs by more than 10 %. On a shared machine the last columns
+divide each side's best rate by the CPU share it got during that repeat (process CPU time / wall
+time): drone-steps per CPU-second, a steadier figure when other work competes for the cores.
 """
 
 from __future__ import annotations
@@ -26,17 +28,24 @@ def rate(x: float | None, median: float | None = None) -> str:
 def table(doc: dict) -> str:
     results, peer = doc["results"], doc.get("peer", [])
     modes = [m for m in MODES if any(r["mode"] == m for r in results)]
-    head = ["worlds", "drones", *[f"cfrace {m}" for m in modes], "crazyflow", "best cfrace / crazyflow"]
+    head = ["worlds", "drones", *[f"cfrace {m}" for m in modes], "crazyflow", "best cfrace / crazyflow",
+            "per CPU-s: cfrace best / crazyflow"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for w, d in dict.fromkeys((r["worlds"], r["drones"]) for r in results):
         rs = {r["mode"]: r for r in results if (r["worlds"], r["drones"]) == (w, d)}
         cf = next((p for p in peer if p["total_drones"] == w * d), None)
-        best = max(r["drone_steps_per_s"] for r in rs.values())
+        top = max(rs.values(), key=lambda r: r["drone_steps_per_s"])
+        best = top["drone_steps_per_s"]
         cells = [str(w), f"{d} x {w} = {w * d}"]
         cells += [rate(rs[m]["drone_steps_per_s"], rs[m].get("median_drone_steps_per_s")) if m in rs else "-"
                   for m in modes]
         cells.append(rate(cf["drone_steps_per_s"], cf.get("median_drone_steps_per_s")) if cf else "-")
         cells.append(f"{best / cf['drone_steps_per_s']:.2f}x" if cf else "-")
+        if cf and top.get("cpu_per_wall") and cf.get("cpu_per_wall"):
+            a, b = best / top["cpu_per_wall"], cf["drone_steps_per_s"] / cf["cpu_per_wall"]
+            cells.append(f"{rate(a)} / {rate(b)} = {a / b:.2f}x")
+        else:
+            cells.append("-")
         lines.append("| " + " | ".join(cells) + " |")
     m = doc["machine"]
     lines.append("")

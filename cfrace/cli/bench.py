@@ -220,6 +220,8 @@ def sim_cmd(
     repeats: int = typer.Option(3, min=1, help="timed repeats per size and mode; the fastest counts"),
     substeps: int = typer.Option(10, min=1, help="physics steps of 2 ms per policy step"),
     compile: bool = typer.Option(True, "--compile/--no-compile", help="also measure torch.compile"),
+    modes_opt: str = typer.Option("", "--modes", help="comma-separated subset of c,eager,compiled "
+                                  "(default: c if built, eager, compiled with --compile)"),
     peer: Optional[bool] = typer.Option(None, "--peer/--no-peer",
                                         help="run the crazyflow peer (default: when a peer python is found)"),
     peer_python_path: Optional[Path] = typer.Option(None, "--peer-python", help="python of the crazyflow venv"),
@@ -241,6 +243,15 @@ def sim_cmd(
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
     modes = available_modes(compile)
+    if modes_opt:
+        wanted = [m.strip() for m in modes_opt.split(",") if m.strip()]
+        unknown = [m for m in wanted if m not in MODES]
+        if unknown or not wanted:
+            raise ConfigError(f"--modes: expected a subset of {','.join(MODES)}, got {modes_opt!r}")
+        missing = [m for m in wanted if m not in available_modes(True)]
+        if missing:
+            raise ConfigError(f"--modes: {', '.join(missing)} not available on this machine")
+        modes = wanted
     console.print(f"modes: {', '.join(modes)}")
     results, errors = [], {}
     for w in sizes:
