@@ -85,17 +85,27 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
     return out
 
 
-def _set_fifo(priority: int):
-    """SCHED_FIFO for the calling thread (Linux, needs root or CAP_SYS_NICE); returns the old
-    (policy, param) to restore, or None when not possible."""
+def _set_fifo(priority: int) -> list | None:
+    """SCHED_FIFO for the calling (loop) thread at ``priority`` and for the process's other threads
+    (cflib's receive/ping/packet threads, the mocap reader) one below, so a thread holding the GIL
+    is never preempted by the machine's ordinary jobs while the loop waits for it (Linux, needs
+    root or CAP_SYS_NICE). Returns [(tid, old policy, old param)] to restore, or None."""
     if priority <= 0 or not hasattr(os, "sched_setscheduler"):
         return None
+    me = threading.get_native_id()
+    changed = []
     try:
-        old = (os.sched_getscheduler(0), os.sched_getparam(0))
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return old
+        for th in [threading.current_thread()] + [t for t in threading.enumerate() if t.native_id != me]:
+            tid = 0 if th.native_id == me else th.native_id
+            if tid is None:
+                continue
+            old = (os.sched_getscheduler(tid), os.sched_getparam(tid))
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority if tid == 0 else max(1, priority - 1)))
+            changed.append((tid, *old))
     except (OSError, PermissionError):
-        return None
+        if not changed:
+            return None
+    return changed
 
 
 def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0) -> tuple[LoopResult, bool]:
@@ -112,11 +122,11 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0) -> tuple[Loop
     try:
         return loop.run(), old_sched is not None
     finally:
-        if old_sched is not None:
+        for tid, policy, param in old_sched or []:
             try:
-                os.sched_setscheduler(0, *old_sched)
+                os.sched_setscheduler(tid, policy, param)
             except OSError:
-                pass
+                pass   # that thread has ended
         sys.setswitchinterval(old_switch)
         gc.unfreeze()
 
