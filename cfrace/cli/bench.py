@@ -109,7 +109,18 @@ def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int,
             "median_drone_steps_per_s": drone_steps / sorted(walls)[len(walls) // 2],
             "seconds": walls, "policy_steps": steps, "substeps": substeps, "repeats": repeats, "warmup_s": warm,
             "cpu_per_wall": cpus[best] / walls[best], "crashed_fraction": float(sim.crashed.float().mean()),
-            "mean_z_m": float(sim.pos[..., 2].mean())}
+            "mean_z_m": float(sim.pos[..., 2].mean()), "kernel": _kernel_name() if mode == "c" else None}
+
+
+def _kernel_name() -> str | None:
+    """File name of the loaded C kernel (its name carries the hash of its source and flags)."""
+    try:
+        from cfrace.sim import ckernel
+
+        lib = getattr(ckernel, "_lib", None)
+        return Path(lib._name).name if lib is not None else None
+    except ImportError:
+        return None
 
 
 def peer_python(explicit: Optional[Path]) -> Optional[Path]:
@@ -162,7 +173,19 @@ def machine_info(threads: int) -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+    import hashlib
+
+    from cfrace.paths import ROOT
+
+    sim_dir = ROOT / "cfrace" / "sim"
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(sim_dir.glob("*.[pc]*")) if p.is_file()))
+    try:
+        git = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
+                             text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        git = ""
+    return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__,
+            "cfrace_git": git, "sim_sources_sha256": digest.hexdigest()[:16], "torch_threads": torch.get_num_threads(),
             "threads_option": threads, "python": platform.python_version(), "platform": platform.platform(),
             "loadavg_start": list(os.getloadavg()), "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
