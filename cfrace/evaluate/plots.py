@@ -187,8 +187,9 @@ def plot_heatmap(path: Path, names: list[str], win: list[list[float | None]], dr
             if i == j:
                 ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, color="lightgrey"))
                 continue
-            ax.text(j, i - 0.08, f"{m[i, j]:.0f}%", ha="center", va="center", fontsize=11, weight="bold")
-            ax.text(j, i + 0.25, f"draw {100 * draw[i][j]:.0f}%", ha="center", va="center", fontsize=7)
+            color = "white" if m[i, j] < 20 or m[i, j] > 85 else "black"   # readable on the dark ends
+            ax.text(j, i - 0.08, f"{m[i, j]:.0f}%", ha="center", va="center", fontsize=11, weight="bold", color=color)
+            ax.text(j, i + 0.25, f"draw {100 * draw[i][j]:.0f}%", ha="center", va="center", fontsize=7, color=color)
     ax.set_xticks(range(n), names)
     ax.set_yticks(range(n), names)
     ax.set_xlabel("opponent (column)")
