@@ -205,3 +205,22 @@ def test_resume_is_exact(tmp_path):
     for pa, pb in zip(a.agents.state_dict().values(), b.agents.state_dict().values()):
         assert torch.equal(pa, pb)
     assert torch.equal(a.obs, b.obs) and a.lrs == b.lrs and a.env_steps == b.env_steps == 3 * 32 * 8
+
+
+def test_presets_and_overrides():
+    from cfrace.errors import ConfigError
+    from cfrace.rl.config import parse_overrides
+
+    paper_ma, paper_sa = preset("paper", True), preset("paper", False)
+    assert paper_ma.actor_hidden == (512, 512, 256, 128) and paper_ma.critic_hidden == (512, 512, 256, 256, 128, 128)
+    assert (paper_ma.num_envs, paper_ma.rollout, paper_ma.lr, paper_ma.desired_kl, paper_ma.grad_clip) == \
+        (10240, 16, 1e-4, None, 0.5)
+    assert (paper_sa.rollout, paper_sa.lr, paper_sa.desired_kl, paper_sa.grad_clip) == (24, 5e-4, 0.01, 1.0)
+    ov = parse_overrides(["epochs=3", "actor_hidden=[64, 32]", "value_clip=null", "lr=2e-4"])
+    cfg = preset("paper", True, ov, num_envs=64)
+    assert (cfg.epochs, cfg.actor_hidden, cfg.value_clip, cfg.lr, cfg.num_envs) == (3, (64, 32), None, 2e-4, 64)
+    for bad in (["nope=1"], ["epochs"], ["preset=cpu"]):
+        with pytest.raises(ConfigError):
+            parse_overrides(bad)
+    with pytest.raises(ConfigError):
+        preset("gpu", True)

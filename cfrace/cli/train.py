@@ -131,6 +131,8 @@ def train_cmd(
                 live.console.print(_line(metrics, info))
 
         result = train(cfg, resume=resume, on_iteration=update)
+    if not console.is_terminal:
+        console.print()
     how = "stopped by signal, checkpointed" if result.interrupted else "done"
     console.print(f"{how}: {result.iterations} iterations, {result.env_steps:,} env steps, "
                   f"{result.wall_s / 60:.1f} min total")
@@ -168,12 +170,15 @@ def bench_train_cmd(
     iterations: int = typer.Option(3, "--iterations", min=1, help="timed iterations (after one warm-up)"),
     device: Optional[str] = typer.Option(None, "--device"),
     threads: Optional[int] = typer.Option(None, "--threads", min=1),
+    set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures to this JSON file"),
 ) -> None:
     """Env-steps/s of whole training iterations, split into simulation, policy inference and update."""
+    from cfrace.rl.config import parse_overrides
     from cfrace.rl.train import bench_train
 
-    r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads)
+    r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads,
+                    overrides=parse_overrides(set_ or []))
     table = Table(title=f"training speed: {method} on {r['track']}, preset {r['preset']}, {r['device']}, "
                         f"{r['threads']} thread(s)")
     table.add_column("figure")

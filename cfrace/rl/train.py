@@ -13,7 +13,7 @@ import os
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Callable
 
@@ -247,13 +247,14 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
-                threads: int | None = None, env_factory: Callable | None = None, **overrides) -> dict:
+                threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = ()) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
-    cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1)
+    cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
+                      overrides=tuple(overrides))
     dev = pick_device(device)
     n_threads = set_threads(threads, dev)
-    ippo = replace(cfg.ippo(), **{k: v for k, v in overrides.items() if v is not None})
+    ippo = cfg.ippo()
     t0 = time.perf_counter()
     env, meta = (env_factory or make_env)(cfg, dev, ippo.num_envs)
     runner = Runner(env, ippo, seed=0)
