@@ -216,10 +216,10 @@ def test_presets_and_overrides():
     assert (paper_ma.num_envs, paper_ma.rollout, paper_ma.lr, paper_ma.desired_kl, paper_ma.grad_clip) == \
         (10240, 16, 1e-4, None, 0.5)
     assert (paper_sa.rollout, paper_sa.lr, paper_sa.desired_kl, paper_sa.grad_clip) == (24, 5e-4, 0.01, 1.0)
-    ov = parse_overrides(["epochs=3", "actor_hidden=[64, 32]", "value_clip=null", "lr=2e-4"])
+    ov = parse_overrides(["epochs=3", "actor_hidden=[64, 32]", "value_clip=none", "lr=2e-4"])
     cfg = preset("paper", True, ov, num_envs=64)
     assert (cfg.epochs, cfg.actor_hidden, cfg.value_clip, cfg.lr, cfg.num_envs) == (3, (64, 32), None, 2e-4, 64)
-    for bad in (["nope=1"], ["epochs"], ["preset=cpu"]):
+    for bad in (["nope=1"], ["epochs"], ["preset=cpu"], ["epochs=2.5"], ["actor_hidden=64"], ["lr=fast"]):
         with pytest.raises(ConfigError):
             parse_overrides(bad)
     with pytest.raises(ConfigError):

@@ -78,24 +78,39 @@ _CPU = {
 }
 
 
+_INTS = ("num_envs", "rollout", "epochs", "minibatches")
+_LAYERS = ("actor_hidden", "critic_hidden")
+_OPTIONAL = ("desired_kl", "value_clip")
+
+
 def parse_overrides(items: list[str] | tuple[str, ...]) -> tuple[tuple[str, object], ...]:
-    """["epochs=3", "actor_hidden=[64, 64]", "value_clip=null"] -> (("epochs", 3), ...), checked
-    against IPPOConfig's fields (ConfigError on unknown keys or malformed items)."""
+    """["epochs=3", "actor_hidden=[64, 64]", "value_clip=none", "lr=2e-4"] -> (("epochs", 3), ...),
+    checked against IPPOConfig's fields and types (ConfigError naming the item otherwise)."""
     import yaml
 
     names = {f.name for f in fields(IPPOConfig)} - {"preset"}
     out = []
     for item in items:
         key, sep, text = item.partition("=")
-        key = key.strip()
+        key, text = key.strip(), text.strip()
         if not sep or key not in names:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE with KEY one of {', '.join(sorted(names))}")
         try:
-            value = yaml.safe_load(text)
-        except yaml.YAMLError:
-            raise ConfigError(f"--set {item!r}: cannot parse the value") from None
-        if isinstance(value, list):
-            value = tuple(value)
+            if key in _OPTIONAL and text.lower() in ("none", "null", "off"):
+                value = None
+            elif key in _INTS:
+                value = int(text)
+                if value < 1:
+                    raise ValueError
+            elif key in _LAYERS:
+                raw = yaml.safe_load(text)
+                if not isinstance(raw, list) or not raw or not all(isinstance(v, int) and v > 0 for v in raw):
+                    raise ValueError
+                value = tuple(raw)
+            else:
+                value = float(text)
+        except (ValueError, yaml.YAMLError):
+            raise ConfigError(f"--set {item!r}: bad value for {key}") from None
         out.append((key, value))
     return tuple(out)
 
