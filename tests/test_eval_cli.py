@@ -172,3 +172,16 @@ def test_short_name_without_a_shipped_policy_is_refused(env, short_names):
     result = runner.invoke(app, ["eval", "ss", "--track", str(track)])
     assert result.exit_code != 0 and isinstance(result.exception, PolicyError)
     assert "no shipped policy ss_straight.onnx" in str(result.exception)
+
+
+SHIPPED_DS = __import__("cfrace.paths", fromlist=["POLICIES_DIR"]).POLICIES_DIR / "ds_lemniscate.onnx"
+
+
+@pytest.mark.skipif(not SHIPPED_DS.exists(), reason="policies/ds_lemniscate.onnx is not shipped yet")
+def test_shipped_ds_policy_completes_laps_on_the_lemniscate():
+    from cfrace.evaluate.single import evaluate
+
+    r = evaluate(["ds"], "lemniscate", runs=6, laps=1, seed=0)
+    row = r.rows[0]
+    assert row["success_rate"] >= 0.5, row
+    assert 3.0 < row["lap_time_s"] < 10.0 and row["avg_speed_mps"] > 2.0
