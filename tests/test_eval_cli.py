@@ -157,6 +157,7 @@ def test_mismatched_policies_are_refused(env, tmp_path):
         common_profile(load_entrants([str(slow), str(other)], track, False))
 
 
+@pytest.mark.slow  # a fresh process imports torch and onnxruntime: 7-10 s on the loaded 2-core machine
 def test_cli_refusal_is_one_line_with_exit_code_2(env, tmp_path):
     _, track, _ = env
     lem = make_test_policy(tmp_path / "lem.onnx", "race42", "lemniscate", False)
