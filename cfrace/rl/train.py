@@ -102,7 +102,8 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
 
 def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
     layout = getattr(env, "layout", None)
-    return {"method": cfg.method, "track": track_name, "obstacles": bool(cfg.obstacles),
+    obstacles = bool(getattr(env, "obstacles", cfg.obstacles))  # RaceEnv drops obstacles a track does not have
+    return {"method": cfg.method, "track": track_name, "obstacles": obstacles,
             "obs_layout": layout.name if layout is not None else None, "obs_dim": int(env.obs_dim),
             **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents)}
