@@ -21,7 +21,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from cfrace.errors import LinkError
+from cfrace.errors import CfraceError, LinkError
 from cfrace.flight.config import FlightConfig
 from cfrace.flight.runner import run_race
 from cfrace.paths import POLICIES_DIR
@@ -30,15 +30,15 @@ GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_m
 
 
 def _free_base_port() -> int:
-    """A base port with base-1 .. base+1 free (pose port, two drones)."""
-    for _ in range(50):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if not 1025 < base < 65000:
-            continue
+    """A base port with base-1 .. base+1 free (pose port, two drones), below the kernel's
+    ephemeral range so that other programs' automatically assigned ports cannot take them."""
+    import random
+
+    rng = random.Random()
+    for _ in range(100):
+        base = rng.randrange(20001, 30000)
+        socks = []
         try:
-            socks = []
             for p in (base - 1, base, base + 1):
                 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
                 socks.append(s)
@@ -86,7 +86,12 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
                                rt_priority=rt_priority)
-            result = run_race(cfg)
+            try:
+                result = run_race(cfg)
+            except CfraceError as exc:
+                if proc.poll() is not None:   # the simulator process died: say why
+                    raise LinkError(f"cfrace sim serve exited: {proc.stderr.read().strip()[-300:]}") from None
+                raise exc
         finally:
             proc.send_signal(signal.SIGTERM)
             try:
