@@ -262,6 +262,9 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
                 agent=AGENTS[index] if n > 1 else "ego", agent_index=index, num_agents=n,
                 total_training_reward=totals[index], iterations=int(state["iteration"]),
                 preset=ippo.preset)
+    if meta0.get("init_from"):  # warm-started (cfrace/rl/warmstart.py): say from what
+        meta["init_from"] = Path(meta0["init_from"]).parent.name or str(meta0["init_from"])
+        meta["init_env_steps"] = int(meta0.get("init_env_steps", 0))
     out = export_actor(model.actor, model.obs_norm, meta, path)
     err = parity_check(out, model.actor, model.obs_norm, n=1000)
     if not err < 1e-4:
