@@ -84,6 +84,8 @@ def train_cmd(
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     init_from: Optional[Path] = typer.Option(None, "--init-from",
                                              help="warm-start every actor from this checkpoint or run folder"),
+    critic_warmup: int = typer.Option(20, "--critic-warmup", min=0,
+                                      help="iterations with frozen actors after --init-from"),
 ) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG."""
     from cfrace.errors import ConfigError
@@ -107,7 +109,7 @@ def train_cmd(
         cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
                           profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
                           checkpoint_min * 60.0, threads=threads, overrides=overrides,
-                          init_from=str(init_from) if init_from else None)
+                          init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"

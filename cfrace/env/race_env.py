@@ -206,6 +206,31 @@ class RaceEnv:
         obs, critic = self.observe() if done_ids.numel() else (obs_final, critic_final)
         return StepResult(obs, critic, reward, terminated, truncated, alive, critic_final, terms, stats)
 
+    # ------------------------------------------------------------------ checkpoints (exact resume)
+    _COUNTERS = ("steps", "start_gate", "laps_paid", "prev_pos", "prev_track_pos", "ep_return", "ep_lead",
+                 "ep_first_lap")
+
+    def state_dict(self) -> dict:
+        s = self.sim
+        return {"drone": [t.clone() for t in s.state], "race": [t.clone() for t in s.race],
+                "scales": {k: v.clone() for k, v in s.scales.items()},
+                "counters": {k: getattr(self, k).clone() for k in self._COUNTERS},
+                "gen": self.gen.get_state(), "sim_gen": s.generator.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        s = self.sim
+        for dst, src in zip(s.state, state["drone"]):
+            dst.copy_(src)
+        for dst, src in zip(s.race, state["race"]):
+            dst.copy_(src)
+        for k, v in state["scales"].items():
+            s.scales[k].copy_(v)
+        s._update_params()
+        for k, v in state["counters"].items():
+            setattr(self, k, v.clone().to(self.device))
+        self.gen.set_state(state["gen"])
+        s.generator.set_state(state["sim_gen"])
+
     def _collect_stats(self, done: torch.Tensor) -> dict[str, float]:
         if not bool(done.any()):
             return {}

@@ -51,6 +51,7 @@ class TrainConfig:
     threads: int | None = None      #: torch intra-op threads; None = 1 on a CPU (see docs/training.md)
     overrides: tuple = ()           #: ((IPPOConfig field, value), ...) applied over the preset
     init_from: str | None = None    #: warm-start every actor from this checkpoint (see cfrace/rl/warmstart.py)
+    critic_warmup: int = 20         #: iterations with frozen actors after a warm start (critics catch up)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -227,6 +228,10 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     try:
         with _StopFlag() as flag:
             while progress() < 1.0 and not flag.stop:
+                if cfg.init_from:  # after a warm start, train only the fresh critics at first
+                    freeze = runner.iteration < cfg.critic_warmup
+                    for agent in runner.agents:
+                        agent.actor.requires_grad_(not freeze)
                 metrics = runner.iterate()
                 metrics["wall_s"] = wall_before + time.perf_counter() - start
                 csv_log.write(metrics)
