@@ -13,12 +13,7 @@ from cfrace.drone import _PARAM_KEYS, DEFAULT_PROFILE, GRAVITY, load_profile
 from cfrace.errors import ConfigError
 from cfrace.paths import CALIBRATION_DIR
 
-# calibration/cf21bl.yaml does not parse yet: its unquoted `description:` contains ": " (invalid YAML,
-# line 5). Strict xfail so that the fix (quoting the description) turns these into failures until the
-# marker is removed.
-_CF21BL_BROKEN = pytest.mark.xfail(strict=True, raises=ConfigError,
-                                   reason="cf21bl.yaml line 5: unquoted description with ': ' is invalid YAML")
-PROFILES = ("cf2x_paper", pytest.param("cf21bl", marks=_CF21BL_BROKEN))
+PROFILES = ("cf2x_paper", "cf21bl")
 
 
 def raw(name="cf2x_paper"):
