@@ -64,6 +64,11 @@ class TorchSimAdapter:
 
         self.sim.step(torch.tensor(thrust, dtype=torch.float32)[None], torch.tensor(rates, dtype=torch.float32)[None],
                       substeps=substeps)
+        # the training simulator freezes a crashed drone where it crashed; a real one falls: put it on the
+        # floor, so that mocap (and the flight stack's floor check) sees a drone that is down
+        down = self.sim.race.crashed[0]
+        if bool(down.any()):
+            self.sim.state.pos[0, down, 2] = self.sim.z_rest
 
     def __getattr__(self, name):
         if name in ("pos", "vel", "quat", "omega", "crashed", "reason"):
