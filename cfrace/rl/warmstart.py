@@ -22,6 +22,8 @@ import torch
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import ConfigError
 
+NORM_COUNT_AFTER_WARM_START = 1.0e4  #: samples the copied normaliser statistics weigh
+
 
 def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
     """Copy the best source actor (greatest total training reward) into every agent of ``runner``.
@@ -61,5 +63,11 @@ def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
             else:
                 raise ConfigError(f"--init-from {source}: {key} has shape {tuple(value.shape)}, "
                                   f"here {tuple(target.shape)} (different network sizes)")
+        # the copied sample count would freeze the statistics of the new inputs at their first
+        # estimate (drones side by side at the start: tiny variance -> inputs clipped at +-10 in flight);
+        # a small count lets every statistic follow the new data within a few iterations, while the
+        # actors are frozen (critic warm-up)
+        dst = agent.state_dict()
+        dst["obs_norm.count"].clamp_(max=NORM_COUNT_AFTER_WARM_START)
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0))}

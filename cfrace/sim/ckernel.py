@@ -20,6 +20,7 @@ import torch
 _SRC = Path(__file__).with_name("kernel.c")
 _lib = None
 _error: str | None = None
+MIN_DRONES_PER_THREAD = 512  #: below this many drones per thread, use fewer threads
 
 
 def _cache_dir() -> Path:
@@ -93,6 +94,8 @@ def step(cst: torch.Tensor, s, r, p, g, thrust: torch.Tensor, rates: torch.Tenso
     ev_reason = torch.empty_like(ev_gates)
     thrust = thrust.contiguous()
     rates = rates.contiguous()
+    if w * d < MIN_DRONES_PER_THREAD * threads:  # waking OpenMP threads costs more than small batches gain
+        threads = max(1, (w * d) // MIN_DRONES_PER_THREAD)
     args = [cst, *s, r.target, r.gates_passed, r.laps, r.lap_start, r.lap_last, r.crashed, r.reason,
             r.contact_time, r.time, *p, g.gates, *g.bars, *g.obstacles, thrust, rates,
             ev_gates, ev_laps, ev_crashed, ev_contact, ev_reason]
