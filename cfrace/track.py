@@ -114,14 +114,21 @@ class Track:
         return Track(self.name, self.gates, self.gate, (), self.arena, self.spawn, self.source)
 
 
-def _point_in_box(points: np.ndarray, centre, half, yaw, margin: float = 0.0) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    d = points - np.asarray(centre)
-    lx = c * d[:, 0] + s * d[:, 1]
-    ly = -s * d[:, 0] + c * d[:, 1]
-    lz = d[:, 2]
-    return ((np.abs(lx) <= half[0] + margin) & (np.abs(ly) <= half[1] + margin)
-            & (np.abs(lz) <= half[2] + margin))
+def boxes_overlap(c1, h1, yaw1: float, c2, h2, yaw2: float) -> bool:
+    """Exact overlap test of two boxes yawed about z (separating axes in xy, intervals in z)."""
+    c1, h1, c2, h2 = (np.asarray(v, dtype=np.float64) for v in (c1, h1, c2, h2))
+    if abs(c1[2] - c2[2]) >= h1[2] + h2[2]:
+        return False
+    axes = []
+    for yaw in (yaw1, yaw2):
+        axes += [np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])]
+    d = c2[:2] - c1[:2]
+    for axis in axes:
+        r1 = sum(h1[k] * abs(axis @ a) for k, a in enumerate(axes[:2]))
+        r2 = sum(h2[k] * abs(axis @ a) for k, a in enumerate(axes[2:]))
+        if abs(axis @ d) >= r1 + r2:
+            return False
+    return True
 
 
 def _validate(track: Track, r: Reader) -> None:
@@ -137,15 +144,11 @@ def _validate(track: Track, r: Reader) -> None:
         if z - half_outer < 0.0 or z + half_outer > a.z_max:
             raise r.fail(f"gates[{i}]", f"gate frame z [{z - half_outer:.2f}, {z + half_outer:.2f}] m "
                          f"is outside floor 0 .. ceiling {a.z_max}")
-    # obstacles must not block a gate opening: sample the opening square
-    u = np.linspace(-0.5, 0.5, 11) * track.gate.opening * 0.98
-    grid = np.stack(np.meshgrid(u, u), -1).reshape(-1, 2)
-    local = np.concatenate([np.zeros((len(grid), 1)), grid], axis=1)
-    rot = track.gate_rotations()
+    # obstacles must not block a gate opening (the opening as a thin box in the gate plane)
+    half_open = (track.gate.thickness / 2.0, track.gate.opening / 2.0, track.gate.opening / 2.0)
     for i, gate in enumerate(track.gates):
-        pts = np.asarray(gate[:3]) + local @ rot[i].T
         for k, (c, h, yaw) in enumerate(zip(*track.obstacle_boxes())):
-            if _point_in_box(pts, c, h, yaw).any():
+            if boxes_overlap(gate[:3], half_open, gate[3], c, h, yaw):
                 raise r.fail(f"obstacles[{k}]", f"obstacle passes through the opening of gate {i}")
     if len(track.gates) < 2:
         raise r.fail("gates", "a track needs at least 2 gates")

@@ -190,8 +190,6 @@ def test_missing_required_keys_and_too_few_gates(tmp_path):
     expect_error(tmp_path, lambda d: d["arena"].__setitem__("x", [1.0, -1.0]), "arena", "low < high")
 
 
-@pytest.mark.xfail(strict=True, reason="track._validate samples the opening on a ~0.098 m grid, so a wall "
-                   "thinner than the grid spacing can pass between samples (reported to the lead)")
 def test_thin_obstacle_through_a_gate_opening_is_an_error(tmp_path):
     thin = {"center": [1.0, 2.049], "size": [2.0, 0.04, 3.0], "yaw": 0.0}  # 4 cm wall, 4.9 cm off centre
     expect_error(tmp_path, lambda d: d["obstacles"].append(thin), "obstacles[1]", "gate 0")
