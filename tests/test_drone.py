@@ -94,8 +94,8 @@ def test_non_increasing_thrust_curve_is_an_error(tmp_path):
     expect_error(tmp_path, lambda d: d.__setitem__("thrust_curve", {"counts": [0], "newtons": [0.0]}),
                  "thrust_curve", ">= 2 points")
     expect_error(tmp_path, lambda d: d["thrust_curve"].__setitem__("newtons", [0.0, 0.5]),
-                 "thrust_curve.newtons", "expected 8 numbers")
-    expect_error(tmp_path, lambda d: d["thrust_curve"]["counts"].__setitem__(-1, 70000), "thrust_curve.counts[7]",
+                 "thrust_curve.newtons", "expected 7 numbers")
+    expect_error(tmp_path, lambda d: d["thrust_curve"]["counts"].__setitem__(-1, 70000), "thrust_curve.counts[6]",
                  "<= 65535")
 
 
@@ -113,7 +113,7 @@ def test_missing_file_and_invalid_yaml(tmp_path):
 @pytest.mark.parametrize("name", PROFILES)
 def test_thrust_curve_round_trip(name):
     tc = load_profile(name).thrust_curve
-    counts = np.linspace(0, 65535, 257)
+    counts = np.linspace(0, tc.counts[-1], 257)
     newtons = tc.to_newtons(counts)
     assert np.all(np.diff(newtons) > 0)
     np.testing.assert_allclose(tc.to_counts(newtons), counts, atol=1e-6)
@@ -121,9 +121,10 @@ def test_thrust_curve_round_trip(name):
     np.testing.assert_allclose(tc.to_newtons(tc.to_counts(newtons)), newtons, atol=1e-9)
     # hand-checked points of the cf2x_paper curve; clamped outside the curve's range
     if name == "cf2x_paper":
-        assert tc.to_newtons(15000) == pytest.approx((0.0450 + 0.1054) / 2)
-        assert tc.to_counts(0.2724) == pytest.approx(40000)
-    assert tc.to_counts(-1.0) == 0 and tc.to_counts(10.0) == 65535
+        assert tc.to_newtons(15000) == pytest.approx((0.0517 + 0.1210) / 2)
+        assert tc.to_counts(0.3127) == pytest.approx(40000)
+        assert tc.counts[-1] == 60000  # the firmware's cap on the port-3 thrust setpoint
+    assert tc.to_counts(-1.0) == 0 and tc.to_counts(10.0) == tc.counts[-1]
 
 
 @pytest.mark.parametrize("name", PROFILES)
