@@ -22,7 +22,8 @@ import torch
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import ConfigError
 
-NORM_COUNT_AFTER_WARM_START = 1.0e4  #: samples the copied normaliser statistics weigh
+OPP_POS_VAR = 4.0  #: m^2, prior variance of the opponent's body-frame position (std 2 m)
+OPP_VEL_VAR = 9.0  #: (m/s)^2, prior variance of the opponent's velocity (std 3 m/s)
 
 
 def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
@@ -63,11 +64,15 @@ def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
             else:
                 raise ConfigError(f"--init-from {source}: {key} has shape {tuple(value.shape)}, "
                                   f"here {tuple(target.shape)} (different network sizes)")
-        # the copied sample count would freeze the statistics of the new inputs at their first
-        # estimate (drones side by side at the start: tiny variance -> inputs clipped at +-10 in flight);
-        # a small count lets every statistic follow the new data within a few iterations, while the
-        # actors are frozen (critic warm-up)
-        dst = agent.state_dict()
-        dst["obs_norm.count"].clamp_(max=NORM_COUNT_AFTER_WARM_START)
+        # new inputs (the opponent block): the copied sample count makes their statistics adapt slowly,
+        # so start them from a sensible prior instead of the first reset batch (drones side by side:
+        # tiny variance, inputs clipped at +-10 in flight). Copied statistics keep their count: letting
+        # them drift made the frozen actors fly differently, crash more, and drift further.
+        dim = dst["obs_norm.mean"].shape[0]
+        n_src = src["obs_norm.mean"].shape[0]
+        if dim > n_src:
+            dst["obs_norm.mean"][n_src:] = 0.0
+            prior = torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3, dtype=dst["obs_norm.var"].dtype)
+            dst["obs_norm.var"][n_src:] = prior[-(dim - n_src):]
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0))}
