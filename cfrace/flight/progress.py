@@ -19,7 +19,7 @@ from cfrace.sim.gates import FRAME_HIT_HALF, PASS_HALF, PASS_RADIUS, RaceProgres
 
 
 class FastRaceProgress(RaceProgress):
-    """Same state and results as RaceProgress; update() on Python floats."""
+    """Same state and results as RaceProgress; the gate crossings on Python floats."""
 
     def __post_init__(self):
         super().__post_init__()
@@ -32,14 +32,12 @@ class FastRaceProgress(RaceProgress):
         self._cos_l, self._sin_l = self._cos.tolist(), self._sin.tolist()
         self._centre_l = [tuple(c) for c in self._centre.tolist()]
 
-    def update(self, t: float, positions):
-        """Returns (passed, lap_done, frame_hit) bool arrays (N,) for this tick."""
-        n, g = self.num_drones, len(self.gates)
+    def _crossings(self, positions):
+        """Same as RaceProgress._crossings, on Python floats."""
+        n = self.num_drones
         pos = [(float(p[0]), float(p[1]), float(p[2])) for p in positions]
-        if np.isnan(self._lap_start).all():
-            self._lap_start[:] = t
         prev = pos if self._prev is None else self._prev
-        passed, lap_done, hit = np.zeros(n, bool), np.zeros(n, bool), np.zeros(n, bool)
+        passed, hit = np.zeros(n, bool), np.zeros(n, bool)
         for i in range(n):
             j = int(self.target[i])
             cx, cy, cz = self._centre_l[j]
@@ -56,12 +54,4 @@ class FastRaceProgress(RaceProgress):
             passed[i] = near and ay < PASS_HALF and az < PASS_HALF
             hit[i] = ay < self.outer_half and az < self.outer_half and (ay >= FRAME_HIT_HALF or az >= FRAME_HIT_HALF)
         self._prev = pos
-        self.gates_passed += passed
-        self.target = np.where(passed, (self.target + 1) % g, self.target)
-        lap_done = passed & (self.gates_passed % g == 0)
-        for i in np.flatnonzero(lap_done):
-            self.lap_times[i].append(float(t - self._lap_start[i]))
-            self._lap_start[i] = t
-        self.laps += lap_done
-        self.frame_hits += hit
-        return passed, lap_done, hit
+        return passed, hit

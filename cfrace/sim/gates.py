@@ -70,19 +70,9 @@ class RaceProgress:
 
     def update(self, t: float, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Returns (passed, lap_done, frame_hit) bool arrays (N,) for this tick."""
-        pos = torch.as_tensor(np.asarray(positions, dtype=np.float64))
         if np.isnan(self._lap_start).all():
             self._lap_start[:] = t
-        gates = torch.as_tensor(self.gates, dtype=torch.float64)
-        cur_gate = gates[torch.as_tensor(self.target)]
-        local = to_gate_frame(pos, cur_gate)
-        n = self.num_drones
-        if self._prev is None:
-            self._prev = pos.clone()
-        prev_local = to_gate_frame(self._prev, cur_gate)
-        passed, hit = crossing(prev_local, local, self.outer_half)
-        passed, hit = passed.numpy(), hit.numpy()
-        self._prev = pos.clone()
+        passed, hit = self._crossings(positions)
         g = len(self.gates)
         self.gates_passed += passed
         self.target = np.where(passed, (self.target + 1) % g, self.target)
@@ -93,6 +83,15 @@ class RaceProgress:
         self.laps += lap_done
         self.frame_hits += hit
         return passed, lap_done, hit
+
+    def _crossings(self, positions) -> tuple[np.ndarray, np.ndarray]:
+        """(passed, frame_hit) bool (N,) against each drone's target gate since the last call."""
+        pos = torch.as_tensor(np.asarray(positions, dtype=np.float64))
+        cur_gate = torch.as_tensor(self.gates, dtype=torch.float64)[torch.as_tensor(self.target)]
+        prev = pos if self._prev is None else self._prev
+        passed, hit = crossing(to_gate_frame(prev, cur_gate), to_gate_frame(pos, cur_gate), self.outer_half)
+        self._prev = pos.clone()
+        return passed.numpy(), hit.numpy()
 
     def distance_to_target(self, positions: np.ndarray) -> np.ndarray:
         return np.linalg.norm(np.asarray(positions) - self.gates[self.target, :3], axis=-1)
