@@ -78,30 +78,55 @@ def constants_array(c, radius: float, z_rest: float, arena: tuple, outer_half: f
     return torch.tensor(vals, dtype=torch.float32)
 
 
-def _ptr(t: torch.Tensor) -> ctypes.c_void_p:
-    assert t.is_contiguous() and t.device.type == "cpu", "kernel tensors must be contiguous CPU tensors"
-    return ctypes.c_void_p(t.data_ptr())
+class Kernel:
+    """The kernel bound to one simulator's tensors. The table of tensor addresses (the order of the
+    P_ enum in kernel.c) is built once and rebuilt only when the state, race or parameter tuple is
+    replaced (``Simulator.set_scales`` builds new parameter tensors); state is updated in place."""
+
+    def __init__(self, cst: torch.Tensor, geometry, worlds: int, drones: int, threads: int):
+        self.cst, self.geometry = cst, geometry
+        self.w, self.d = worlds, drones
+        if worlds * drones < MIN_DRONES_PER_THREAD * threads:  # waking OpenMP threads costs more than small batches gain
+            threads = max(1, (worlds * drones) // MIN_DRONES_PER_THREAD)
+        self.threads = threads
+        self.sizes = (geometry.gates.shape[0], geometry.bars.centre.shape[0], geometry.obstacles.centre.shape[0])
+        self._ptrs = (ctypes.c_void_p * _P_COUNT)()
+        self._bound: tuple = ()
+
+    def _bind(self, s, r, p) -> None:
+        g = self.geometry
+        tensors = [self.cst, *s, *r, *p, g.gates, *g.bars, *g.obstacles]
+        assert len(tensors) == _P_THRUST, "the tensor list must follow the P_ enum in kernel.c"
+        for i, t in enumerate(tensors):
+            assert t.is_contiguous() and t.device.type == "cpu", "kernel tensors must be contiguous CPU tensors"
+            self._ptrs[i] = t.data_ptr()
+        self._bound = (s, r, p)
+
+    def __call__(self, s, r, p, thrust: torch.Tensor, rates: torch.Tensor, substeps: int):
+        """Advance in place. s: DroneState, r: RaceState, p: DroneParams; thrust (W, D), rates (W, D, 3)
+        float32 (a non-finite command is motors off, in the kernel). Returns the event tensors."""
+        b = self._bound
+        if not b or b[0] is not s or b[1] is not r or b[2] is not p:
+            self._bind(s, r, p)
+        w, d = self.w, self.d
+        thrust = thrust.contiguous()
+        rates = rates.contiguous()
+        if thrust.numel() != w * d or rates.numel() != 3 * w * d:
+            raise ValueError(f"thrust/rates: expected ({w}, {d}) and ({w}, {d}, 3), got {tuple(thrust.shape)}, "
+                             f"{tuple(rates.shape)}")
+        ev_i = torch.empty(3, w, d, dtype=torch.int64)   # gates, laps, reason
+        ev_b = torch.empty(2, w, d, dtype=torch.bool)    # crashed, contact
+        ptrs, base_i, base_b = self._ptrs, ev_i.data_ptr(), ev_b.data_ptr()
+        ptrs[_P_THRUST], ptrs[_P_RATES] = thrust.data_ptr(), rates.data_ptr()
+        ptrs[_P_EV], ptrs[_P_EV + 1], ptrs[_P_EV + 4] = base_i, base_i + 8 * w * d, base_i + 16 * w * d
+        ptrs[_P_EV + 2], ptrs[_P_EV + 3] = base_b, base_b + w * d
+        rc = _lib.cfrace_step(w, d, *self.sizes, substeps, self.threads, ptrs)
+        if rc != 0:
+            raise ValueError(f"C kernel refused the call (code {rc}): at most 16 drones per world, 1-256 gates")
+        gates, laps, reason = ev_i.unbind(0)
+        crashed, contact = ev_b.unbind(0)
+        return gates, laps, crashed, contact, reason
 
 
-def step(cst: torch.Tensor, s, r, p, g, thrust: torch.Tensor, rates: torch.Tensor, substeps: int, threads: int):
-    """Advance in place. s: DroneState, r: RaceState, p: DroneParams, g: Geometry. Returns event tensors."""
-    w, d = s.pos.shape[:2]
-    dev = s.pos.device
-    ev_gates = torch.empty(w, d, dtype=torch.int64, device=dev)
-    ev_laps = torch.empty_like(ev_gates)
-    ev_crashed = torch.empty(w, d, dtype=torch.bool, device=dev)
-    ev_contact = torch.empty_like(ev_crashed)
-    ev_reason = torch.empty_like(ev_gates)
-    thrust = thrust.contiguous()
-    rates = rates.contiguous()
-    if w * d < MIN_DRONES_PER_THREAD * threads:  # waking OpenMP threads costs more than small batches gain
-        threads = max(1, (w * d) // MIN_DRONES_PER_THREAD)
-    args = [cst, *s, r.target, r.gates_passed, r.laps, r.lap_start, r.lap_last, r.crashed, r.reason,
-            r.contact_time, r.time, *p, g.gates, *g.bars, *g.obstacles, thrust, rates,
-            ev_gates, ev_laps, ev_crashed, ev_contact, ev_reason]
-    rc = _lib.cfrace_step(ctypes.c_int(w), ctypes.c_int(d), ctypes.c_int(g.gates.shape[0]),
-                          ctypes.c_int(g.bars.centre.shape[0]), ctypes.c_int(g.obstacles.centre.shape[0]),
-                          ctypes.c_int(substeps), ctypes.c_int(threads), *[_ptr(a) for a in args])
-    if rc != 0:
-        raise ValueError(f"C kernel refused the call (code {rc}): at most 16 drones per world")
-    return ev_gates, ev_laps, ev_crashed, ev_contact, ev_reason
+# slots of the address table (the P_ enum in kernel.c): 31 fixed tensors, then the command and the events
+_P_THRUST, _P_RATES, _P_EV, _P_COUNT = 31, 32, 33, 38

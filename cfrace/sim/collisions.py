@@ -74,11 +74,10 @@ def push_out_of_boxes(pos: torch.Tensor, vel: torch.Tensor, b: Boxes, radius: fl
         hit = (dist.squeeze(-1) < radius)
         touch = (dist.squeeze(-1) < radius + CONTACT_MARGIN)
         new_local = clamped + n_local * radius
-        local = torch.where(hit.unsqueeze(-1), new_local, local)
-        # back to world
-        wx = c * local[..., 0] - s * local[..., 1] + ctr[0]
-        wy = s * local[..., 0] + c * local[..., 1] + ctr[1]
-        pos = torch.stack([wx, wy, local[..., 2] + ctr[2]], dim=-1)
+        # back to world; only pushed drones move (a round trip through the box frame would round the others)
+        wx = c * new_local[..., 0] - s * new_local[..., 1] + ctr[0]
+        wy = s * new_local[..., 0] + c * new_local[..., 1] + ctr[1]
+        pos = torch.where(hit.unsqueeze(-1), torch.stack([wx, wy, new_local[..., 2] + ctr[2]], dim=-1), pos)
         n_world = torch.stack([c * n_local[..., 0] - s * n_local[..., 1], s * n_local[..., 0] + c * n_local[..., 1],
                                n_local[..., 2]], dim=-1)
         vn = (vel * n_world).sum(-1, keepdim=True)

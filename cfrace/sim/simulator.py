@@ -198,8 +198,10 @@ class Simulator:
             backend = "torch"
         self.backend = backend
         self.threads = threads or torch.get_num_threads()
-        self._cst = ckernel.constants_array(self.consts, self.radius, self.z_rest, self.arena, self.outer_half,
-                                            rules) if backend == "c" else None
+        self._kernel = None
+        if backend == "c":
+            cst = ckernel.constants_array(self.consts, self.radius, self.z_rest, self.arena, self.outer_half, rules)
+            self._kernel = ckernel.Kernel(cst, self.geometry, worlds, drones, self.threads)
         self._step_fn = _step
         if compile and backend == "torch":
             self._step_fn = torch.compile(_step, dynamic=False, fullgraph=False)
@@ -261,13 +263,12 @@ class Simulator:
         A non-finite command is treated as motors off (thrust 0, rates 0) for that drone."""
         thrust = thrust.to(self.device, torch.float32)
         rates = rates.to(self.device, torch.float32)
+        if self._kernel is not None:  # the kernel treats non-finite commands itself
+            return StepEvents(*self._kernel(self.state, self.race, self.params, thrust, rates, substeps))
         bad = ~(torch.isfinite(thrust) & torch.isfinite(rates).all(-1))
         if bool(bad.any()):
             thrust = torch.where(bad, 0.0, thrust)
             rates = torch.where(bad.unsqueeze(-1), 0.0, rates)
-        if self.backend == "c":
-            return StepEvents(*ckernel.step(self._cst, self.state, self.race, self.params, self.geometry, thrust, rates,
-                                            substeps, self.threads))
         self.state, self.race, events = self._step_fn(
             self.state, self.race, thrust, rates, self.params, self.geometry, self.consts, self.rules, self.radius,
             self.z_rest, self.arena, self.outer_half, substeps)
