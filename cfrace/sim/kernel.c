@@ -5,7 +5,9 @@
  * Vectorised across drones: the W x D drones are cut into blocks of whole worlds (NB lanes, at
  * most NB / D worlds per block). A block's state is gathered into structure-of-arrays locals, all
  * `substeps` physics steps run on it as `omp simd` loops over the lanes with branch-free code
- * (selects instead of early-outs), then it is scattered back. Unused lanes are crashed dummies.
+ * (selects instead of early-outs), then it is scattered back. Lanes are drone-major (lane
+ * d * WB + w holds drone d of the block's world w, WB = NB / D), so that a drone's partner in its
+ * world is a fixed lane offset away. Unused lanes are crashed dummies.
  * Every lane runs the same instructions and only reads its own world, so results do not depend on
  * the block a drone lands in, on the batch size or on the number of threads.
  * Layouts: all arrays contiguous, row-major, shapes as in simulator.py (W worlds, D drones). */
@@ -53,14 +55,16 @@ typedef struct {
   int32_t ev_g[NB] A64, ev_l[NB] A64, ev_c[NB] A64, ev_ct[NB] A64;
   /* per-substep scratch */
   float np[3][NB] A64, nv[3][NB] A64, dp[3][NB] A64, dv[3][NB] A64;
+  float gx[NB] A64, gy[NB] A64, gz[NB] A64, gc[NB] A64, gs[NB] A64; /* pose of the target gate */
+  float rp[3][2 * NB] A64, rv[3][2 * NB] A64;                         /* np, nv twice: rotations */
+  int32_t rlive[2 * NB] A64;
   int32_t live[NB] A64, why[NB] A64, contact[NB] A64, passed[NB] A64, hit[NB] A64, near[NB] A64;
 } Block;
 
 typedef struct {
-  int D, G, K, nug;
+  int D, G, K, nug, WB;             /* WB: worlds per block */
   int ug[MAXG];                    /* distinct gate poses (a track may pass one gate twice) */
   float gcos[MAXG], gsin[MAXG];
-  int32_t base[NB], dl[NB];        /* lane -> first lane of its world, drone index in its world */
   const float *cst, *gates, *bar_c, *bar_h, *bar_cos, *bar_sin, *ob_c, *ob_h, *ob_cos, *ob_sin;
 } Setup;
 
@@ -71,6 +75,15 @@ static inline int finite_bits(float x) {
 }
 
 /* gather worlds [w0, w0 + nw) into b; lanes beyond nw * D become crashed dummies */
+/* the pose of each lane's target gate */
+static void target_poses(Block *b, const Setup *S) {
+  for (int l = 0; l < NB; l++) {
+    const int g = b->tgt[l];
+    b->gx[l] = S->gates[4 * g]; b->gy[l] = S->gates[4 * g + 1]; b->gz[l] = S->gates[4 * g + 2];
+    b->gc[l] = S->gcos[g]; b->gs[l] = S->gsin[g];
+  }
+}
+
 static void gather(Block *b, void *const *P, const Setup *S, int w0, int nw) {
   const int D = S->D;
   const float *pos = P[P_POS], *vel = P[P_VEL], *quat = P[P_QUAT], *omega = P[P_OMEGA], *motor = P[P_MOTOR];
@@ -80,12 +93,10 @@ static void gather(Block *b, void *const *P, const Setup *S, int w0, int nw) {
   const uint8_t *crashed = P[P_CRASHED];
   const float *lap_start = P[P_LAP_START], *lap_last = P[P_LAP_LAST], *ct = P[P_CONTACT_TIME], *time = P[P_TIME];
   memset(b, 0, sizeof(*b));
-  for (int l = 0; l < NB; l++) {
-    if (l >= nw * D) {
-      b->q[0][l] = 1.f; b->p[2][l] = 1.f; b->crashed[l] = 1;
-      continue;
-    }
-    const int64_t n = (int64_t)w0 * D + l;
+  for (int l = 0; l < NB; l++) { b->q[0][l] = 1.f; b->p[2][l] = 1.f; b->crashed[l] = 1; } /* dummies */
+  for (int i = 0; i < D * nw; i++) {
+    const int d = i / nw, w = i - d * nw, l = d * S->WB + w; /* drone-major lanes */
+    const int64_t n = (int64_t)(w0 + w) * D + d;
     for (int k = 0; k < 3; k++) {
       b->p[k][l] = pos[3 * n + k]; b->v[k][l] = vel[3 * n + k]; b->om[k][l] = omega[3 * n + k];
       b->pi[k][l] = pid[3 * n + k]; b->op[k][l] = oprev[3 * n + k];
@@ -104,8 +115,9 @@ static void gather(Block *b, void *const *P, const Setup *S, int w0, int nw) {
     b->crashed[l] = crashed[n];
     b->reason[l] = (int32_t)reason[n];
     b->ct[l] = ct[n]; b->lap_start[l] = lap_start[n]; b->lap_last[l] = lap_last[n];
-    b->t[l] = time[w0 + l / D];
+    b->t[l] = time[w0 + w];
   }
+  target_poses(b, S);
 }
 
 static void scatter(const Block *b, void *const *P, const Setup *S, int w0, int nw) {
@@ -116,8 +128,9 @@ static void scatter(const Block *b, void *const *P, const Setup *S, int w0, int 
   uint8_t *crashed = P[P_CRASHED], *ev_crashed = P[P_EV_CRASHED], *ev_contact = P[P_EV_CONTACT];
   float *lap_start = P[P_LAP_START], *lap_last = P[P_LAP_LAST], *ct = P[P_CONTACT_TIME], *time = P[P_TIME];
   int64_t *ev_gates = P[P_EV_GATES], *ev_laps = P[P_EV_LAPS], *ev_reason = P[P_EV_REASON];
-  for (int l = 0; l < nw * D; l++) {
-    const int64_t n = (int64_t)w0 * D + l;
+  for (int i = 0; i < D * nw; i++) {
+    const int d = i / nw, w = i - d * nw, l = d * S->WB + w; /* drone-major lanes */
+    const int64_t n = (int64_t)(w0 + w) * D + d;
     for (int k = 0; k < 3; k++) {
       pos[3 * n + k] = b->p[k][l]; vel[3 * n + k] = b->v[k][l]; omega[3 * n + k] = b->om[k][l];
       pid[3 * n + k] = b->pi[k][l]; oprev[3 * n + k] = b->op[k][l];
@@ -132,7 +145,7 @@ static void scatter(const Block *b, void *const *P, const Setup *S, int w0, int 
     ev_gates[n] = b->ev_g[l]; ev_laps[n] = b->ev_l[l];
     ev_crashed[n] = (uint8_t)b->ev_c[l]; ev_contact[n] = (uint8_t)b->ev_ct[l];
     ev_reason[n] = b->ev_c[l] ? b->reason[l] : 0;
-    if (l % D == 0) time[w0 + l / D] = b->t[l];
+    if (d == 0) time[w0 + w] = b->t[l];
   }
 }
 
@@ -146,7 +159,6 @@ static void physics(Block *restrict b, const Setup *S) {
   const float ax0 = cs[C_AX0], ax1 = cs[C_AX1], ay0 = cs[C_AY0], ay1 = cs[C_AY1], az = cs[C_AZ], g = cs[C_G];
   const float outer = cs[C_OUTER], arena_on = cs[C_ARENA_ON], kratio = cs[C_KRATIO];
   const float *mix = cs + C_MIX0, *rx = cs + C_RX0, *ry = cs + C_RY0, *dir = cs + C_DIR0;
-  const float *gates = S->gates, *gcos = S->gcos, *gsin = S->gsin;
   SIMD
   for (int l = 0; l < NB; l++) {
     const int live = !b->crashed[l];
@@ -218,16 +230,14 @@ static void physics(Block *restrict b, const Setup *S) {
     /* the first reason in this order counts */
     const int why = (impact_now | low) ? R_FLOOR : ceil ? R_CEILING : out ? R_ARENA : R_NONE;
     /* the target gate: passed, or its plane crossed off-centre (a frame hit) */
-    const int tg = b->tgt[l];
-    const float gc = gcos[tg], gs = gsin[tg], gx = gates[4 * tg], gy = gates[4 * tg + 1], gz = gates[4 * tg + 2];
+    const float gc = b->gc[l], gs = b->gs[l], gx = b->gx[l], gy = b->gy[l], gz = b->gz[l];
     const float dx0 = b->p[0][l] - gx, dy0 = b->p[1][l] - gy, dx1 = npx - gx, dy1 = npy - gy;
     const float pl0 = gc * dx0 + gs * dy0, pl1 = -gs * dx0 + gc * dy0, pl2 = b->p[2][l] - gz;
     const float nl0 = gc * dx1 + gs * dy1, nl1 = -gs * dx1 + gc * dy1, nl2 = npz - gz;
     const int crossed = pl0 > 0.f && nl0 <= 0.f;
     const float frac = pl0 / MAXF(pl0 - nl0, 1e-9f);
     const float cy = fabsf(pl1 + frac * (nl1 - pl1)), cz = fabsf(pl2 + frac * (nl2 - pl2));
-    const float gd = sqrtf(nl0 * nl0 + nl1 * nl1 + nl2 * nl2);
-    b->passed[l] = crossed && gd < 1.0f && cy < 0.5f && cz < 0.5f;
+    b->passed[l] = crossed && nl0 * nl0 + nl1 * nl1 + nl2 * nl2 < 1.0f && cy < 0.5f && cz < 0.5f;
     b->hit[l] = crossed && cy < outer && cz < outer && (cy >= 0.4f || cz >= 0.4f);
     b->live[l] = live; b->why[l] = why; b->contact[l] = 0;
     b->np[0][l] = live ? npx : b->p[0][l]; b->np[1][l] = live ? npy : b->p[1][l]; b->np[2][l] = live ? npz : b->p[2][l];
@@ -250,6 +260,14 @@ static inline void to_box(const Box *x, float px, float py, float pz, float *l0,
   *l2 = pz - x->cz;
 }
 
+/* squared distance from a point to the box (0 inside) */
+static inline float box_excess2(const Box *x, float px, float py, float pz) {
+  float l0, l1, l2;
+  to_box(x, px, py, pz, &l0, &l1, &l2);
+  const float e0 = MAXF(fabsf(l0) - x->hx, 0.f), e1 = MAXF(fabsf(l1) - x->hy, 0.f), e2 = MAXF(fabsf(l2) - x->hz, 0.f);
+  return e0 * e0 + e1 * e1 + e2 * e2;
+}
+
 /* any frame bar of any gate: a drone can only touch a bar within `reach` of its gate's centre */
 static void bars(Block *restrict b, const Setup *S, float reach2, float r2) {
   for (int u = 0; u < S->nug; u++) {
@@ -267,10 +285,7 @@ static void bars(Block *restrict b, const Setup *S, float reach2, float r2) {
       const Box x = box_at(S->bar_c, S->bar_h, S->bar_cos, S->bar_sin, k);
       SIMD
       for (int l = 0; l < NB; l++) {
-        float l0, l1, l2;
-        to_box(&x, b->np[0][l], b->np[1][l], b->np[2][l], &l0, &l1, &l2);
-        const float ex = MAXF(fabsf(l0) - x.hx, 0.f), ey = MAXF(fabsf(l1) - x.hy, 0.f), ez = MAXF(fabsf(l2) - x.hz, 0.f);
-        b->hit[l] |= b->near[l] && ex * ex + ey * ey + ez * ez < r2;
+        b->hit[l] |= b->near[l] & (box_excess2(&x, b->np[0][l], b->np[1][l], b->np[2][l]) < r2);
       }
     }
   }
@@ -282,6 +297,14 @@ static void obstacles(Block *restrict b, const Setup *S, float radius, float r2,
   for (int k = 0; k < S->K; k++) {
     const Box x = box_at(S->ob_c, S->ob_h, S->ob_cos, S->ob_sin, k);
     const float cx = x.cx, cy = x.cy, cz = x.cz, hx = x.hx, hy = x.hy, hz = x.hz, c = x.c, s = x.s;
+    int any = 0;
+#pragma omp simd reduction(|:any)
+    for (int l = 0; l < NB; l++) {
+      const float d2 = box_excess2(&x, b->np[0][l], b->np[1][l], b->np[2][l]);
+      b->contact[l] |= b->live[l] & (d2 < rc2);
+      any |= b->live[l] & (d2 < r2);
+    }
+    if (!any) continue; /* a shortcut only: no lane to push out */
     SIMD
     for (int l = 0; l < NB; l++) {
       float l0, l1, l2;
@@ -289,8 +312,7 @@ static void obstacles(Block *restrict b, const Setup *S, float radius, float r2,
       const float c0 = CLAMP(l0, -hx, hx), c1 = CLAMP(l1, -hy, hy), c2 = CLAMP(l2, -hz, hz);
       const float f0 = l0 - c0, f1 = l1 - c1, f2 = l2 - c2;
       const float d2 = f0 * f0 + f1 * f1 + f2 * f2;
-      const int live = b->live[l], hit = live && d2 < r2;
-      b->contact[l] |= live && d2 < rc2;
+      const int hit = b->live[l] & (d2 < r2);
       const float dist = sqrtf(d2), inv = 1.f / MAXF(dist, 1e-9f);
       /* inside the box: leave along the axis of least penetration */
       const float p0 = hx - fabsf(l0), p1 = hy - fabsf(l1), p2 = hz - fabsf(l2);
@@ -315,23 +337,49 @@ static void obstacles(Block *restrict b, const Setup *S, float radius, float r2,
 
 /* drone-drone contacts among the drones of one world not crashed before this step (simultaneous) */
 static void drones(Block *restrict b, const Setup *S, float radius, float rc) {
+  const int DW = S->D * S->WB; /* lanes of whole worlds; the partner k drones on is k * WB lanes on, cyclically */
+  const float near2 = (2.f * rc + 1e-3f) * (2.f * rc + 1e-3f);
+  SIMD
+  for (int l = 0; l < NB; l++) {
+    for (int a = 0; a < 3; a++) b->rp[a][l] = b->np[a][l];
+    b->rlive[l] = b->live[l];
+  }
+  SIMD /* after the loop above: with NB % D != 0 this overwrites its last lanes */
+  for (int l = 0; l < NB; l++) {
+    for (int a = 0; a < 3; a++) b->rp[a][l + DW] = b->np[a][l];
+    b->rlive[l + DW] = b->live[l];
+  }
+  int any = 0;
+  for (int k = 1; k < S->D; k++) {
+    const int s = k * S->WB;
+#pragma omp simd reduction(|:any)
+    for (int l = 0; l < NB; l++) {
+      const int o = l + s;
+      const float d0 = b->np[0][l] - b->rp[0][o], d1 = b->np[1][l] - b->rp[1][o], d2 = b->np[2][l] - b->rp[2][o];
+      any |= b->live[l] & b->rlive[o] & (d0 * d0 + d1 * d1 + d2 * d2 < near2);
+    }
+  }
+  if (!any) return; /* a shortcut only: no two drones near enough to touch */
   SIMD
   for (int l = 0; l < NB; l++)
-    for (int a = 0; a < 3; a++) { b->dp[a][l] = 0.f; b->dv[a][l] = 0.f; }
-  for (int j = 0; j < S->D; j++) {
+    for (int a = 0; a < 3; a++) { b->dp[a][l] = 0.f; b->dv[a][l] = 0.f; b->rv[a][l] = b->nv[a][l]; }
+  SIMD
+  for (int l = 0; l < NB; l++)
+    for (int a = 0; a < 3; a++) b->rv[a][l + DW] = b->nv[a][l];
+  for (int k = 1; k < S->D; k++) {
+    const int s = k * S->WB;
     SIMD
     for (int l = 0; l < NB; l++) {
-      const int o = MINF(S->base[l] + j, NB - 1); /* lanes past the last whole world are dummies */
-      const int pair = j != S->dl[l] && b->live[l] && b->live[o];
-      const float d0 = b->np[0][l] - b->np[0][o], d1 = b->np[1][l] - b->np[1][o], d2 = b->np[2][l] - b->np[2][o];
+      const int o = l + s, pair = b->live[l] & b->rlive[o];
+      const float d0 = b->np[0][l] - b->rp[0][o], d1 = b->np[1][l] - b->rp[1][o], d2 = b->np[2][l] - b->rp[2][o];
       const float dist = sqrtf(d0 * d0 + d1 * d1 + d2 * d2);
-      b->contact[l] |= pair && dist < 2.f * rc;
-      const int touch = pair && dist < 2.f * radius;
+      b->contact[l] |= pair & (dist < 2.f * rc);
+      const int touch = pair & (dist < 2.f * radius);
       const float inv_d = 1.f / MAXF(dist, 1e-6f), depth = touch ? 2.f * radius - dist : 0.f;
       const float e0 = d0 * inv_d, e1 = d1 * inv_d, e2 = d2 * inv_d;
-      const float rv = (b->nv[0][l] - b->nv[0][o]) * e0 + (b->nv[1][l] - b->nv[1][o]) * e1
-                       + (b->nv[2][l] - b->nv[2][o]) * e2;
-      const float cv = (touch && rv < 0.f) ? rv : 0.f;
+      const float rv = (b->nv[0][l] - b->rv[0][o]) * e0 + (b->nv[1][l] - b->rv[1][o]) * e1
+                       + (b->nv[2][l] - b->rv[2][o]) * e2;
+      const float cv = (touch & (rv < 0.f)) ? rv : 0.f;
       b->dp[0][l] += depth * e0; b->dp[1][l] += depth * e1; b->dp[2][l] += depth * e2;
       b->dv[0][l] += cv * e0; b->dv[1][l] += cv * e1; b->dv[2][l] += cv * e2;
     }
@@ -345,7 +393,8 @@ static void drones(Block *restrict b, const Setup *S, float radius, float rc) {
 static void progress(Block *restrict b, const Setup *S) {
   const float dt = S->cst[C_DT], longc = S->cst[C_LONGC];
   const int G = S->G;
-  SIMD
+  int any_pass = 0;
+#pragma omp simd reduction(|:any_pass)
   for (int l = 0; l < NB; l++) {
     const int live = b->live[l], contact = live & b->contact[l], early = b->why[l] != R_NONE;
     const float ct = contact ? b->ct[l] + dt : 0.f;
@@ -367,6 +416,7 @@ static void progress(Block *restrict b, const Setup *S) {
     const int nt = b->tgt[l] + 1, ng = b->gpm[l] + 1;
     b->tgt[l] = passed ? (nt == G ? 0 : nt) : b->tgt[l];
     b->gpm[l] = passed ? (ng == G ? 0 : ng) : b->gpm[l];
+    any_pass |= passed;
     const int lap = passed & (ng == G);
     b->ev_g[l] += passed;
     b->ev_l[l] += lap;
@@ -374,6 +424,7 @@ static void progress(Block *restrict b, const Setup *S) {
     b->lap_last[l] = lap ? t - b->lap_start[l] : b->lap_last[l];
     b->lap_start[l] = lap ? t : b->lap_start[l];
   }
+  if (any_pass) target_poses(b, S);
 }
 
 int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, void *const *P) {
@@ -392,13 +443,12 @@ int cfrace_step(int W, int D, int G, int B, int K, int substeps, int nthreads, v
     for (int u = 0; u < S.nug && !dup; u++) dup = !memcmp(S.gates + 4 * g, S.gates + 4 * S.ug[u], 4 * sizeof(float));
     if (!dup) S.ug[S.nug++] = g;
   }
-  for (int l = 0; l < NB; l++) { S.dl[l] = l % D; S.base[l] = l - l % D; }
   const float radius = S.cst[C_RADIUS], outer = S.cst[C_OUTER];
   /* a bar can only be touched within this distance of its gate centre */
   const float reach = outer * 1.41421356f + radius + 0.05f, reach2 = reach * reach, r2 = radius * radius;
   /* touching (contact) extends 1 mm beyond the push-out distance, so resting against a wall is contact */
   const float rc = radius + 1e-3f, rc2 = rc * rc;
-  const int wpb = NB / D, nblocks = (W + wpb - 1) / wpb;
+  const int wpb = S.WB = NB / D, nblocks = (W + wpb - 1) / wpb;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int blk = 0; blk < nblocks; blk++) {
     const int w0 = blk * wpb, nw = MINF(wpb, W - w0);
