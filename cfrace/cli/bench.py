@@ -46,6 +46,20 @@ def hover_start(track, worlds: int, drones: int):
     return pos.expand(worlds, drones, 3).clone()
 
 
+def gates_start(track, worlds: int, drones: int):
+    """(W, D, 3) start positions 0.6 m before gate (w mod G) on its approach side, at the gate's height,
+    drones 0.4 m apart: every drone is within reach of a gate's frame bars, so the kernel's
+    "no drone near a gate" shortcut never applies (the worst case for it; a race is in between)."""
+    import torch
+
+    g = torch.as_tensor(track.gate_array(), dtype=torch.float32)[torch.arange(worlds) % len(track.gates)]  # (W, 4)
+    n = torch.stack([torch.cos(g[:, 3]), torch.sin(g[:, 3]), torch.zeros(worlds)], -1)        # (W, 3)
+    side = torch.stack([-torch.sin(g[:, 3]), torch.cos(g[:, 3]), torch.zeros(worlds)], -1)    # (W, 3)
+    offsets = (torch.arange(drones, dtype=torch.float32) - (drones - 1) / 2.0) * 0.4          # (D,)
+    return g[:, None, :3] + 0.6 * n[:, None] + offsets[None, :, None] * side[:, None]
+
+
+SCENARIOS = {"hover": hover_start, "gates": gates_start}
 MODES = ("c", "eager", "compiled")  #: fused C kernel, torch eager, torch.compile
 
 
@@ -69,7 +83,7 @@ def available_modes(compile: bool) -> list[str]:
 
 
 def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int, substeps: int,
-                track: str, profile: str, repeats: int = 3) -> dict:
+                track: str, profile: str, repeats: int = 3, scenario: str = "hover") -> dict:
     """Time ``repeats`` x ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after
     ``warmup`` calls; the rate is that of the fastest repeat (the median is kept too).
     mode: "c" (fused C kernel), "eager" (torch) or "compiled" (torch.compile)."""
@@ -88,7 +102,9 @@ def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int,
     if "backend" in inspect.signature(Simulator).parameters:
         kwargs["backend"] = "c" if mode == "c" else "torch"
     sim = Simulator(trk, prof, worlds, drones, obstacles=True, **kwargs)
-    sim.reset(torch.arange(worlds), hover_start(trk, worlds, drones))
+    if scenario not in SCENARIOS:
+        raise ConfigError(f"unknown scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
+    sim.reset(torch.arange(worlds), SCENARIOS[scenario](trk, worlds, drones))
     thrust = torch.full((worlds, drones), prof.weight)                  # (W, D) N, hover
     rates = torch.zeros(worlds, drones, 3)                               # (W, D, 3) rad/s
     t0 = time.perf_counter()
@@ -109,7 +125,7 @@ def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int,
             "median_drone_steps_per_s": drone_steps / sorted(walls)[len(walls) // 2],
             "seconds": walls, "policy_steps": steps, "substeps": substeps, "repeats": repeats, "warmup_s": warm,
             "cpu_per_wall": cpus[best] / walls[best], "crashed_fraction": float(sim.crashed.float().mean()),
-            "mean_z_m": float(sim.pos[..., 2].mean()), "kernel": _kernel_name() if mode == "c" else None}
+            "mean_z_m": float(sim.pos[..., 2].mean()), "scenario": scenario, "kernel": _kernel_name() if mode == "c" else None}
 
 
 def _kernel_name() -> str | None:
@@ -252,6 +268,8 @@ def sim_cmd(
     threads: int = typer.Option(0, min=0, help="CPU threads for torch (and XLA); 0 keeps the defaults"),
     track: str = typer.Option("complex", help="track name or path"),
     profile: str = typer.Option("cf2x_paper", help="drone profile name or path"),
+    scenario: str = typer.Option("hover", help="hover: drones 1.5 m before gate 0 | gates: every drone "
+                                 "0.6 m before a gate, within reach of its frame bars"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="also write all numbers to this JSON file"),
 ) -> None:
     """Simulator drone-steps per second for each world count (C kernel, torch eager, torch.compile)
@@ -283,7 +301,7 @@ def sim_cmd(
                 continue
             try:
                 r = measure_sim(w, drones, mode=mode, steps=steps, warmup=warmup, substeps=substeps,
-                                track=track, profile=profile, repeats=repeats)
+                                track=track, profile=profile, repeats=repeats, scenario=scenario)
             except CfraceError:
                 raise
             except Exception as exc:  # torch.compile missing a compiler, etc.: report, keep the others
