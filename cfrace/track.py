@@ -48,6 +48,7 @@ class Spawn:
     gate_distance: tuple[float, float] = (0.6, 1.6)  #: m, start distance before a gate
     lateral: float = 0.3                             #: m, start jitter
     opponent_offset: float = 0.4                     #: m, side-by-side distance of two drones
+    opponent_stagger: float = 0.0                    #: m, one drone this much further back (random which)
     ground_start_prob: float = 0.25                  #: share of ground starts
     ground_distance: float = 1.5                     #: m, ground start distance before gate 0
 
@@ -178,11 +179,12 @@ def load_track(name_or_path: str | Path) -> Track:
     ar.done()
     sp = r.mapping("spawn", {})
     d = Spawn()
-    spawn = Spawn(sp.vector("gate_distance", 2, d.gate_distance, positive=True),
-                  sp.number("lateral", d.lateral, min=0.0),
-                  sp.number("opponent_offset", d.opponent_offset, min=0.0),
-                  sp.number("ground_start_prob", d.ground_start_prob, min=0.0, max=1.0),
-                  sp.number("ground_distance", d.ground_distance, positive=True))
+    spawn = Spawn(gate_distance=sp.vector("gate_distance", 2, d.gate_distance, positive=True),
+                  lateral=sp.number("lateral", d.lateral, min=0.0),
+                  opponent_offset=sp.number("opponent_offset", d.opponent_offset, min=0.0),
+                  ground_start_prob=sp.number("ground_start_prob", d.ground_start_prob, min=0.0, max=1.0),
+                  ground_distance=sp.number("ground_distance", d.ground_distance, positive=True),
+                  opponent_stagger=sp.number("opponent_stagger", d.opponent_stagger, min=0.0))
     sp.done()
     r.done()
     track = Track(name, gates, gate, tuple(obstacles), arena, spawn, source=str(path))

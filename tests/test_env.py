@@ -43,6 +43,29 @@ def test_spawns_are_safe_and_before_the_target_gate():
         assert (along > 0).all(), track  # on the +n side: the gate is ahead
 
 
+def test_opponent_stagger_puts_one_drone_further_back_at_random(tmp_path):
+    text = (LEM.source and open(LEM.source).read()).replace(
+        "  opponent_offset: 0.4", "  opponent_stagger: 0.8\n  opponent_offset: 0.4")
+    path = tmp_path / "stagger.yaml"
+    path.write_text(text)
+    trk = load_track(path)
+    assert trk.spawn.opponent_stagger == 0.8 and LEM.spawn.opponent_stagger == 0.0
+    for track, stagger in ((trk, 0.8), (LEM, 0.0)):
+        env = RaceEnv(track, PROFILE, num_envs=400, method="ours", obstacles=False, start="gate", seed=3)
+        pos, _, g = env.spawn(400)
+        gate = env.gates[g]
+        n = torch.stack([torch.cos(gate[:, 3]), torch.sin(gate[:, 3])], -1)
+        along = ((pos[..., :2] - gate[:, None, :2]) * n[:, None]).sum(-1)          # (n, 2) m before the gate
+        diff = along[:, 0] - along[:, 1]
+        assert torch.allclose(diff.abs(), torch.full_like(diff, stagger), atol=1e-4)
+        assert along.min() >= track.spawn.gate_distance[0] - 1e-4                  # the front drone keeps its distance
+        if stagger:
+            assert 0.35 < (diff > 0).float().mean() < 0.65                          # either slot may be behind
+        side = torch.stack([-torch.sin(gate[:, 3]), torch.cos(gate[:, 3])], -1)
+        lateral = ((pos[:, 0, :2] - pos[:, 1, :2]) * side).sum(-1).abs()
+        assert torch.allclose(lateral, torch.full_like(lateral, 0.4), atol=1e-4)
+
+
 def test_crash_terminates_once_and_world_resets_when_both_done():
     env = RaceEnv(LEM, PROFILE, num_envs=2, method="ours", obstacles=False, randomize=False)
     env.reset()

@@ -103,7 +103,8 @@ class RaceEnv:
 
     def spawn(self, n: int):
         """Start poses for n worlds: a random gate start (before a gate, on its +n side) or a ground
-        start before gate 0. Drones side by side. Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
+        start before gate 0. Drones side by side (track spawn ``opponent_offset``), one of them
+        ``opponent_stagger`` m further back (which one is random). Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
         sp, a, g = self.track.spawn, self.num_agents, self.gates.shape[0]
         if self.start_mode == "ground":
             ground = torch.ones(n, dtype=torch.bool)
@@ -125,10 +126,11 @@ class RaceEnv:
         centre = gate[:, :3] + normal * dist.unsqueeze(-1) + side * jitter[:, :1]
         centre[:, 2] = centre[:, 2] + jitter[:, 1]
         if a == 2:
-            offs = torch.tensor([-0.5, 0.5], device=self.device) * sp.opponent_offset
-            swap = self._rand(n) < 0.5
-            offs = torch.where(swap.unsqueeze(-1), offs.flip(0), offs)
-            pos = centre.unsqueeze(1) + side.unsqueeze(1) * offs.unsqueeze(-1)
+            half = torch.tensor([-0.5, 0.5], device=self.device)
+            swap = (self._rand(n) < 0.5).unsqueeze(-1)
+            offs = torch.where(swap, half.flip(0), half) * sp.opponent_offset         # (n, 2) m sideways
+            back = (torch.where(swap, half.flip(0), half) + 0.5) * sp.opponent_stagger  # (n, 2) m along +n: 0 or stagger
+            pos = centre.unsqueeze(1) + side.unsqueeze(1) * offs.unsqueeze(-1) + normal.unsqueeze(1) * back.unsqueeze(-1)
         else:
             pos = centre.unsqueeze(1)
         z_rest = self.sim.z_rest
