@@ -166,6 +166,19 @@ def test_runner_iteration_on_toy_env():
     assert not torch.equal(w0, w1)
 
 
+def test_runner_can_keep_the_actor_input_statistics_fixed():
+    """Warm starts keep the source actor's normaliser (cfrace/rl/train.py sets the flag from --init-from)."""
+    env = ToyRaceEnv(64, 2, episode_steps=10, seed=0)
+    cfg = preset("cpu", multi_agent=True, num_envs=64, rollout=16, actor_hidden=(16,), critic_hidden=(16,))
+    runner = Runner(env, cfg, seed=0)
+    runner.update_actor_norm = False
+    before = [(a.obs_norm.mean.clone(), a.obs_norm.count.clone(), a.critic_norm.count.clone()) for a in runner.agents]
+    runner.iterate()
+    for a, (mean, count, ccount) in zip(runner.agents, before):
+        assert torch.equal(a.obs_norm.mean, mean) and torch.equal(a.obs_norm.count, count)
+        assert a.critic_norm.count > ccount          # the fresh critics' statistics still follow the task
+
+
 @pytest.mark.slow
 def test_runner_learns_on_toy_env():
     env = ToyRaceEnv(256, 2, episode_steps=30, seed=3)

@@ -49,6 +49,7 @@ class Runner:
                                       self.device)
         self.update_gen = torch.Generator().manual_seed(seed + 1)  # minibatch shuffles
         self.iteration = 0
+        self.update_actor_norm = True  #: False keeps the actors' input statistics fixed (warm starts)
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
@@ -115,7 +116,8 @@ class Runner:
             for k, v in stats.items():
                 metrics[f"{k}_agent{a}"] = v
             alive_mask = st.alive[:, :, a]
-            m.obs_norm.update(st.obs[:, :, a][alive_mask])
+            if self.update_actor_norm:
+                m.obs_norm.update(st.obs[:, :, a][alive_mask])
             m.critic_norm.update(st.critic[:, :, a][alive_mask])
         _sync(self.device)
         t_end = time.perf_counter()

@@ -225,6 +225,10 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
         _save(ckpt_path, cfg, meta, runner, wall_before + time.perf_counter() - start)
         tb.flush()
 
+    # After a warm start the actors keep the observation statistics they were trained with: updating
+    # them from the new task's rollouts shifts every input of a frozen or slowly moving actor (measured:
+    # a warm ours run with lr 1e-12 went from 100 % to 58 % single-agent success in 100 iterations).
+    runner.update_actor_norm = not cfg.init_from
     try:
         with _StopFlag() as flag:
             while progress() < 1.0 and not flag.stop:
