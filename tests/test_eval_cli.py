@@ -175,10 +175,6 @@ def test_short_name_without_a_shipped_policy_is_refused(env, short_names):
     assert "no shipped policy ss_straight.onnx" in str(result.exception)
 
 
-SHIPPED_DS = __import__("cfrace.paths", fromlist=["POLICIES_DIR"]).POLICIES_DIR / "ds_lemniscate.onnx"
-
-
-@pytest.mark.skipif(not SHIPPED_DS.exists(), reason="policies/ds_lemniscate.onnx is not shipped yet")
 def test_shipped_ds_policy_completes_laps_on_the_lemniscate():
     from cfrace.evaluate.single import evaluate
 

@@ -14,13 +14,7 @@ from cfrace.rl.storage import RolloutStorage, gae
 from cfrace.rl.toy_env import ToyRaceEnv
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Shared 2-core machine: one intra-op thread avoids oversubscription (10x slower otherwise)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def naive_gae(r, v, d, last, gamma, lam):

@@ -12,12 +12,7 @@ from cfrace.rl.runner import Runner
 from cfrace.track import load_track
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _evaluate(runner: Runner, track, profile, steps: int = 50) -> float:

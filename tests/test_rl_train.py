@@ -18,11 +18,7 @@ from cfrace.rl.toy_env import ToyRaceEnv
 from cfrace.rl.train import TrainConfig, bench_train, env_meta, load_checkpoint, resume_config, train
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def toy_factory(cfg, device, num_envs):
