@@ -84,6 +84,7 @@ def train_cmd(
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     init_from: Optional[Path] = typer.Option(None, "--init-from",
                                              help="warm-start every actor from this checkpoint or run folder"),
+    episode_s: float = typer.Option(30.0, "--episode-s", min=1.0, help="race length before the time-out (s)"),
     critic_warmup: int = typer.Option(20, "--critic-warmup", min=0,
                                       help="iterations with frozen actors after --init-from"),
 ) -> None:
@@ -109,7 +110,8 @@ def train_cmd(
         cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
                           profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
                           checkpoint_min * 60.0, threads=threads, overrides=overrides,
-                          init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup)
+                          init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup,
+                          episode_s=episode_s)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
