@@ -9,13 +9,17 @@ Layout (facts.md, paper Sec. III-B), each drone from its own body frame:
     [opponent position in body frame (3)]           multi-agent layouts only
     [opponent world velocity rotated to body (3)]   multi-agent layouts only
 No normalisation here: the exported actor carries its own normaliser.
-Pure torch; depends only on states and gate corners, never on simulator internals.
+Pure array code on torch tensors (the environment, batched, CPU or CUDA) or numpy arrays (the flight
+loop, one drone per call: no torch dispatch in the 100 Hz tick). Both run the very same elementwise
+float32 operations, so the two give bit-identical observations (tests/test_flight_core.py).
+Depends only on states and gate corners, never on simulator internals.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 
@@ -44,36 +48,37 @@ def layout_for(multi_agent: bool, obstacles: bool) -> ObsLayout:
     return LAYOUTS["solo39_obstacles" if obstacles else "solo36"]
 
 
-def body_frame(rot: torch.Tensor, vec_world: torch.Tensor) -> torch.Tensor:
-    """R^T v for rot (..., 3, 3) world-from-body and v (..., 3) -> (..., 3)."""
-    return (rot * vec_world.unsqueeze(-1)).sum(-2)
+def body_frame(rot, vec_world):
+    """R^T v for rot (..., 3, 3) world-from-body and v (..., 3) -> (..., 3) (torch or numpy)."""
+    return (rot * vec_world[..., None]).sum(-2)
 
 
-def build_observation(pos: torch.Tensor, vel: torch.Tensor, rot: torch.Tensor, target: torch.Tensor,
-                      gate_corners: torch.Tensor, layout: ObsLayout,
-                      opp_pos: torch.Tensor | None = None, opp_vel: torch.Tensor | None = None) -> torch.Tensor:
-    """One observation per drone.
+def build_observation(pos, vel, rot, target, gate_corners, layout: ObsLayout, opp_pos=None, opp_vel=None):
+    """One observation per drone; all arrays torch tensors or all numpy arrays (same dtype).
 
     pos, vel: (..., 3) world position (m) and velocity (m/s); rot: (..., 3, 3) world-from-body;
-    target: (...,) int index of the drone's current target gate; gate_corners: (G, 4, 3) world;
-    opp_pos, opp_vel: (..., 3) the opponent's world position and velocity (multi-agent layouts).
-    Returns (..., layout.dim).
+    target: (...,) int index of the drone's current target gate (a Python int for one numpy drone);
+    gate_corners: (G, 4, 3) world; opp_pos, opp_vel: (..., 3) the opponent's world position and
+    velocity (multi-agent layouts). Returns (..., layout.dim).
     """
+    xp = np if isinstance(pos, np.ndarray) else torch
     num_gates = gate_corners.shape[0]
-    target = target.long()
+    if xp is torch:
+        target = target.long()
     cur = gate_corners[target]                       # (..., 4, 3)
     nxt = gate_corners[(target + 1) % num_gates]     # (..., 4, 3)
-    rel = torch.stack([cur, nxt], dim=-3) - pos[..., None, None, :]        # (..., 2, 4, 3)
-    corners_body = (rot[..., None, None, :, :] * rel.unsqueeze(-1)).sum(-2)  # R^T (c - p)
+    rel = xp.stack([cur, nxt], -3) - pos[..., None, None, :]              # (..., 2, 4, 3)
+    corners_body = (rot[..., None, None, :, :] * rel[..., None]).sum(-2)   # R^T (c - p)
+    batch = tuple(pos.shape[:-1])
     parts = []
     if layout.world_position:
         parts.append(pos)
-    parts += [body_frame(rot, vel), rot.flatten(-2), corners_body.flatten(-3)]
+    parts += [body_frame(rot, vel), rot.reshape(batch + (9,)), corners_body.reshape(batch + (24,))]
     if layout.opponent:
         if opp_pos is None or opp_vel is None:
             raise ValueError(f"layout {layout.name} needs the opponent's position and velocity")
         parts += [body_frame(rot, opp_pos - pos), body_frame(rot, opp_vel)]
-    return torch.cat(parts, dim=-1)
+    return xp.concatenate(parts, -1)
 
 
 def build_observations(pos: torch.Tensor, vel: torch.Tensor, rot: torch.Tensor, target: torch.Tensor,

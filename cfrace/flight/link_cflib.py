@@ -176,6 +176,12 @@ class CflibLink:
         self.quality.connected = False
         if cf is not None:
             try:
+                # stop cflib's ping thread first: close_link() sets cf.link = None while that thread
+                # may be inside send_packet (an AttributeError in a cflib thread otherwise)
+                cf.link_statistics.stop()
+            except Exception:
+                pass
+            try:
                 cf.close_link()
             except Exception:
                 pass

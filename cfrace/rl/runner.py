@@ -144,6 +144,13 @@ class Runner:
                        sim_s=sim_s, infer_s=infer_s, update_s=t_end - t_update)
         return metrics
 
+    def set_lr(self, lr: float) -> None:
+        """Every agent's learning rate (the adaptive rule, if on, continues from it)."""
+        self.lrs = [float(lr)] * self.num_agents
+        for o in self.optimizers:
+            for g in o.param_groups:
+                g["lr"] = float(lr)
+
     @torch.no_grad()
     def _act(self, obs: torch.Tensor, critic: torch.Tensor):
         """One forward pass per agent: sampled actions (E, A, 4), log-probs (E, A), values (E, A),

@@ -52,6 +52,7 @@ class TrainConfig:
     overrides: tuple = ()           #: ((IPPOConfig field, value), ...) applied over the preset
     init_from: str | None = None    #: warm-start every actor from this checkpoint (see cfrace/rl/warmstart.py)
     critic_warmup: int = 20         #: iterations with frozen actors after a warm start (critics catch up)
+    critic_warmup_lr: float = 1e-3  #: learning rate of those iterations (only the critics train)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -236,6 +237,14 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
                     freeze = runner.iteration < cfg.critic_warmup
                     for agent in runner.agents:
                         agent.actor.requires_grad_(not freeze)
+                    # a fresh critic must reach returns of 10..500 before its advantages mean anything:
+                    # at the preset's rate it had not after 20 iterations (value loss 400-2400 against
+                    # 3-70 for the source run's own critic) and the actors, trained on those advantages,
+                    # forgot how to fly (docs/training.md). So the warm-up runs at its own, higher rate.
+                    if freeze:
+                        runner.set_lr(cfg.critic_warmup_lr)
+                    elif runner.iteration == cfg.critic_warmup:
+                        runner.set_lr(ippo.lr)
                 metrics = runner.iterate()
                 metrics["wall_s"] = wall_before + time.perf_counter() - start
                 csv_log.write(metrics)
