@@ -53,6 +53,7 @@ class TrainConfig:
     init_from: str | None = None    #: warm-start every actor from this checkpoint (see cfrace/rl/warmstart.py)
     critic_warmup: int = 20         #: iterations with frozen actors after a warm start (critics catch up)
     critic_warmup_lr: float = 1e-3  #: learning rate of those iterations (only the critics train)
+    init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -204,7 +205,7 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     elif cfg.init_from:
         from cfrace.rl.warmstart import warm_start
 
-        meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout")))
+        meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout"), critic=cfg.init_critic))
     csv_log = CsvLog(out / "metrics.csv", resume_iteration=runner.iteration if saved is not None else None)
     tb = TensorBoardLog(out / "tb", purge_step=runner.iteration + 1 if saved is not None else None)
     title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({ippo.preset} preset)"

@@ -26,9 +26,10 @@ OPP_POS_VAR = 4.0  #: m^2, prior variance of the opponent's body-frame position 
 OPP_VEL_VAR = 9.0  #: (m/s)^2, prior variance of the opponent's velocity (std 3 m/s)
 
 
-def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
-    """Copy the best source actor (greatest total training reward) into every agent of ``runner``.
-    Returns a description for the metadata."""
+def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool = False) -> dict:
+    """Copy the best source actor (greatest total training reward) into every agent of ``runner``;
+    with ``critic`` also its critic and critic normaliser (same layout and sizes only: a diagnostic,
+    and right only when the reward is the same too). Returns a description for the metadata."""
     from cfrace.rl.train import load_checkpoint
 
     path = Path(source)
@@ -46,6 +47,12 @@ def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
             raise ConfigError(f"--init-from {source}: layout {src_layout} is not a prefix of {env_layout}")
     for agent in runner.agents:
         dst = agent.state_dict()
+        if critic:
+            for key, value in src.items():
+                if key.startswith("critic.") or key.startswith("critic_norm."):
+                    if key not in dst or dst[key].shape != value.shape:
+                        raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key})")
+                    dst[key].copy_(value)
         for key, value in src.items():
             if not (key.startswith("actor.") or key.startswith("obs_norm.")):
                 continue
@@ -75,4 +82,5 @@ def warm_start(runner, source: str | Path, env_layout: str | None) -> dict:
             prior = torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3, dtype=dst["obs_norm.var"].dtype)
             dst["obs_norm.var"][n_src:] = prior[-(dim - n_src):]
         agent.load_state_dict(dst)
-    return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0))}
+    return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0)),
+            "init_critic": bool(critic)}
