@@ -87,6 +87,8 @@ def train_cmd(
     episode_s: float = typer.Option(30.0, "--episode-s", min=1.0, help="race length before the time-out (s)"),
     critic_warmup: int = typer.Option(20, "--critic-warmup", min=0,
                                       help="iterations with frozen actors after --init-from"),
+    random_phase: bool = typer.Option(False, "--random-phase",
+                                      help="first races start part-way into the time limit (spread time-outs)"),
     init_critic: bool = typer.Option(False, "--init-critic",
                                      help="with --init-from: copy the critic too (same layout, sizes, reward)"),
     critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
@@ -116,7 +118,7 @@ def train_cmd(
                           checkpoint_min * 60.0, threads=threads, overrides=overrides,
                           init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup,
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
-                          init_critic=init_critic)
+                          init_critic=init_critic, random_phase=random_phase)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"

@@ -41,7 +41,7 @@ class RaceEnv:
     def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
-                 rules: CrashRules = CrashRules()):
+                 rules: CrashRules = CrashRules(), random_phase: bool = False):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
         self.track, self.profile, self.method = track, profile, method
@@ -50,6 +50,7 @@ class RaceEnv:
         self.num_agents = 2 if MULTI_AGENT[method] else 1
         self.device = torch.device(device)
         self.randomize, self.start_mode, self.scales = randomize, start, rewards
+        self.random_phase = random_phase   #: reset(): first races get a random share of the time limit
         self.max_steps = int(round(episode_s / POLICY_DT))
         self.sim = Simulator(track, profile, num_envs, self.num_agents, obstacles=self.obstacles, device=self.device,
                              seed=seed, compile=compile, rules=rules)
@@ -98,7 +99,13 @@ class RaceEnv:
 
     # ------------------------------------------------------------------ reset
     def reset(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reset every world. With ``random_phase`` each world's first race starts with a random
+        number of its steps already used (its first time-out comes early), so that the worlds'
+        races are spread over every phase from the first rollout on instead of all starting and
+        timing out together."""
         self._reset_worlds(torch.arange(self.num_envs, device=self.device))
+        if self.random_phase:
+            self.steps = torch.randint(0, self.max_steps, (self.num_envs,), generator=self.gen).to(self.device)
         return self.observe()
 
     def spawn(self, n: int):

@@ -53,6 +53,7 @@ class TrainConfig:
     init_from: str | None = None    #: warm-start every actor from this checkpoint (see cfrace/rl/warmstart.py)
     critic_warmup: int = 20         #: iterations with frozen actors after a warm start (critics catch up)
     critic_warmup_lr: float = 1e-3  #: learning rate of those iterations (only the critics train)
+    random_phase: bool = False      #: spread the first races over the time limit (RaceEnv.random_phase)
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
 
     def ippo(self) -> IPPOConfig:
@@ -99,7 +100,8 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
 
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
-                  device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s)
+                  device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
+                  random_phase=cfg.random_phase)
     return env, env_meta(cfg, env, track.name, profile)
 
 
