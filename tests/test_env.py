@@ -186,3 +186,19 @@ def test_state_dict_round_trip_is_exact():
     for x in acts[10:]:
         ra, rb = a.step(x), b.step(x)
         assert torch.equal(ra.obs, rb.obs) and torch.equal(ra.reward, rb.reward)
+
+
+def test_random_phase_spreads_the_first_time_outs():
+    track, prof = load_track("lemniscate"), load_profile("cf2x_paper")
+    plain = RaceEnv(track, prof, num_envs=256, method="ds", obstacles=False, episode_s=2.0)
+    plain.reset()
+    assert int(plain.steps.max()) == 0
+    env = RaceEnv(track, prof, num_envs=256, method="ds", obstacles=False, episode_s=2.0, random_phase=True)
+    env.reset()
+    steps = env.steps
+    assert int(steps.min()) >= 0 and int(steps.max()) < env.max_steps and len(set(steps.tolist())) > 50
+    # the worlds one step short of the limit time out in the first step (and only those)
+    last = steps == env.max_steps - 1
+    res = env.step(torch.zeros(256, 1, 4))
+    assert bool(last.any())
+    assert torch.equal(res.truncated[:, 0], last & ~res.terminated[:, 0])

@@ -130,3 +130,51 @@ def test_bench_train_split(tmp_path):
     assert r["env_steps_per_s"] > 0 and r["num_agents"] == 2
     total = r["share_sim"] + r["share_inference"] + r["share_update"] + r["share_other"]
     assert abs(total - 1.0) < 1e-9 and r["share_update"] > 0 and r["share_sim"] > 0
+
+
+def test_critic_warmup_trains_only_the_critics_at_their_own_rate(tmp_path):
+    """After --init-from the actors stay frozen for critic_warmup iterations while the critics train
+    at critic_warmup_lr; then every agent returns to the preset's rate and the actors move."""
+    src = train(_cfg(tmp_path, method="ds", steps=16 * 24 * 2, out=str(tmp_path / "src")), env_factory=toy_factory)
+    seen = []
+
+    def on_iteration(metrics, info):
+        seen.append(metrics)
+
+    cfg = _cfg(tmp_path, steps=16 * 16 * 5, out=str(tmp_path / "warm"), init_from=str(src.checkpoint),
+               critic_warmup=3, critic_warmup_lr=2e-3)
+    res = train(cfg, env_factory=toy_factory, on_iteration=on_iteration)
+    lrs = [m["lr_agent0"] for m in seen]
+    assert lrs[:3] == [2e-3] * 3 and lrs[3] == pytest.approx(cfg.ippo().lr)
+    kls = [m["kl_agent0"] for m in seen]
+    assert all(k == 0.0 for k in kls[:3]) and kls[3] > 0.0     # frozen actors, then moving ones
+    assert res.iterations == 5
+
+
+def test_init_critic_copies_a_fitting_critic_and_refuses_another(tmp_path):
+    from cfrace.rl.warmstart import warm_start
+    import types
+
+    src = train(_cfg(tmp_path, method="ds", steps=16 * 24, out=str(tmp_path / "src")), env_factory=toy_factory)
+    saved = load_checkpoint(src.checkpoint)["runner"]["agents"][0]
+    from cfrace.rl.models import AgentModels
+    from cfrace.rl.config import preset
+
+    p = preset("cpu", multi_agent=False)
+    solo = AgentModels(36, 36, p.actor_hidden, p.critic_hidden, 1.0)
+    warm_start(types.SimpleNamespace(agents=[solo]), src.checkpoint, "solo36", critic=True)
+    for k, v in saved.items():
+        if k.startswith("critic"):
+            assert torch.equal(solo.state_dict()[k], v), k
+    # into a racer: the source critic reads the own observation's first 36 inputs, the rest start at 0
+    race = AgentModels(42, 84, p.actor_hidden, p.critic_hidden, 1.0)
+    warm_start(types.SimpleNamespace(agents=[race]), src.checkpoint, "race42", critic=True)
+    x = torch.randn(32, 84) * 2
+    with torch.no_grad():
+        want = solo.critic(solo.critic_norm(x[:, :36]))
+        got = race.critic(race.critic_norm(x))
+    assert torch.allclose(got, want, atol=1e-5)
+    assert torch.equal(race.critic_norm.mean[42:78], saved["critic_norm.mean"])
+    wide = AgentModels(42, 84, p.actor_hidden, (64,), 1.0)
+    with pytest.raises(ConfigError, match="does not fit"):
+        warm_start(types.SimpleNamespace(agents=[wide]), src.checkpoint, "race42", critic=True)

@@ -28,8 +28,8 @@ OPP_VEL_VAR = 9.0  #: (m/s)^2, prior variance of the opponent's velocity (std 3 
 
 def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool = False) -> dict:
     """Copy the best source actor (greatest total training reward) into every agent of ``runner``;
-    with ``critic`` also its critic and critic normaliser (same layout and sizes only: a diagnostic,
-    and right only when the reward is the same too). Returns a description for the metadata."""
+    with ``critic`` also its critic and critic normaliser (see _copy_critic). Returns a description
+    for the metadata."""
     from cfrace.rl.train import load_checkpoint
 
     path = Path(source)
@@ -48,11 +48,7 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
     for agent in runner.agents:
         dst = agent.state_dict()
         if critic:
-            for key, value in src.items():
-                if key.startswith("critic.") or key.startswith("critic_norm."):
-                    if key not in dst or dst[key].shape != value.shape:
-                        raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key})")
-                    dst[key].copy_(value)
+            _copy_critic(src, dst, source)
         for key, value in src.items():
             if not (key.startswith("actor.") or key.startswith("obs_norm.")):
                 continue
@@ -84,3 +80,38 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0)),
             "init_critic": bool(critic)}
+
+
+def _copy_critic(src: dict, dst: dict, source) -> None:
+    """The source critic into ``dst`` (a state dict, modified in place), hidden sizes equal.
+
+    Same input size: copied as it is. A single-agent source (input = its observation, D_s values)
+    into a racer (input = [own observation, opponent's observation], 2 D values, D >= D_s): the first
+    layer reads the own observation's first D_s values with the source weights, every other input
+    starts at weight zero (so the critic first predicts what the source predicted); the normaliser
+    takes the source statistics for both observations' shared part and the opponent-block prior
+    for the rest. The features carry over; the warm-up (--critic-warmup) refits the values to the
+    new reward. Measured on the lemniscate: warm-started DS fine-tuning held 100 % success with the
+    source critic and fell to 0 % with a fresh one (docs/training.md)."""
+    w_key = next(k for k in src if k.startswith("critic.") and k.endswith("weight"))
+    for key, value in src.items():
+        if not (key.startswith("critic.") or key.startswith("critic_norm.")):
+            continue
+        if key not in dst:
+            raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key} does not exist here)")
+        target = dst[key]
+        if target.shape == value.shape:
+            target.copy_(value)
+        elif key == w_key and target.shape[0] == value.shape[0] and target.shape[1] >= 2 * value.shape[1]:
+            target.zero_()
+            target[:, : value.shape[1]] = value
+        elif key in ("critic_norm.mean", "critic_norm.var") and target.shape[0] >= 2 * value.shape[0]:
+            half, n = target.shape[0] // 2, value.shape[0]
+            prior = 0.0 if key.endswith("mean") else torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3,
+                                                                 dtype=target.dtype)
+            for start in (0, half):
+                target[start:start + n] = value
+                target[start + n:start + half] = prior if isinstance(prior, float) else prior[-(half - n):]
+        else:
+            raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key}: "
+                              f"{tuple(value.shape)} there, {tuple(target.shape)} here)")
