@@ -14,13 +14,13 @@ Ages use only the caller's `now` (seconds since the last update that accepted a 
 uses only frame times, so the frame clock and the loop clock need not be the same clock (replay,
 simulation). Between poses the position is predicted forward with the velocity for up to
 `predict_s` (default stale_after_s), then held. An estimate older than stale_after_s is not valid.
-Pure numpy float64 and no randomness: the same frames and times give the same estimates.
+Plain float64 arithmetic and no randomness: the same frames and times give the same estimates.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,27 +40,39 @@ class Estimate:
     valid: bool         #: a pose was accepted within stale_after_s
 
 
-def quat_to_rot(q: np.ndarray) -> np.ndarray:
+def quat_to_rot(q) -> np.ndarray:
     """Unit quaternion (4,) w, x, y, z -> rotation matrix (3, 3) (same frames as the quaternion)."""
     w, x, y, z = (float(v) for v in q)
-    return np.array([
+    return np.array(_rot_rows(w, x, y, z))
+
+
+def _rot_rows(w: float, x: float, y: float, z: float) -> list:
+    return [
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    ]
 
 
 @dataclass
 class _Track:
-    pos: np.ndarray
-    quat: np.ndarray
+    """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
+    float arithmetic costs a fraction of numpy calls on 3-vectors, and far less once the caches
+    are cold between ticks; docs/flight.md, "Loop timing")."""
+    pos: tuple                     # (x, y, z) m
+    quat: tuple                    # (w, x, y, z), unit
     t: float                       # frame clock of the last accepted pose
     now: float                     # caller clock of the update that accepted it
-    vel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vel: tuple = (0.0, 0.0, 0.0)
     samples: int = 1
-    out_pos: np.ndarray | None = None   # last rejected pose, for re-acquisition
+    out_pos: tuple | None = None   # last rejected pose, for re-acquisition
     out_t: float = 0.0
     out_run: int = 0
+
+
+def _dist(a: tuple, b: tuple) -> float:
+    dx, dy, dz = a[0] - b[0], a[1] - b[1], a[2] - b[2]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 class PoseEstimator:
@@ -89,42 +101,52 @@ class PoseEstimator:
     def _limit(self, dt: float) -> float:
         return max(self.max_jump_m, self.max_speed_mps * dt)
 
-    def _ingest(self, body: str, pos: np.ndarray, quat: np.ndarray, t: float, now: float) -> None:
+    def _ingest(self, body: str, pos, quat, t: float, now: float) -> None:
         c = self.counters[body]
         c["frames"] += 1
-        pos = np.asarray(pos, dtype=np.float64).reshape(3)
-        quat = np.asarray(quat, dtype=np.float64).reshape(4)
-        norm = float(np.linalg.norm(quat))
-        if not (np.isfinite(pos).all() and np.isfinite(quat).all()) or norm < 1e-6:
+        px, py, pz = (float(v) for v in np.ravel(pos).tolist())
+        qw, qx, qy, qz = (float(v) for v in np.ravel(quat).tolist())
+        # a sum is finite iff every term is (no overflow at mocap magnitudes)
+        if not math.isfinite(px + py + pz + qw + qx + qy + qz):
             c["invalid"] += 1
             return
-        quat = quat / norm
+        norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        if norm < 1e-6:
+            c["invalid"] += 1
+            return
+        p, q = (px, py, pz), (qw / norm, qx / norm, qy / norm, qz / norm)
         tr = self._tracks.get(body)
         if tr is None:
-            self._tracks[body] = _Track(pos.copy(), quat, t, now)
+            self._tracks[body] = _Track(p, q, t, now)
             return
         dt = t - tr.t
         if dt <= 0.0:                  # repeated or out-of-order pose: nothing new
             return
-        if float(np.linalg.norm(pos - tr.pos)) > self._limit(dt):
+        if _dist(p, tr.pos) > self._limit(dt):
             c["outliers"] += 1
-            if tr.out_pos is not None and t > tr.out_t and \
-                    float(np.linalg.norm(pos - tr.out_pos)) <= self._limit(t - tr.out_t):
+            if tr.out_pos is not None and t > tr.out_t and _dist(p, tr.out_pos) <= self._limit(t - tr.out_t):
                 tr.out_run += 1
             else:
                 tr.out_run = 1
             if tr.out_run >= self.reacquire_after:
-                vel = (pos - tr.out_pos) / (t - tr.out_t)
-                self._tracks[body] = _Track(pos.copy(), quat, t, now, vel=vel, samples=2)
+                d = t - tr.out_t
+                vel = ((px - tr.out_pos[0]) / d, (py - tr.out_pos[1]) / d, (pz - tr.out_pos[2]) / d)
+                self._tracks[body] = _Track(p, q, t, now, vel=vel, samples=2)
                 c["reacquired"] += 1
             else:
-                tr.out_pos, tr.out_t = pos.copy(), t
+                tr.out_pos, tr.out_t = p, t
             return
-        v_raw = (pos - tr.pos) / dt
-        tr.vel = v_raw if tr.samples == 1 else tr.vel + self.alpha * (v_raw - tr.vel)
-        if float(np.dot(quat, tr.quat)) < 0.0:
-            quat = -quat
-        tr.pos, tr.quat, tr.t, tr.now = pos.copy(), quat, t, now
+        ox, oy, oz = tr.pos
+        rx, ry, rz = (px - ox) / dt, (py - oy) / dt, (pz - oz) / dt
+        if tr.samples == 1:
+            tr.vel = (rx, ry, rz)
+        else:
+            a, (vx, vy, vz) = self.alpha, tr.vel
+            tr.vel = (vx + a * (rx - vx), vy + a * (ry - vy), vz + a * (rz - vz))
+        pw, pqx, pqy, pqz = tr.quat
+        if q[0] * pw + q[1] * pqx + q[2] * pqy + q[3] * pqz < 0.0:
+            q = (-q[0], -q[1], -q[2], -q[3])
+        tr.pos, tr.quat, tr.t, tr.now = p, q, t, now
         tr.samples += 1
         tr.out_pos, tr.out_run = None, 0
 
@@ -152,9 +174,11 @@ class PoseEstimator:
         valid = age <= self.stale_after_s
         if not valid:
             self.counters[body]["stale"] += 1
-        pos = tr.pos + tr.vel * min(age, self.predict_s)
-        return Estimate(pos=pos, vel=tr.vel.copy(), rot=quat_to_rot(tr.quat), quat=tr.quat.copy(),
-                        t=tr.t, age_s=age, valid=valid)
+        h = min(age, self.predict_s)
+        (x, y, z), (vx, vy, vz) = tr.pos, tr.vel
+        return Estimate(pos=np.array((x + vx * h, y + vy * h, z + vz * h)), vel=np.array(tr.vel),
+                        rot=np.array(_rot_rows(*tr.quat)), quat=np.array(tr.quat), t=tr.t, age_s=age,
+                        valid=valid)
 
 
 def estimates_to_msg(estimates: dict[str, Estimate]) -> dict:
