@@ -178,3 +178,42 @@ def test_init_critic_copies_a_fitting_critic_and_refuses_another(tmp_path):
     wide = AgentModels(42, 84, p.actor_hidden, (64,), 1.0)
     with pytest.raises(ConfigError, match="does not fit"):
         warm_start(types.SimpleNamespace(agents=[wide]), src.checkpoint, "race42", critic=True)
+
+
+def test_fixed_opponent_flies_the_second_slot_in_part_of_the_worlds(tmp_path):
+    """--fixed-opponent: in the first half of the worlds the second drone is flown by the frozen
+    source actor (mean action); those samples are not agent 1's (out of its batch), agent 0 learns
+    from all worlds."""
+    from cfrace.rl.runner import Runner
+    from cfrace.rl.train import _fixed_opponent
+
+    src = train(_cfg(tmp_path, method="ds", steps=16 * 24, out=str(tmp_path / "src")), env_factory=toy_factory)
+    cfg = _cfg(tmp_path, fixed_opponent=str(src.checkpoint), fixed_opponent_frac=0.5)
+    env, meta = toy_factory(cfg, "cpu", 16)
+    runner = Runner(env, cfg.ippo(), seed=0)
+    info = _fixed_opponent(runner, cfg, meta["obs_layout"])
+    assert info["fixed_opponent_worlds"] == 8
+    seen = {}
+    step = env.step
+
+    def spy(actions):
+        seen["a"] = actions.clone()
+        return step(actions)
+
+    env.step = spy
+    obs = runner.obs.clone()
+    runner.iterate()
+    fo = runner.fixed_opponent
+    first = seen  # the last step's actions: fixed slots hold the opponent's mean action
+    st = runner.storage
+    assert not st.alive[:, :8, 1].any()                    # fixed slots: never agent 1's samples
+    assert st.alive[:, 8:, 1].any() and st.alive[:, :, 0].any()
+    with torch.no_grad():
+        want = fo.actor(fo.obs_norm(st.obs[-1, :8, 1])).mean
+    assert torch.allclose(first["a"][:8, 1], want.clamp(-10, 10), atol=1e-6)
+    assert not torch.allclose(first["a"][8:, 1], fo.actor(fo.obs_norm(st.obs[-1, 8:, 1])).mean.detach())
+    assert obs.shape == runner.obs.shape
+    with pytest.raises(ConfigError, match="multi-agent"):
+        ds_cfg = _cfg(tmp_path, method="ds", fixed_opponent=str(src.checkpoint))
+        ds_env, ds_meta = toy_factory(ds_cfg, "cpu", 16)
+        _fixed_opponent(Runner(ds_env, ds_cfg.ippo(), seed=0), ds_cfg, ds_meta["obs_layout"])

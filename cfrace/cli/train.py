@@ -89,6 +89,11 @@ def train_cmd(
                                       help="iterations with frozen actors after --init-from"),
     random_phase: bool = typer.Option(False, "--random-phase",
                                       help="first races start part-way into the time limit (spread time-outs)"),
+    fixed_opponent: Optional[Path] = typer.Option(None, "--fixed-opponent",
+                                                  help="checkpoint or run whose actor (frozen) flies the "
+                                                       "second drone in part of the worlds"),
+    fixed_opponent_frac: float = typer.Option(0.5, "--fixed-opponent-frac",
+                                              help="share of the worlds with the fixed opponent"),
     init_critic: bool = typer.Option(False, "--init-critic",
                                      help="with --init-from: copy the critic too (same layout, sizes, reward)"),
     critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
@@ -118,7 +123,9 @@ def train_cmd(
                           checkpoint_min * 60.0, threads=threads, overrides=overrides,
                           init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup,
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
-                          init_critic=init_critic, random_phase=random_phase)
+                          init_critic=init_critic, random_phase=random_phase,
+                          fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
+                          fixed_opponent_frac=fixed_opponent_frac)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"

@@ -53,6 +53,8 @@ class Runner:
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
+        self.fixed_opponent: AgentModels | None = None             # see set_fixed_opponent
+        self._not_fixed = None                                      # (E, A) bool: learner samples
         self.obs, self.critic = env.reset()                        # (E, A, D), (E, A, C)
         for a, m in enumerate(self.agents):                        # warm start of the normalisers
             m.obs_norm.update(self.obs[:, a])
@@ -70,12 +72,17 @@ class Runner:
         for t in range(cfg.rollout):
             t0 = time.perf_counter()
             actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
+            if self.fixed_opponent is not None:
+                fixed = ~self._not_fixed[:, -1]
+                with torch.no_grad():
+                    fo = self.fixed_opponent
+                    actions[fixed, -1] = fo.actor(fo.obs_norm(self.obs[fixed, -1])).mean
             _sync(self.device)
             t1 = time.perf_counter()
             res = self.env.step(actions)
             _sync(self.device)
             t2 = time.perf_counter()
-            alive = res.alive
+            alive = res.alive if self._not_fixed is None else res.alive & self._not_fixed
             reward = torch.where(alive, res.reward, 0.0)
             # episode bookkeeping (raw rewards, before the bootstrap)
             self.ep_return += reward
@@ -143,6 +150,20 @@ class Runner:
         metrics.update(iteration=self.iteration, env_steps=self.env_steps, fps=steps / total, iter_s=total,
                        sim_s=sim_s, infer_s=infer_s, update_s=t_end - t_update)
         return metrics
+
+    def set_fixed_opponent(self, models: AgentModels, fraction: float) -> int:
+        """In the first round(fraction E) worlds the last agent's slot is flown by ``models``'s
+        actor (its mean action, frozen), not by the learner: those samples are not the learner's
+        (treated like dead steps: out of its GAE, losses and statistics). The other agents learn
+        against it there and against each other elsewhere. Returns the number of such worlds."""
+        if self.num_agents < 2:
+            raise ValueError("a fixed opponent needs a multi-agent env")
+        n = int(round(fraction * self.num_envs))
+        mask = torch.ones(self.num_envs, self.num_agents, dtype=torch.bool, device=self.device)
+        mask[:n, -1] = False
+        self.fixed_opponent = models.to(self.device).eval().requires_grad_(False)
+        self._not_fixed = mask
+        return n
 
     def set_lr(self, lr: float) -> None:
         """Every agent's learning rate (the adaptive rule, if on, continues from it)."""

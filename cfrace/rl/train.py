@@ -55,6 +55,8 @@ class TrainConfig:
     critic_warmup_lr: float = 1e-3  #: learning rate of those iterations (only the critics train)
     random_phase: bool = False      #: spread the first races over the time limit (RaceEnv.random_phase)
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
+    fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
+    fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -208,6 +210,8 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
         from cfrace.rl.warmstart import warm_start
 
         meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout"), critic=cfg.init_critic))
+    if cfg.fixed_opponent:
+        meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
     csv_log = CsvLog(out / "metrics.csv", resume_iteration=runner.iteration if saved is not None else None)
     tb = TensorBoardLog(out / "tb", purge_step=runner.iteration + 1 if saved is not None else None)
     title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({ippo.preset} preset)"
@@ -265,6 +269,25 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     curve = plot_training_curve(csv_log.rows, out / "training_curve.png", title, runner.num_agents)
     return TrainResult(out, ckpt_path, curve, runner.iteration, runner.env_steps,
                        wall_before + time.perf_counter() - start, interrupted, exact, metrics)
+
+
+def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
+    """Load the best actor of cfg.fixed_opponent (padded to this layout like a warm start) and let it
+    fly the last slot in cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent)."""
+    import types
+
+    from cfrace.rl.models import AgentModels
+    from cfrace.rl.warmstart import warm_start
+
+    ippo = runner.cfg
+    if not 0.0 < cfg.fixed_opponent_frac <= 1.0:
+        raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
+    if runner.num_agents < 2:
+        raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
+    opp = AgentModels(runner.env.obs_dim, runner.env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0)
+    info = warm_start(types.SimpleNamespace(agents=[opp]), cfg.fixed_opponent, layout)
+    n = runner.set_fixed_opponent(opp, cfg.fixed_opponent_frac)
+    return {"fixed_opponent": info["init_from"], "fixed_opponent_worlds": n}
 
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
