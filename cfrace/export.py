@@ -265,6 +265,9 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     if meta0.get("init_from"):  # warm-started (cfrace/rl/warmstart.py): say from what
         meta["init_from"] = Path(meta0["init_from"]).parent.name or str(meta0["init_from"])
         meta["init_env_steps"] = int(meta0.get("init_env_steps", 0))
+    if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
+        meta["fixed_opponent"] = Path(meta0["fixed_opponent"]).parent.name or str(meta0["fixed_opponent"])
+        meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
     out = export_actor(model.actor, model.obs_norm, meta, path)
     err = parity_check(out, model.actor, model.obs_norm, n=1000)
     if not err < 1e-4:

@@ -213,6 +213,12 @@ def test_fixed_opponent_flies_the_second_slot_in_part_of_the_worlds(tmp_path):
     assert torch.allclose(first["a"][:8, 1], want.clamp(-10, 10), atol=1e-6)
     assert not torch.allclose(first["a"][8:, 1], fo.actor(fo.obs_norm(st.obs[-1, 8:, 1])).mean.detach())
     assert obs.shape == runner.obs.shape
+    # end to end: the run trains, and the exported actor says what it was trained against
+    res = train(_cfg(tmp_path, steps=16 * 16 * 2, out=str(tmp_path / "fo"), fixed_opponent=str(src.checkpoint)),
+                env_factory=toy_factory)
+    path, _, _ = export_checkpoint(res.checkpoint, tmp_path / "fo.onnx", "ego")
+    onnx_meta = OnnxPolicy(path).meta
+    assert onnx_meta["fixed_opponent"] == "src" and onnx_meta["fixed_opponent_worlds"] == 8
     with pytest.raises(ConfigError, match="multi-agent"):
         ds_cfg = _cfg(tmp_path, method="ds", fixed_opponent=str(src.checkpoint))
         ds_env, ds_meta = toy_factory(ds_cfg, "cpu", 16)
