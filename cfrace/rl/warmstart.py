@@ -48,70 +48,51 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
     for agent in runner.agents:
         dst = agent.state_dict()
         if critic:
-            _copy_critic(src, dst, source)
-        for key, value in src.items():
-            if not (key.startswith("actor.") or key.startswith("obs_norm.")):
-                continue
-            if key not in dst:
-                raise ConfigError(f"--init-from {source}: actor parameter {key} does not exist here")
-            target = dst[key]
-            if target.shape == value.shape:
-                target.copy_(value)
-            elif target.dim() == value.dim() and target.shape[:-1] == value.shape[:-1] and key.endswith("weight"):
-                # first layer: (hidden, in) -> copy the shared inputs, zero the extra ones
-                n = value.shape[-1]
-                target.zero_()
-                target[..., :n] = value
-            elif target.dim() == 1 and value.dim() == 1 and key.startswith("obs_norm."):
-                target[: value.shape[0]] = value
-            else:
-                raise ConfigError(f"--init-from {source}: {key} has shape {tuple(value.shape)}, "
-                                  f"here {tuple(target.shape)} (different network sizes)")
-        # new inputs (the opponent block): the copied sample count makes their statistics adapt slowly,
-        # so start them from a sensible prior instead of the first reset batch (drones side by side:
-        # tiny variance, inputs clipped at +-10 in flight). Copied statistics keep their count: letting
-        # them drift made the frozen actors fly differently, crash more, and drift further.
-        dim = dst["obs_norm.mean"].shape[0]
-        n_src = src["obs_norm.mean"].shape[0]
-        if dim > n_src:
-            dst["obs_norm.mean"][n_src:] = 0.0
-            prior = torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3, dtype=dst["obs_norm.var"].dtype)
-            dst["obs_norm.var"][n_src:] = prior[-(dim - n_src):]
+            # the racer's critic reads [own observation, opponent's observation]: two blocks
+            _transplant(src, dst, "critic", blocks=2, what=f"--init-critic: the critic of {source}")
+        # Copied statistics keep their count: letting them drift made the frozen actors fly
+        # differently, crash more, and drift further. New inputs (the opponent block) start from a
+        # prior instead of the first reset batch (drones side by side: tiny variance, inputs clipped
+        # at +-10 in flight).
+        _transplant(src, dst, "actor", blocks=1, what=f"--init-from {source}: the actor")
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0)),
             "init_critic": bool(critic)}
 
 
-def _copy_critic(src: dict, dst: dict, source) -> None:
-    """The source critic into ``dst`` (a state dict, modified in place), hidden sizes equal.
+def _transplant(src: dict, dst: dict, net: str, blocks: int, what: str) -> None:
+    """Copy the source's ``net`` ("actor" or "critic") and its normaliser into the state dict
+    ``dst`` (in place). Hidden sizes must be equal; the input may be wider: ``blocks`` observations
+    side by side (1 for an actor, 2 for a racer's critic), each a source observation plus extra
+    inputs (the opponent block). The first layer reads the first block's shared part with the
+    source weights; every other input starts at weight zero, so the copy first acts (or predicts)
+    exactly like its source. The normaliser takes the source statistics
+    for every block's shared part and the opponent-block prior (mean 0, OPP_POS_VAR / OPP_VEL_VAR)
+    for the rest.
 
-    Same input size: copied as it is. A single-agent source (input = its observation, D_s values)
-    into a racer (input = [own observation, opponent's observation], 2 D values, D >= D_s): the first
-    layer reads the own observation's first D_s values with the source weights, every other input
-    starts at weight zero (so the critic first predicts what the source predicted); the normaliser
-    takes the source statistics for both observations' shared part and the opponent-block prior
-    for the rest. The features carry over; the warm-up (--critic-warmup) refits the values to the
-    new reward. Measured on the lemniscate: warm-started DS fine-tuning held 100 % success with the
-    source critic and fell to 0 % with a fresh one (docs/training.md)."""
-    w_key = next(k for k in src if k.startswith("critic.") and k.endswith("weight"))
+    Why the critic too (--init-critic): warm-started DS fine-tuning held 100 % success with the
+    source critic and fell to 0 % with a fresh one (docs/training.md, warm start item 5)."""
+    norm = "obs_norm." if net == "actor" else "critic_norm."
+    first = next(k for k in src if k.startswith(net + ".") and k.endswith("weight"))
     for key, value in src.items():
-        if not (key.startswith("critic.") or key.startswith("critic_norm.")):
+        if not key.startswith((net + ".", norm)):
             continue
         if key not in dst:
-            raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key} does not exist here)")
+            raise ConfigError(f"{what} does not fit ({key} does not exist here)")
         target = dst[key]
         if target.shape == value.shape:
             target.copy_(value)
-        elif key == w_key and target.shape[0] == value.shape[0] and target.shape[1] >= 2 * value.shape[1]:
+        elif key == first and target.shape[0] == value.shape[0] and target.shape[1] >= blocks * value.shape[1]:
             target.zero_()
             target[:, : value.shape[1]] = value
-        elif key in ("critic_norm.mean", "critic_norm.var") and target.shape[0] >= 2 * value.shape[0]:
-            half, n = target.shape[0] // 2, value.shape[0]
-            prior = 0.0 if key.endswith("mean") else torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3,
-                                                                 dtype=target.dtype)
-            for start in (0, half):
-                target[start:start + n] = value
-                target[start + n:start + half] = prior if isinstance(prior, float) else prior[-(half - n):]
+        elif key in (norm + "mean", norm + "var") and target.shape[0] >= blocks * value.shape[0]:
+            size, n = target.shape[0] // blocks, value.shape[0]
+            prior = torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3, dtype=target.dtype)
+            fill = torch.zeros_like(prior) if key.endswith("mean") else prior
+            for b in range(blocks):
+                target[b * size: b * size + n] = value
+                if size > n:
+                    target[b * size + n: (b + 1) * size] = fill[-(size - n):]
         else:
-            raise ConfigError(f"--init-critic: the critic of {source} does not fit ({key}: "
-                              f"{tuple(value.shape)} there, {tuple(target.shape)} here)")
+            raise ConfigError(f"{what} does not fit ({key}: {tuple(value.shape)} there, "
+                              f"{tuple(target.shape)} here; different network sizes)")
