@@ -213,6 +213,22 @@ def test_real_clock_skips_missed_ticks_instead_of_bursting():
     assert [a.k, b.k, c.k] == [0, 3, 4] and clock.skipped == 2
 
 
+def test_real_clock_calls_before_once_lead_ahead_of_the_deadline_and_never_when_late():
+    ft = FakeTime()
+    clock = RealClock(0.01, perf=ft.perf, sleep=ft.sleep)
+    clock.start()
+    calls = []
+    before = lambda: calls.append((clock.next_k, round(ft.now - clock.t0, 6)))  # noqa: E731
+    clock.wait_next(before, 0.001)             # tick 0 is due at once: no time to warm up
+    ft.now += 0.002
+    t1 = clock.wait_next(before, 0.001)
+    assert calls == [(1, round(0.009 + 0.0001, 6))]   # at the deadline minus the lead (plus overshoot)
+    assert t1.k == 1 and t1.late_s == pytest.approx(0.0001)
+    ft.now += 0.0095                           # work ran into the lead window: no warm-up
+    t2 = clock.wait_next(before, 0.001)
+    assert len(calls) == 1 and t2.k == 2
+
+
 def test_lockstep_clock_advances_the_world_one_tick_per_iteration():
     steps = []
     clock = LockstepClock(0.01, advance=steps.append)
@@ -351,6 +367,7 @@ class CountingPolicy:
     def __call__(self, obs):
         assert obs.shape == (1, self.dim) and obs.dtype == np.float32
         self.calls += 1
+        self.last = obs
         return np.array([[-0.2, 0.0, 0.0, 0.0]], np.float32)
 
 
@@ -417,6 +434,31 @@ def test_loop_ends_in_a_draw_when_both_drones_are_stopped(track):
     assert len(loop.drones[0].link.sent) < len(loop.drones[1].link.sent)
 
 
+def test_prewarm_runs_only_the_policy_due_next_tick_on_the_newest_estimates(track):
+    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
+    loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.5)
+    ego, opp = loop.drones
+    loop.prewarm()                             # before the first tick: zeros of each layout's size
+    assert (ego.policy.calls, opp.policy.calls) == (1, 0)      # tick 0 is the ego's (phase 0)
+    assert ego.policy.last.shape == (1, 42) and not ego.policy.last.any()
+    loop.run()                                 # 51 ticks (k 0..50): the next one, 51, is odd
+    ego.stopped = opp.stopped = False          # (the end of the race stopped both)
+    n_ego, n_opp = ego.policy.calls, opp.policy.calls
+    loop.prewarm()                             # next tick is odd: the opponent's policy, real observation
+    assert (ego.policy.calls, opp.policy.calls) == (n_ego, n_opp + 1)
+    assert opp.policy.last.shape == (1, 36) and opp.policy.last.any()
+    np.testing.assert_array_equal(opp.policy.last[0], loop.obs_builder(opp.layout, loop._last_ests[1],
+                                                                      int(loop.progress.target[1])))
+    opp.stopped = True
+    loop.prewarm()                             # a stopped drone is not warmed
+    assert opp.policy.calls == n_opp + 1
+
+    def broken(obs):
+        raise RuntimeError("policy failure")
+    opp.stopped, opp.policy = False, broken
+    loop.prewarm()                             # never raises: the tick's own call reports it
+
+
 def test_loop_timeout(track):
     hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
     res = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.5).run()
@@ -446,7 +488,7 @@ def test_real_time_loop_does_not_burst_after_a_stall(track):
     loop.faults = Stall()
     ticks, sends = [], []
     wait = clock.wait_next
-    clock.wait_next = lambda: (ticks.append(wait()), ticks[-1])[1]
+    clock.wait_next = lambda *a: (ticks.append(wait(*a)), ticks[-1])[1]
     link = loop.drones[0].link
     orig = link.send
     link.send = lambda *a: (sends.append(ticks[-1].k), orig(*a))

@@ -134,6 +134,8 @@ def register(app: typer.Typer) -> None:
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
         rt_priority: Optional[int] = typer.Option(None, help="Run the loop thread SCHED_FIFO at this priority "
                                                              "(Linux, root or CAP_SYS_NICE); 0 = off."),
+        prewarm_ms: Optional[float] = typer.Option(None, help="Run the next tick's policy once this many ms before "
+                                                              "the tick to warm the CPU caches (default 1; 0 = off)."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
@@ -146,7 +148,8 @@ def register(app: typer.Typer) -> None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
-                          timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety)
+                          timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
+                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3)
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")

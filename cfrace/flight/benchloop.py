@@ -70,7 +70,8 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
 
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
-               log: bool = True, rt_priority: int = 0, policies: str = "paper") -> dict:
+               log: bool = True, rt_priority: int = 0, policies: str = "paper",
+               prewarm_s: float = 0.001) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
@@ -85,7 +86,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
-                               rt_priority=rt_priority)
+                               rt_priority=rt_priority, prewarm_s=prewarm_s)
             try:
                 result = run_race(cfg)
             except CfraceError as exc:
@@ -100,6 +101,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "policies": kind, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+    return {"duration_s": duration_s, "policies": kind, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

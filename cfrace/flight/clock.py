@@ -5,6 +5,8 @@ overshoot). A tick that starts late never causes a burst: when the previous tick
 more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
 with fresh mocap data. Waiting is a plain sleep: on this 2-core machine busy-waiting the last
 fraction of a millisecond made the jitter worse (the scheduler preempts spinning threads).
+``wait_next(before, lead_s)`` calls ``before()`` once, ``lead_s`` ahead of the deadline, inside
+the wait (the flight loop warms the caches with it: FlightLoop.prewarm).
 
 LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
 period (or by a requested stall) and the loop's time is k dt.
@@ -43,10 +45,19 @@ class RealClock:
         """s since start on the loop clock."""
         return self._perf() - self.t0
 
-    def wait_next(self) -> Tick:
+    @property
+    def next_k(self) -> int:
+        """Index of the tick the next wait_next() is due for (before any skip)."""
+        return self._k_next
+
+    def wait_next(self, before=None, lead_s: float = 0.0) -> Tick:
         k = self._k_next
         deadline = self.t0 + k * self.dt
         now = self._perf()
+        if before is not None and now < deadline - lead_s:
+            self._sleep(deadline - lead_s - now)
+            before()
+            now = self._perf()
         if now < deadline:
             self._sleep(deadline - now)
             now = self._perf()
@@ -82,7 +93,12 @@ class LockstepClock:
     def now(self) -> float:
         return max(self._k, 0) * self.dt
 
-    def wait_next(self) -> Tick:
+    @property
+    def next_k(self) -> int:
+        return self._k + 1
+
+    def wait_next(self, before=None, lead_s: float = 0.0) -> Tick:
+        """``before`` is ignored: no wall-clock wait to use."""
         late, skipped = 0.0, 0
         if self._k >= 0:
             if self._stall > 0.0:

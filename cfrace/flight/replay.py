@@ -140,8 +140,8 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
     # links never go silent in a replay: keep them "heard" every tick
     orig_wait = clock.wait_next
 
-    def wait_next():
-        tick = orig_wait()
+    def wait_next(*args):
+        tick = orig_wait(*args)
         for link in links:
             link.quality.last_rx = clock.now()
         return tick

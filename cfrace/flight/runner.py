@@ -77,6 +77,7 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
     out = {"rate_hz": round(1.0 / dt, 3), "ticks": int(len(timing["compute"])),
            "late_ms": stats(timing["late"]), "period_jitter_ms": stats(jitter),
            "compute_ms": stats(timing["compute"]), "compute_cpu_ms": stats(timing.get("compute_cpu", [])),
+           "prewarm_ms": stats(timing.get("prewarm", [])),
            "inference_ms": {n: stats(x) for n, x in zip(names, timing["infer"])},
            "observation_ms": {n: stats(x) for n, x in zip(names, timing.get("obs", [[]] * len(names)))}}
     out["period_jitter_p99_ms"] = out["period_jitter_ms"]["p99"]
@@ -222,7 +223,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                               obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                               fence=Fence.from_track(track, cfg.safety.geofence_margin_m), safety_cfg=cfg.safety,
                               laps=cfg.laps, timeout_s=cfg.timeout_s, log=log, view=view, faults=injector,
-                              kill=kill, link_clock=link_clock)
+                              kill=kill, link_clock=link_clock, prewarm_s=0.0 if lockstep else cfg.prewarm_s)
             loop_ref.append(loop)
             if log is not None:
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
