@@ -31,13 +31,27 @@ class FastRaceProgress(RaceProgress):
         # float64 + - * / sqrt round exactly like torch's float64 ops
         self._cos_l, self._sin_l = self._cos.tolist(), self._sin.tolist()
         self._centre_l = [tuple(c) for c in self._centre.tolist()]
+        self._nothing = np.zeros(self.num_drones, bool)
+        self._nothing.flags.writeable = False
+
+    def update(self, t: float, positions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """RaceProgress.update. On the ticks where no drone crosses its target gate's plane (all but
+        a few per lap) the bookkeeping is skipped: (passed, lap_done, hit) are then one read-only
+        all-False array."""
+        if np.isnan(self._lap_start[0]):
+            self._lap_start[:] = t
+        passed, hit = self._crossings(positions)
+        if passed is None:
+            return self._nothing, self._nothing, self._nothing
+        return self._book(t, passed, hit)
 
     def _crossings(self, positions):
-        """Same as RaceProgress._crossings, on Python floats."""
+        """Same as RaceProgress._crossings, on Python floats; (None, None) if no drone crossed its
+        target gate's plane."""
         n = self.num_drones
         pos = [(float(p[0]), float(p[1]), float(p[2])) for p in positions]
         prev = pos if self._prev is None else self._prev
-        passed, hit = np.zeros(n, bool), np.zeros(n, bool)
+        passed = hit = None
         for i in range(n):
             j = int(self.target[i])
             cx, cy, cz = self._centre_l[j]
@@ -48,6 +62,8 @@ class FastRaceProgress(RaceProgress):
             px, py, pz = c * pdx + s * pdy, -s * pdx + c * pdy, pdz
             if not (px > 0.0 and x <= 0.0):
                 continue
+            if passed is None:
+                passed, hit = np.zeros(n, bool), np.zeros(n, bool)
             frac = px / max(px - x, 1e-9)
             ay, az = abs(py + frac * (y - py)), abs(pz + frac * (z - pz))
             near = math.sqrt(x * x + y * y + z * z) < PASS_RADIUS

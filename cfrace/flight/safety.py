@@ -102,8 +102,10 @@ class Decision:
 
 def _finite(x) -> bool:
     # one reduction instead of isfinite().all(): a sum is finite iff every element is (no overflow
-    # at these magnitudes); ~1 us on the loop's small arrays
-    return x is None or math.isfinite(float(np.sum(x)))
+    # at these magnitudes); the ndarray method costs half of np.sum's dispatch (2 vs 4 us here)
+    if x is None:
+        return True
+    return math.isfinite(float(x.sum() if isinstance(x, np.ndarray) else np.sum(x)))
 
 
 def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: SafetyConfig) -> list[Violation]:

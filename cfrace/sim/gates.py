@@ -73,6 +73,10 @@ class RaceProgress:
         if np.isnan(self._lap_start).all():
             self._lap_start[:] = t
         passed, hit = self._crossings(positions)
+        return self._book(t, passed, hit)
+
+    def _book(self, t: float, passed: np.ndarray, hit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Targets, gates, laps and lap times after this tick's crossings."""
         g = len(self.gates)
         self.gates_passed += passed
         self.target = np.where(passed, (self.target + 1) % g, self.target)
