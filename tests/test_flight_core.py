@@ -459,6 +459,26 @@ def test_prewarm_runs_only_the_policy_due_next_tick_on_the_newest_estimates(trac
     loop.prewarm()                             # never raises: the tick's own call reports it
 
 
+def test_zero_thrust_from_the_policy_is_sent_as_the_firmwares_least_flying_thrust(track):
+    """A policy's zero thrust (a0 = -1) goes out as FLYING_MIN_COUNTS, not 0 (which the firmware
+    takes as motors off, rate control reset); a stop still sends 0 (through link.stop)."""
+    from cfrace.flight.loop import FLYING_MIN_COUNTS
+
+    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
+    loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.2)
+
+    class Dive(CountingPolicy):
+        def __call__(self, obs):
+            super().__call__(obs)
+            return np.array([[-1.0, 1.0, 0.0, 0.0]], np.float32)
+    loop.drones[0].policy = Dive(42)
+    loop.run()
+    sent = loop.drones[0].link.sent
+    assert sent and all(c == FLYING_MIN_COUNTS for *_, c in sent)
+    assert all(r == pytest.approx(100.0) for r, *_ in sent)          # full roll rate still commanded
+    assert loop.drones[0].link.stops >= 1                            # the end of the race: stop (0 counts)
+
+
 def test_loop_timeout(track):
     hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
     res = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.5).run()

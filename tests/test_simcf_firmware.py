@@ -61,6 +61,28 @@ def test_zero_thrust_unlock_and_thrust_limits():
     assert f.status(0)["thrust_counts"] == MAX_THRUST
 
 
+def test_the_flight_loops_least_thrust_keeps_rate_control():
+    """The flight loop sends at least FLYING_MIN_COUNTS while a drone races: at that command the
+    firmware still controls the body rates (as the training simulator does at zero thrust); one
+    count less is zero thrust, rates off."""
+    from cfrace.flight.loop import FLYING_MIN_COUNTS
+    from cfrace.simcf.firmware import MIN_THRUST
+
+    assert FLYING_MIN_COUNTS == MIN_THRUST
+    f = make()
+    rate_mode(f)
+    f.handle_setpoint(0, 0, 0, 0, 0)
+    f.handle_setpoint(0, 90.0, 0.0, 0.0, FLYING_MIN_COUNTS)
+    f.advance(0.01)
+    thrust, rates = last_cmd(f)
+    assert 0.0 < thrust < 0.05 * f.profile.weight
+    np.testing.assert_allclose(rates, np.radians([90.0, 0.0, 0.0]))
+    f.handle_setpoint(0, 90.0, 0.0, 0.0, FLYING_MIN_COUNTS - 1)
+    f.advance(0.01)
+    thrust, rates = last_cmd(f)
+    assert thrust == 0.0 and not rates.any()
+
+
 def test_rate_mode_conventions():
     """Packet values (after cflib's pitch negation) -> body rates p = roll, q = -pitch, r = -yaw."""
     f = make()

@@ -38,6 +38,13 @@ from cfrace.flight import safety as sf
 from cfrace.flight.link import thrust_to_counts
 from cfrace.flight.mocap import frame_to_msg
 
+#: thrust counts sent at least while a drone races: the Crazyflie firmware turns a legacy setpoint
+#: below 1000 counts (MIN_THRUST, crtp_commander_rpyt.c) into zero thrust, and at zero thrust its
+#: controller resets and stops controlling the body rates (motors idle). The training simulator
+#: keeps the rate control at zero collective thrust (rotor forces clamped at >= 0), and the
+#: policies use it (full rates at zero thrust in sharp turns). 1000 counts is 2-4 % of the weight.
+FLYING_MIN_COUNTS = 1000
+
 perf = time.perf_counter
 thread_time = time.thread_time   # CPU time of this thread: the tick's own cost, without preemption
 
@@ -175,7 +182,10 @@ class FlightLoop:
         d.obs, d.action = obs, act
         d.thrust_n = float(thrust)
         d.rates_dps = np.degrees(rates)
-        d.counts = thrust_to_counts(d.thrust_n, d.thrust_curve) if np.isfinite(d.thrust_n) else 0
+        # FLYING_MIN_COUNTS, not 0: a zero-thrust setpoint makes the firmware reset its rate
+        # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
+        # control allows", as in training (docs/flight.md, "Zero thrust")
+        d.counts = max(FLYING_MIN_COUNTS, thrust_to_counts(d.thrust_n, d.thrust_curve)) if np.isfinite(d.thrust_n) else 0
         return t1 - t0, t2 - t1
 
     def prewarm(self) -> None:
