@@ -46,7 +46,10 @@ def check_stopped_and_logged(result, log_path):
 @pytest.fixture(scope="module")
 def lockstep_run(pols, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("lockstep")
-    result = dry_run(cfg(pols, tmp), lockstep=True)
+    from dataclasses import replace
+
+    # a non-default velocity filter: the replay must take it from the log to reproduce the observations
+    result = dry_run(replace(cfg(pols, tmp), velocity_alpha=0.7), lockstep=True)
     return result, tmp / "flight.mcap"
 
 
@@ -54,6 +57,7 @@ def test_lockstep_dry_run_flies_and_logs(lockstep_run):
     result, log = lockstep_run
     assert result["end"] == "timeout" and result["winner"] == "draw" and result["safety_events"] == []
     data = check_stopped_and_logged(result, log)
+    assert data.meta["velocity_alpha"] == 0.7
     for topic in ("/mocap/pose", "/estimate", "/obs", "/action", "/setpoint", "/timing", "/link", "/race"):
         assert data.count(topic) > 0, topic
     assert data.count("/timing") == 301 and data.count("/obs") == 301        # 100 Hz loop

@@ -149,6 +149,10 @@ def test_flight_config_checks():
     with pytest.raises(ConfigError, match="missing --track"):
         make_config(None, ego="a", opp="b")
     assert FlightConfig(track="lemniscate", ego="a", opp="b").prewarm_s == 0.001
+    assert FlightConfig(track="lemniscate", ego="a", opp="b").velocity_alpha == 1.0
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(ConfigError, match="velocity_alpha"):
+            FlightConfig(track="lemniscate", ego="a", opp="b", velocity_alpha=bad)
     for bad in (-0.001, 0.01, float("nan")):   # negative, a whole period (100 Hz), NaN
         with pytest.raises(ConfigError, match="prewarm_s"):
             FlightConfig(track="lemniscate", ego="a", opp="b", prewarm_s=bad)
@@ -163,8 +167,9 @@ def test_flight_config_file(tmp_path):
     assert (cfg.safety.geofence_margin_m, cfg.safety.speed_max_mps, cfg.safety.tilt_max_deg) == (0.5, 6.0, 60.0)
     cfg = make_config(f, track="lemniscate", ego="ours", opp="ds", bodies=("x", "y"))
     assert cfg.bodies == ("x", "y")   # the command line wins
-    f.write_text("prewarm_s: 0.002\n")
+    f.write_text("prewarm_s: 0.002\nvelocity_alpha: 0.5\n")
     assert make_config(f, track="lemniscate", ego="ours", opp="ds").prewarm_s == 0.002
+    assert make_config(f, track="lemniscate", ego="ours", opp="ds").velocity_alpha == 0.5
     assert make_config(f, track="lemniscate", ego="ours", opp="ds", prewarm_s=0.0).prewarm_s == 0.0
     f.write_text("uris: [a, b]\nspeed_limit: 3\n")
     with pytest.raises(ConfigError, match="speed_limit.*unknown key"):

@@ -136,6 +136,8 @@ def register(app: typer.Typer) -> None:
                                                              "(Linux, root or CAP_SYS_NICE); 0 = off."),
         prewarm_ms: Optional[float] = typer.Option(None, help="Run the next tick's policy once this many ms before "
                                                               "the tick to warm the CPU caches (default 1; 0 = off)."),
+        velocity_alpha: Optional[float] = typer.Option(None, help="Velocity filter of the pose estimator: "
+                                                                  "v += alpha (difference - v), (0, 1] (default 1: plain differences)."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
@@ -149,7 +151,7 @@ def register(app: typer.Typer) -> None:
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
-                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3)
+                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha)
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")

@@ -57,6 +57,8 @@ def dry_run_cmd(
     rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
     prewarm_ms: float = typer.Option(1.0, help="Run the next tick's policy once this many ms before the tick to "
                                                "warm the CPU caches; 0 = off."),
+    velocity_alpha: float = typer.Option(1.0, help="Velocity filter of the pose estimator: v += alpha (difference - v), "
+                                                   "(0, 1]; 1 = plain differences."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
@@ -69,7 +71,7 @@ def dry_run_cmd(
         profile = training_profile(track, ego, obstacles)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
-                       rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3)
+                       rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m, console=console)
     print_result(result)
     write_json(result, json_out)

@@ -67,6 +67,7 @@ class FlightConfig:
     view_hz: float = 4.0                         #: Hz, live view refresh
     rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
     prewarm_s: float = 0.001                     #: s before each tick: warm the caches (FlightLoop.prewarm; 0 = off)
+    velocity_alpha: float = 1.0                  #: estimator low-pass on pose differences, (0, 1]; 1 = none (docs/flight.md)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def __post_init__(self):
@@ -82,6 +83,8 @@ class FlightConfig:
             raise ConfigError(f"uris: every drone needs its own URI, got {list(self.uris)}")
         if not (1.0 <= self.rate_hz <= 1000.0):
             raise ConfigError(f"rate_hz: must be in [1, 1000], got {self.rate_hz}")
+        if not (0.0 < self.velocity_alpha <= 1.0):
+            raise ConfigError(f"velocity_alpha: must be in (0, 1], got {self.velocity_alpha}")
         if not (0.0 <= self.prewarm_s < 1.0 / self.rate_hz):
             raise ConfigError(f"prewarm_s: must be in [0, one period = {1.0 / self.rate_hz} s), got {self.prewarm_s}")
         if not 0 <= self.rt_priority <= 99:
@@ -120,6 +123,8 @@ def load_flight_file(path: str | Path) -> dict:
     for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
         if r.has(key):
             out[key] = r.number(key, positive=True)
+    if r.has("velocity_alpha"):
+        out["velocity_alpha"] = r.number("velocity_alpha", positive=True, max=1.0)
     if r.has("prewarm_s"):
         out["prewarm_s"] = r.number("prewarm_s", min=0.0)
     if r.has("rt_priority"):
