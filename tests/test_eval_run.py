@@ -176,6 +176,20 @@ def test_swapped_starts_mirror_the_slots():
     assert torch.equal(again.pos, st.pos)           # seeded
 
 
+def test_ground_starts_are_on_the_floor_before_gate_0():
+    from cfrace.errors import ConfigError
+
+    track = load_track("lemniscate")
+    st = start_poses(track, PROFILE, 6, 1, False, seed=2, start="ground")
+    air = start_poses(track, PROFILE, 6, 1, False, seed=2)
+    assert (st.target == 0).all() and not (air.target == 0).all()
+    assert float(st.pos[..., 2].max()) < 0.05 < float(air.pos[..., 2].min())
+    gate0 = torch.as_tensor(track.gate_array()[0, :2], dtype=torch.float32)
+    assert float(torch.linalg.norm(st.pos[:, 0, :2] - gate0, dim=-1).max()) < 1.6
+    with pytest.raises(ConfigError, match="--start"):
+        start_poses(track, PROFILE, 2, 1, False, seed=2, start="air")
+
+
 def test_swapped_races_of_one_policy_are_mirror_images(tmp_path):
     """The same (erratic) policy in both slots: race 2k+1 is race 2k with the drones exchanged."""
     track = load_track("lemniscate")

@@ -44,11 +44,13 @@ def eval_cmd(
     json_out: Optional[Path] = _JSON,
     md_out: Optional[Path] = typer.Option(None, "--md", help="write the table as markdown to this file"),
     plot: Optional[Path] = typer.Option(None, "--plot", help="folder for trajectory PNGs (one per policy)"),
+    start: str = typer.Option("gate", "--start", help="gate: in the air before a random gate (the paper's "
+                                                      "benchmark); ground: on the floor before gate 0"),
 ) -> None:
     """Single-agent benchmark (paper Table I): N runs of L laps per policy from random gate starts."""
     from cfrace.evaluate.single import evaluate, markdown_table
 
-    r = evaluate(list(policies), track, obstacles, runs, laps, seed, time_limit, profile, plot)
+    r = evaluate(list(policies), track, obstacles, runs, laps, seed, time_limit, profile, plot, start=start)
     t = Table(title=f"single-agent benchmark: {r.track}{' with obstacles' if r.obstacles else ''}, {r.runs} runs x "
                     f"{r.laps} laps, seed {r.seed} ({r.wall_s:.1f} s)")
     for col in ("policy", "method", "Avg. TTC [s]", "Avg. speed [m/s]", "Collisions", "Success [%]", "best lap [s]",

@@ -23,6 +23,7 @@ from cfrace.drone import DroneProfile
 from cfrace.env.actions import action_to_command
 from cfrace.env.observations import build_observation
 from cfrace.env.race_env import RaceEnv
+from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant
 from cfrace.evaluate.metrics import POLICY_DT, RunSummary, summarize
 from cfrace.sim.simulator import Simulator
@@ -68,12 +69,15 @@ class Recording:
 
 
 def start_poses(track: Track, profile: DroneProfile, n: int, drones: int, obstacles: bool, seed: int,
-                swap_pairs: bool = False) -> Starts:
-    """n start configurations from the training spawn (RaceEnv.spawn, gate starts only: in front of
-    a random gate, facing it, that gate is the first target). With ``swap_pairs`` (2 drones) start
-    i uses configuration i // 2, with the two slots swapped for odd i (half the races swap)."""
+                swap_pairs: bool = False, start: str = "gate") -> Starts:
+    """n start configurations from the training spawn (RaceEnv.spawn): ``start`` "gate" (in front of
+    a random gate, facing it, that gate is the first target) or "ground" (on the floor before gate
+    0, the training's ground starts). With ``swap_pairs`` (2 drones) start i uses configuration
+    i // 2, with the two slots swapped for odd i (half the races swap)."""
+    if start not in ("gate", "ground"):
+        raise ConfigError(f"--start: gate or ground, got {start!r}")
     env = RaceEnv(track, profile, num_envs=1, method="ours" if drones == 2 else "ds", obstacles=obstacles,
-                  seed=seed, randomize=False, start="gate")
+                  seed=seed, randomize=False, start=start)
     m = (n + 1) // 2 if swap_pairs else n
     pos, quat, gate = env.spawn(m)
     target = gate.unsqueeze(-1).expand(m, drones).clone()

@@ -45,8 +45,9 @@ class SoloResult:
 
 def evaluate(policies: list[str], track_name: str, obstacles: bool = False, runs: int = 50, laps: int = 3,
              seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
-             plot_dir: Path | None = None, threads: int | None = None) -> SoloResult:
-    """Fly ``runs`` runs of ``laps`` laps per policy from the same random gate starts; the table rows."""
+             plot_dir: Path | None = None, threads: int | None = None, start: str = "gate") -> SoloResult:
+    """Fly ``runs`` runs of ``laps`` laps per policy from the same random starts (``start``: "gate",
+    before a random gate in the air, as the paper; "ground", on the floor before gate 0); the rows."""
     import time
 
     t0 = time.perf_counter()
@@ -55,7 +56,7 @@ def evaluate(policies: list[str], track_name: str, obstacles: bool = False, runs
     prof = common_profile(entrants, profile)
     if runs < 1 or laps < 1:
         raise ConfigError("runs and laps must be >= 1")
-    starts = start_poses(track, prof, runs, 1, obstacles, seed)
+    starts = start_poses(track, prof, runs, 1, obstacles, seed, start=start)
     p = len(entrants)
     rep = lambda x: x.repeat(p, *([1] * (x.dim() - 1)))          # (runs, ...) -> (p * runs, ...)
     all_starts = Starts(rep(starts.pos), rep(starts.quat), rep(starts.target))
