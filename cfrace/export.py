@@ -268,6 +268,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
         meta["fixed_opponent"] = Path(meta0["fixed_opponent"]).parent.name or str(meta0["fixed_opponent"])
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
+    if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)
+        meta["flight_obs"] = True
     out = export_actor(model.actor, model.obs_norm, meta, path)
     err = parity_check(out, model.actor, model.obs_norm, n=1000)
     if not err < 1e-4:

@@ -98,6 +98,9 @@ def train_cmd(
                                      help="with --init-from: copy the critic too (same layout, sizes, reward)"),
     critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
                                            help="learning rate of the critic warm-up iterations"),
+    flight_obs: bool = typer.Option(False, "--flight-obs",
+                                    help="observe velocity as the flight stack estimates it (10-ms pose "
+                                         "difference) and keep thrust above the firmware's least command"),
 ) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG."""
     from cfrace.errors import ConfigError
@@ -125,7 +128,7 @@ def train_cmd(
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
                           init_critic=init_critic, random_phase=random_phase,
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
-                          fixed_opponent_frac=fixed_opponent_frac)
+                          fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"

@@ -41,3 +41,8 @@ def _like(ref, values):
     import numpy as np
 
     return np.asarray(values, dtype=ref.dtype)
+
+
+#: thrust counts below which the Crazyflie firmware's legacy RPYT commander commands zero thrust
+#: (MIN_THRUST, crtp_commander_rpyt.c); at zero thrust its controller resets (no rate control)
+FIRMWARE_MIN_THRUST_COUNTS = 1000

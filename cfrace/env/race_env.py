@@ -14,14 +14,15 @@ from dataclasses import dataclass, field
 import torch
 
 from cfrace.drone import DroneProfile
-from cfrace.env.actions import action_to_command
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import build_observations, critic_observations, layout_for
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
-from cfrace.sim.simulator import CrashRules, Simulator
+from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import Track
 
 POLICY_DT = 0.02  #: s, 50 Hz
 SUBSTEPS = 10
+MOCAP_DT = SUBSTEPS // 2 * 0.002  #: s, pose difference of the flight observations (100 Hz mocap)
 
 
 @dataclass
@@ -41,7 +42,7 @@ class RaceEnv:
     def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
-                 rules: CrashRules = CrashRules(), random_phase: bool = False):
+                 rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
         self.track, self.profile, self.method = track, profile, method
@@ -51,6 +52,11 @@ class RaceEnv:
         self.device = torch.device(device)
         self.randomize, self.start_mode, self.scales = randomize, start, rewards
         self.random_phase = random_phase   #: reset(): first races get a random share of the time limit
+        # flight_obs: the observation and command path of the flight stack (docs/training.md, "Flight
+        # observations"): velocity = the last 10 ms pose difference, as the flight loop's estimator
+        # computes it from 100 Hz mocap; thrust at least the firmware's least non-zero command
+        self.flight_obs = bool(flight_obs)
+        self.min_thrust_n = float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
         self.max_steps = int(round(episode_s / POLICY_DT))
         self.sim = Simulator(track, profile, num_envs, self.num_agents, obstacles=self.obstacles, device=self.device,
                              seed=seed, compile=compile, rules=rules)
@@ -69,6 +75,7 @@ class RaceEnv:
         self.start_gate = torch.zeros(e, dtype=torch.int64, device=dev)
         self.laps_paid = torch.zeros(e, dtype=torch.int64, device=dev)
         self.prev_pos = torch.zeros(e, a, 3, device=dev)
+        self.mid_pos = torch.zeros(e, a, 3, device=dev)   #: positions 10 ms before the step's end (flight_obs)
         self.prev_track_pos = torch.zeros(e, a, device=dev)
         self.ep_return = torch.zeros(e, a, device=dev)
         self.ep_lead = torch.zeros(e, a, device=dev)
@@ -93,7 +100,8 @@ class RaceEnv:
 
     def observe(self) -> tuple[torch.Tensor, torch.Tensor]:
         s = self.sim
-        obs = build_observations(s.pos, s.vel, s.rot(), s.race.target, s.gate_corners, self.layout)
+        vel = (s.pos - self.mid_pos) / MOCAP_DT if self.flight_obs else s.vel
+        obs = build_observations(s.pos, vel, s.rot(), s.race.target, s.gate_corners, self.layout)
         critic = critic_observations(obs) if self.num_agents == 2 else obs
         return obs, critic
 
@@ -165,6 +173,7 @@ class RaceEnv:
         self.start_gate[ids] = gate_idx
         self.laps_paid[ids] = 0
         self.prev_pos[ids] = self.sim.pos[ids]
+        self.mid_pos[ids] = self.sim.pos[ids]
         self.prev_track_pos[ids] = self.track_position()[ids]
         self.ep_return[ids] = 0.0
         self.ep_lead[ids] = 0.0
@@ -178,7 +187,16 @@ class RaceEnv:
         thrust, rates = action_to_command(actions, self.profile.mass, self.profile.max_thrust_weights,
                                           self.profile.max_rates_deg)
         laps_before = sim.race.laps.clone()
-        ev = sim.step(thrust, rates, SUBSTEPS)
+        if self.flight_obs:
+            thrust = thrust.clamp_min(self.min_thrust_n)
+            half = SUBSTEPS // 2
+            e1 = sim.step(thrust, rates, half)
+            self.mid_pos = sim.pos.clone()
+            e2 = sim.step(thrust, rates, SUBSTEPS - half)
+            ev = StepEvents(e1.gates + e2.gates, e1.laps + e2.laps, e1.crashed_now | e2.crashed_now,
+                            e1.contact | e2.contact, torch.where(e1.crashed_now, e1.reason, e2.reason))
+        else:
+            ev = sim.step(thrust, rates, SUBSTEPS)
         self.steps += 1
         # race bookkeeping: progress, leader, lap bonus once per lap per race
         d_now = self.dist_to_target()
@@ -217,7 +235,7 @@ class RaceEnv:
 
     # ------------------------------------------------------------------ checkpoints (exact resume)
     _COUNTERS = ("steps", "start_gate", "laps_paid", "prev_pos", "prev_track_pos", "ep_return", "ep_lead",
-                 "ep_first_lap")
+                 "ep_first_lap", "mid_pos")
 
     def state_dict(self) -> dict:
         s = self.sim

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cfrace.env.actions import action_to_command
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import ObsLayout, build_observation
 from cfrace.flight import safety as sf
 from cfrace.flight.link import thrust_to_counts
@@ -43,7 +43,7 @@ from cfrace.flight.mocap import frame_to_msg
 #: controller resets and stops controlling the body rates (motors idle). The training simulator
 #: keeps the rate control at zero collective thrust (rotor forces clamped at >= 0), and the
 #: policies use it (full rates at zero thrust in sharp turns). 1000 counts is 2-4 % of the weight.
-FLYING_MIN_COUNTS = 1000
+FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
 perf = time.perf_counter
 thread_time = time.thread_time   # CPU time of this thread: the tick's own cost, without preemption

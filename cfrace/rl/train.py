@@ -54,6 +54,7 @@ class TrainConfig:
     critic_warmup: int = 20         #: iterations with frozen actors after a warm start (critics catch up)
     critic_warmup_lr: float = 1e-3  #: learning rate of those iterations (only the critics train)
     random_phase: bool = False      #: spread the first races over the time limit (RaceEnv.random_phase)
+    flight_obs: bool = False        #: the flight stack's velocity estimate and thrust floor (RaceEnv.flight_obs)
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
@@ -103,7 +104,7 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
-                  random_phase=cfg.random_phase)
+                  random_phase=cfg.random_phase, flight_obs=cfg.flight_obs)
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -113,7 +114,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
     return {"method": cfg.method, "track": track_name, "obstacles": obstacles,
             "obs_layout": layout.name if layout is not None else None, "obs_dim": int(env.obs_dim),
             **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
-            "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents)}
+            "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
+            "flight_obs": bool(getattr(env, "flight_obs", False))}
 
 
 def load_checkpoint(path: str | Path) -> dict:
