@@ -202,3 +202,35 @@ def test_random_phase_spreads_the_first_time_outs():
     res = env.step(torch.zeros(256, 1, 4))
     assert bool(last.any())
     assert torch.equal(res.truncated[:, 0], last & ~res.terminated[:, 0])
+
+
+def test_flight_obs_observes_the_pose_difference_and_floors_the_thrust():
+    """flight_obs splits each policy step at 10 ms: the dynamics are the same (hover commands), the
+    observed velocity is the last 10-ms pose difference (as the flight loop's estimator computes it
+    from 100 Hz mocap), and thrust never goes below the firmware's least non-zero command."""
+    from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+    from cfrace.env.observations import body_frame
+
+    track, prof = load_track("lemniscate"), load_profile("cf2x_paper")
+    kw = dict(num_envs=3, method="ds", obstacles=False, seed=5, randomize=False, start="gate")
+    plain, flight = RaceEnv(track, prof, **kw), RaceEnv(track, prof, flight_obs=True, **kw)
+    o_plain, _ = plain.reset()
+    o_flight, _ = flight.reset()
+    assert torch.equal(o_plain[..., 3:], o_flight[..., 3:]) and not o_flight[..., :3].any()   # at rest
+    hover = torch.zeros(3, 1, 4)
+    hover[..., 0] = 2.0 / prof.max_thrust_weights - 1.0          # thrust = weight
+    hover[..., 2] = 0.3                                            # and a pitch rate: it moves
+    for _ in range(5):
+        r_plain, r_flight = plain.step(hover), flight.step(hover)
+    assert torch.equal(plain.sim.pos, flight.sim.pos)             # 5 + 5 substeps = 10 substeps
+    s = flight.sim
+    v_diff = (s.pos - flight.mid_pos) / 0.01
+    expect = body_frame(s.rot(), v_diff)
+    torch.testing.assert_close(r_flight.obs[..., :3], expect, rtol=0, atol=1e-5)
+    assert not torch.allclose(r_flight.obs[..., :3], r_plain.obs[..., :3], atol=1e-4)   # a lagged velocity
+    sent = []
+    step = flight.sim.step
+    flight.sim.step = lambda thrust, rates, n: (sent.append(thrust.clone()), step(thrust, rates, n))[1]
+    flight.step(torch.full((3, 1, 4), -1.0))                       # zero thrust asked
+    floor = float(prof.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
+    assert len(sent) == 2 and all(torch.allclose(t, torch.full_like(t, floor)) for t in sent) and floor > 0
