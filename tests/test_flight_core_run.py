@@ -281,3 +281,21 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     dist = {t: float(np.linalg.norm(trained[t] - flown[t])) for t in (0.5, 1.0, 1.9)}
     assert float(np.linalg.norm(trained[1.9] - trained[0.0])) > 2.0    # it really flew somewhere
     assert dist[0.5] < 0.01 and dist[1.0] < 0.03 and dist[1.9] < 0.1, dist
+
+
+@pytest.mark.parametrize("policy", ["ours", "ds"])
+def test_shipped_policy_races_alone_through_the_flight_stack(policy, tmp_path):
+    """The whole stack in lockstep (estimator, observation, ONNX, action map, thrust counts, the
+    simulated firmware) flies a shipped policy two laps from the floor, the other drone stopped by
+    the safety check at once. Each of the firmware's zero-thrust rule, the thrust curve ending at
+    the motors' saturation and the old velocity filter made every shipped policy crash in lap 1."""
+    from cfrace.flight.dryrun import dry_run
+
+    c = FlightConfig(track="lemniscate", ego=policy, opp="ds", profile=PROFILE, quiet=True, laps=2, timeout_s=20.0,
+                     log=tmp_path / "alone.mcap")
+    r = dry_run(c, lockstep=True, faults="nan_policy@0.02:opp", mocap_noise_m=0.0005)
+    ego, opp = r["drones"]
+    assert r["winner"] == "ego" and r["end"] == "finished", (ego, opp)
+    assert ego["laps"] == 2 and ego["gates_passed"] == 12
+    assert all(3.0 < lap < 6.0 for lap in ego["lap_times"])
+    assert opp["stop_kind"] == "non_finite" and opp["gates_passed"] == 0
