@@ -79,11 +79,13 @@ def race_cmd(
     laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
     json_out: Optional[Path] = _JSON,
     plot: Optional[Path] = typer.Option(None, "--plot", help="folder for trajectory and speed-profile PNGs"),
+    start: str = typer.Option("gate", "--start", help="gate: in the air before a random gate (the paper's "
+                                                      "races); ground: side by side on the floor before gate 0"),
 ) -> None:
     """Head-to-head races: the first to complete the laps wins; a crash of both is a draw."""
     from cfrace.evaluate.race import race
 
-    r = race(track, ego, opp, obstacles, races, laps, seed, time_limit, profile, plot)
+    r = race(track, ego, opp, obstacles, races, laps, seed, time_limit, profile, plot, start=start)
     rates = r.rates()
     c = rates["counts"]
     t = Table(title=f"{r.ego} (ego) vs {r.opp} (opp) on {r.track}{' with obstacles' if r.obstacles else ''}: "

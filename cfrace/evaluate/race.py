@@ -78,8 +78,9 @@ def _drone_stats(summary: RunSummary, worlds: slice, drone: int) -> dict:
 
 def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: int = 50, laps: int = 3,
          seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
-         plot_dir: Path | None = None, threads: int | None = None) -> RaceResult:
-    """``races`` head-to-head races of ``ego`` (drone 0) against ``opp`` (drone 1)."""
+         plot_dir: Path | None = None, threads: int | None = None, start: str = "gate") -> RaceResult:
+    """``races`` head-to-head races of ``ego`` (drone 0) against ``opp`` (drone 1); ``start`` as in
+    start_poses ("gate": in the air before a random gate; "ground": side by side on the floor)."""
     import time
 
     t0 = time.perf_counter()
@@ -88,7 +89,7 @@ def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: in
     track = load_race_track(track_name, obstacles)
     entrants = load_entrants([ego, opp], track, obstacles)
     prof = common_profile(entrants, profile)
-    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True)
+    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True, start=start)
     assign, all_starts = _pair_worlds([(0, 1)], races, starts)
     extra = min(races, CRASHED_OPP_RACES) if plot_dir is not None else 0
     if extra:  # the same ego from the same starts, the opponent drops at once (motors off)
