@@ -8,6 +8,7 @@ drones; command-line options override it. Example::
     mocap: vicon://192.168.1.10
     profile: cf21bl
     safety: {geofence_margin_m: 0.3, speed_max_mps: 6.0}
+    velocity_alpha: 1.0      # optional: estimator velocity filter; prewarm_s, rt_priority, ... likewise
 
 Unknown keys are errors (cfrace.yamlcfg.Reader).
 """
