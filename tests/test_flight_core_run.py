@@ -299,3 +299,43 @@ def test_shipped_policy_races_alone_through_the_flight_stack(policy, tmp_path):
     assert ego["laps"] == 2 and ego["gates_passed"] == 12
     assert all(3.0 < lap < 6.0 for lap in ego["lap_times"])
     assert opp["stop_kind"] == "non_finite" and opp["gates_passed"] == 0
+
+
+def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
+    """The policy's commands in a lockstep dry-run (thrust in newtons as the action map gives it,
+    floored at the firmware's least flying thrust; body rates), replayed open loop in the training
+    simulator, give the trajectory the simulated Crazyflie flew after thrust counts, the profile's
+    curve and the firmware's rules. With the thrust curve ending at the motors' saturation (0.575 N,
+    as until 2026-11-22) the link clipped the commands and the two parted by centimetres within 1 s."""
+    import torch
+
+    from cfrace.drone import load_profile
+    from cfrace.flight.dryrun import dry_run
+    from cfrace.flight.flightlog import read_log
+    from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+    from cfrace.sim.simulator import CrashRules, Simulator
+    from cfrace.track import load_track
+
+    log = tmp_path / "ds.mcap"
+    c = FlightConfig(track="lemniscate", ego="ds", opp="ds", profile=PROFILE, quiet=True, laps=1, timeout_s=3.0, log=log)
+    dry_run(c, lockstep=True, faults="nan_policy@0.02:opp")
+    data = read_log(log)
+    poses = {m["seq"]: m["poses"]["cf1"] for _, m in data.messages("/mocap/pose")}
+    setpoints = [(round(t / 0.01), m["cf1"]) for t, m in data.messages("/setpoint")]
+    prof = load_profile(PROFILE)
+    sim = Simulator(load_track("lemniscate"), prof, 1, 1, obstacles=False, rules=CrashRules(floor_grace_s=None, arena=False))
+    k0 = setpoints[0][0]
+    first = poses[min(poses)]
+    sim.reset(torch.arange(1), torch.tensor(first["pos"]).view(1, 1, 3), quat=torch.tensor(first["quat"]).view(1, 1, 4))
+    floor = float(prof.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
+    errors = []
+    for k, sp in setpoints[:250]:
+        newtons = 0.0 if sp["stopped"] or sp["thrust_counts"] == 0 else max(float(sp["thrust_n"]), floor)
+        rates = torch.tensor(np.radians(sp["rates_dps"]), dtype=torch.float32).view(1, 1, 3)
+        sim.step(torch.tensor([[newtons]]), rates, substeps=5)
+        flown = poses.get(k + 1 - k0 + min(poses))
+        if flown is not None:
+            errors.append(float(np.linalg.norm(sim.state.pos[0, 0].numpy() - np.asarray(flown["pos"]))))
+    path = float(np.linalg.norm(np.asarray(poses[max(poses)]["pos"]) - np.asarray(first["pos"])))
+    assert len(errors) > 200 and path > 3.0            # it flew, through the fast part after gate 2
+    assert max(errors) < 0.005, max(errors)            # 5 mm over 2.5 s of flight

@@ -22,7 +22,7 @@ from cfrace.track import Track
 
 POLICY_DT = 0.02  #: s, 50 Hz
 SUBSTEPS = 10
-MOCAP_DT = SUBSTEPS // 2 * 0.002  #: s, pose difference of the flight observations (100 Hz mocap)
+MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
 
 
 @dataclass

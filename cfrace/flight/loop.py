@@ -16,8 +16,8 @@ without the time other processes took the CPU), and per drone ``obs_s`` (the obs
 ``infer_s`` (the ONNX run).
 
 Pre-warming (``prewarm_s`` > 0, real time only): the loop sleeps ~88 % of each period, and the
-first inference after such a sleep is slow: the paper-size actor takes ~0.4 ms after a 10 ms sleep
-against ~0.1 ms back to back on this machine (caches, and whatever else the VM's host ran
+first inference after such a sleep is slow: the paper-size actor takes ~0.5 ms after a 10 ms sleep
+against ~0.06 ms back to back on this machine (benchmarks/onnx_cold.py) (caches, and whatever else the VM's host ran
 meanwhile). So ``prewarm_s`` before each tick's deadline (1 ms by default; 0.5 ms made the ticks
 start late, the warm-up itself takes ~0.6 ms) the loop rebuilds the last observation of the drone
 that infers on that tick and runs its policy once, output discarded. The tick itself then computes
@@ -164,12 +164,20 @@ class FlightLoop:
         for i in range(len(self.drones)):
             self._stop(i, t, kind)
 
+    @staticmethod
+    def _due(d: Drone, k: int) -> bool:
+        """Drone d infers on tick k (its policy rate, staggered by its phase)."""
+        return not d.stopped and k % d.decimation == d.phase % d.decimation
+
+    def _observation(self, i: int, ests: list) -> np.ndarray:
+        opp = ests[1 - i] if len(ests) == 2 else None
+        return self.obs_builder(self.drones[i].layout, ests[i], int(self.progress.target[i]), opp)
+
     def _policy_step(self, i: int, ests: list, k: int) -> tuple[float, float]:
         """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
         d = self.drones[i]
         t0 = perf()
-        opp = ests[1 - i] if len(ests) == 2 else None
-        obs = self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
+        obs = self._observation(i, ests)
         if self.faults is not None:
             obs = self.faults.filter_obs(d, obs)
         t1 = perf()
@@ -184,7 +192,7 @@ class FlightLoop:
         d.rates_dps = np.degrees(rates)
         # FLYING_MIN_COUNTS, not 0: a zero-thrust setpoint makes the firmware reset its rate
         # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
-        # control allows", as in training (docs/flight.md, "Zero thrust")
+        # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
         d.counts = max(FLYING_MIN_COUNTS, thrust_to_counts(d.thrust_n, d.thrust_curve)) if np.isfinite(d.thrust_n) else 0
         return t1 - t0, t2 - t1
 
@@ -196,14 +204,10 @@ class FlightLoop:
         k = self.clock.next_k
         ests = self._last_ests
         for i, d in enumerate(self.drones):
-            if d.stopped or k % d.decimation != d.phase % d.decimation:
+            if not self._due(d, k):
                 continue
             try:
-                if ests is not None:
-                    opp = ests[1 - i] if len(ests) == 2 else None
-                    obs = self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
-                else:
-                    obs = np.zeros(d.layout.dim, dtype=np.float32)
+                obs = self._observation(i, ests) if ests is not None else np.zeros(d.layout.dim, np.float32)
                 d.policy(obs[None])
             except Exception:  # noqa: BLE001 - the tick's real call raises it where it is handled
                 pass
@@ -241,7 +245,7 @@ class FlightLoop:
                 infer, obs_t = [np.nan] * n, [np.nan] * n
                 computed = [False] * n
                 for i, d in enumerate(self.drones):
-                    if not d.stopped and k % d.decimation == d.phase % d.decimation:
+                    if self._due(d, k):
                         obs_t[i], infer[i] = self._policy_step(i, ests, k)
                         computed[i] = True
                 inputs = sf.SafetyInputs(

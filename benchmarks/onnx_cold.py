@@ -1,0 +1,63 @@
+"""How long one ONNX inference of the paper-size actor takes back to back and after a sleep.
+
+    python benchmarks/onnx_cold.py [--calls 300]
+
+The flight loop sleeps most of each 10 ms period; this measures what that costs the next inference
+(docs/benchmarks.md, "Cache warm-up before each tick"). Actor: the hold controller inside an MLP of
+the paper's size [512, 512, 256, 128] (cfrace.flight.testpolicy), run through cfrace.policy.OnnxPolicy
+as the loop runs it. Prints p50 / p90 / p99 in microseconds per sleep length, and the same with a
+warm-up call 1 ms before each timed call (what `--prewarm-ms 1` does in the loop).
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cfrace.flight.testpolicy import make_sized_hold_policy
+from cfrace.policy import OnnxPolicy
+
+
+def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0.0) -> np.ndarray:
+    out = []
+    t0 = time.perf_counter()
+    for k in range(1, calls + 1):
+        deadline = t0 + k * period_s
+        if warm_lead_s > 0.0:
+            now = time.perf_counter()
+            if now < deadline - warm_lead_s:
+                time.sleep(deadline - warm_lead_s - now)
+            policy(obs)
+        now = time.perf_counter()
+        if now < deadline:
+            time.sleep(deadline - now)
+        a = time.perf_counter()
+        policy(obs)
+        out.append(time.perf_counter() - a)
+    return np.asarray(out) * 1e6
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--calls", type=int, default=300)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        policy = OnnxPolicy(make_sized_hold_policy(Path(tmp) / "p.onnx", "race42", "lemniscate", False))
+        obs = np.random.default_rng(0).normal(size=(1, 42)).astype(np.float32)
+        policy(obs)
+        print(f"{'case':34s} {'p50 us':>8s} {'p90 us':>8s} {'p99 us':>8s}")
+        cases = [("back to back", 0.0, 0.0)] + [(f"every {p * 1e3:g} ms (sleep between)", p, 0.0)
+                                                for p in (0.001, 0.005, 0.01)]
+        cases.append(("every 10 ms, warm-up 1 ms before", 0.01, 0.001))
+        for name, period, lead in cases:
+            v = timed_calls(policy, obs, period, args.calls, lead)
+            p50, p90, p99 = np.percentile(v, [50, 90, 99])
+            print(f"{name:34s} {p50:8.0f} {p90:8.0f} {p99:8.0f}")
+
+
+if __name__ == "__main__":
+    main()
