@@ -213,20 +213,29 @@ def test_real_clock_skips_missed_ticks_instead_of_bursting():
     assert [a.k, b.k, c.k] == [0, 3, 4] and clock.skipped == 2
 
 
-def test_real_clock_calls_before_once_lead_ahead_of_the_deadline_and_never_when_late():
+def test_real_clock_warms_up_from_lead_ahead_until_just_before_the_deadline_and_never_when_late():
     ft = FakeTime()
     clock = RealClock(0.01, perf=ft.perf, sleep=ft.sleep)
     clock.start()
     calls = []
-    before = lambda: calls.append((clock.next_k, round(ft.now - clock.t0, 6)))  # noqa: E731
+
+    def before():                              # a warm-up call that takes 0.3 ms
+        calls.append((clock.next_k, round(ft.now - clock.t0, 6)))
+        ft.now += 0.0003
+
     clock.wait_next(before, 0.001)             # tick 0 is due at once: no time to warm up
     ft.now += 0.002
+    n_sleeps = len(ft.sleeps)
     t1 = clock.wait_next(before, 0.001)
-    assert calls == [(1, round(0.009 + 0.0001, 6))]   # at the deadline minus the lead (plus overshoot)
-    assert t1.k == 1 and t1.late_s == pytest.approx(0.0001)
+    # from the deadline minus the lead (plus the sleep's overshoot), while one more 0.3-ms call
+    # still ends 0.1 ms (WARM_GUARD_S) before the deadline: at 9.1 and 9.4 ms, not at 9.7 ms
+    assert calls == [(1, 0.0091), (1, 0.0094)]
+    # then no more sleeping through: only sleep(0) (which overshoots by 0.1 ms here) up to the deadline
+    assert ft.sleeps[n_sleeps] == pytest.approx(0.007) and set(ft.sleeps[n_sleeps + 1:]) == {0}
+    assert t1.k == 1 and 0.0 <= t1.late_s <= 0.0001
     ft.now += 0.0095                           # work ran into the lead window: no warm-up
     t2 = clock.wait_next(before, 0.001)
-    assert len(calls) == 1 and t2.k == 2
+    assert len(calls) == 2 and t2.k == 2
 
 
 def test_lockstep_clock_advances_the_world_one_tick_per_iteration():
@@ -562,3 +571,30 @@ def test_rt_priority_is_set_for_every_thread_and_restored():
         stop.set()
     assert os.sched_getscheduler(0) == before
     assert _set_fifo(0) is None
+
+
+@pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
+def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibration_curve(profile):
+    from cfrace.drone import load_profile
+    from cfrace.env.actions import action_to_command
+    from cfrace.flight.link import thrust_to_counts
+    from cfrace.flight.loop import SetpointMap
+
+    prof = load_profile(profile)
+    m = SetpointMap(prof.mass, prof.max_thrust_weights, prof.max_rates_deg, prof.thrust_curve)
+    rng = np.random.default_rng(0)
+    acts = rng.uniform(-1.3, 1.3, size=(20000, 4)).astype(np.float32)
+    # thrust exactly at every knot of the curve, and at the ends
+    knots = np.asarray(prof.thrust_curve.newtons) / (prof.max_thrust_weights * prof.mass * 9.81) * 2.0 - 1.0
+    acts[:len(knots), 0] = knots.astype(np.float32)
+    acts[-4:] = [[-1, -1, -1, -1], [1, 1, 1, 1], [0, 0, 0, 0], [np.nan, 0.5, np.nan, 0.1]]
+    for a in acts:
+        thrust, rates, counts = m(a)
+        ref_thrust, ref_rates = action_to_command(a.astype(np.float64), prof.mass, prof.max_thrust_weights,
+                                                  prof.max_rates_deg)
+        ref_dps = np.degrees(ref_rates)
+        if not np.isfinite(ref_thrust):
+            assert not math.isfinite(thrust) and counts == 0
+        else:
+            assert thrust == float(ref_thrust) and counts == thrust_to_counts(float(ref_thrust), prof.thrust_curve)
+        np.testing.assert_array_equal(np.array(rates), ref_dps)

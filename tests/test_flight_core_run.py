@@ -339,3 +339,33 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
     path = float(np.linalg.norm(np.asarray(poses[max(poses)]["pos"]) - np.asarray(first["pos"])))
     assert len(errors) > 200 and path > 3.0            # it flew, through the fast part after gate 2
     assert max(errors) < 0.005, max(errors)            # 5 mm over 2.5 s of flight
+
+
+def test_the_warm_up_before_each_tick_changes_nothing_the_loop_computes(tmp_path):
+    """The real-time loop runs, just before every tick, the tick's pure parts on the newest data
+    (estimator and race progress on copies of their state, observation, ONNX, action map, safety
+    check; FlightLoop.prewarm). Run three times before every tick in lockstep, the race (ours
+    against ds with pose noise, a pose outlier and a short mocap dropout for the estimator's
+    state machine) must be the same to the last bit: estimates, observations, actions,
+    setpoints, gate passes, safety events and counters."""
+    def race(warm_calls: int, name: str):
+        c = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile=PROFILE, quiet=True, laps=1,
+                         timeout_s=2.5, log=tmp_path / name)
+        r = dry_run(c, lockstep=True, faults="pose_outlier@0.6,mocap_dropout_short@1.2:opp",
+                    mocap_noise_m=0.002, lockstep_warm_calls=warm_calls)
+        return r, read_log(tmp_path / name)
+
+    (plain, plain_log), (warm, warm_log) = race(0, "plain.mcap"), race(3, "warm.mcap")
+    assert plain_log.summary["loop"]["prewarm_calls_mean"] == 0.0
+    assert warm_log.summary["loop"]["prewarm_calls_mean"] == pytest.approx(3.0, abs=0.01)
+    topics = ("/estimate", "/obs", "/action", "/setpoint", "/race", "/safety")
+    for topic in topics:
+        a, b = list(plain_log.messages(topic)), list(warm_log.messages(topic))
+        assert len(a) == len(b) and len(a) > 0 or topic in ("/race",), topic
+        for (ta, ma), (tb, mb) in zip(a, b):
+            assert ta == tb
+            np.testing.assert_equal(ma, mb, err_msg=topic)
+    assert sum(1 for _ in plain_log.messages("/obs")) > 100
+    assert [e["kind"] for e in plain["safety_events"]] == [e["kind"] for e in warm["safety_events"]]
+    assert "pose_outlier" in [e["kind"] for e in plain["safety_events"]]
+    assert plain["drones"] == warm["drones"] and plain["estimator"] == warm["estimator"]

@@ -148,7 +148,7 @@ def test_flight_config_checks():
         FlightConfig(track="lemniscate", ego="a", opp="b", uris=("udp://x:1", "udp://x:1"))
     with pytest.raises(ConfigError, match="missing --track"):
         make_config(None, ego="a", opp="b")
-    assert FlightConfig(track="lemniscate", ego="a", opp="b").prewarm_s == 0.001
+    assert FlightConfig(track="lemniscate", ego="a", opp="b").prewarm_s == 0.003
     assert FlightConfig(track="lemniscate", ego="a", opp="b").velocity_alpha == 1.0
     for bad in (0.0, 1.5, float("nan")):
         with pytest.raises(ConfigError, match="velocity_alpha"):

@@ -134,8 +134,9 @@ def register(app: typer.Typer) -> None:
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
         rt_priority: Optional[int] = typer.Option(None, help="Run the loop thread SCHED_FIFO at this priority "
                                                              "(Linux, root or CAP_SYS_NICE); 0 = off."),
-        prewarm_ms: Optional[float] = typer.Option(None, help="Run the next tick's policy once this many ms before "
-                                                              "the tick to warm the CPU caches (default 1; 0 = off)."),
+        prewarm_ms: Optional[float] = typer.Option(None, help="Warm-up window: this many ms before each tick the "
+                                                              "loop runs the tick's pure parts over and over and "
+                                                              "does not sleep (default 3; 0 = off)."),
         velocity_alpha: Optional[float] = typer.Option(None, help="Velocity filter of the pose estimator: "
                                                                   "v += alpha (difference - v), (0, 1] (default 1: plain differences)."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),

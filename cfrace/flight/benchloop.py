@@ -71,7 +71,7 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
                log: bool = True, rt_priority: int = 0, policies: str = "paper",
-               prewarm_s: float = 0.001) -> dict:
+               prewarm_s: float = 0.003) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)

@@ -5,8 +5,12 @@ overshoot). A tick that starts late never causes a burst: when the previous tick
 more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
 with fresh mocap data. Waiting is a plain sleep: on this 2-core machine busy-waiting the last
 fraction of a millisecond made the jitter worse (the scheduler preempts spinning threads).
-``wait_next(before, lead_s)`` calls ``before()`` once, ``lead_s`` ahead of the deadline, inside
-the wait (the flight loop warms the caches with it: FlightLoop.prewarm).
+``wait_next(before, lead_s)`` sleeps until ``lead_s`` ahead of the deadline, then calls ``before()``
+again and again while one more call still ends ``WARM_GUARD_S`` before the deadline (at most
+``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``sleep(0)`` in a loop: it
+yields the GIL but keeps the CPU): the flight loop keeps its code and data warm with it
+(FlightLoop.prewarm). On this VM anything the loop does after a real sleep, even one of 0.1 ms,
+runs several times slower (docs/benchmarks.md, "Warm-up").
 
 LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
 period (or by a requested stall) and the loop's time is k dt.
@@ -17,6 +21,9 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+
+WARM_GUARD_S = 1e-4     #: the last warm-up call ends at least this long before the deadline
+WARM_MAX_CALLS = 64     #: warm-up calls per tick at most
 
 
 @dataclass(frozen=True)
@@ -56,8 +63,20 @@ class RealClock:
         now = self._perf()
         if before is not None and now < deadline - lead_s:
             self._sleep(deadline - lead_s - now)
-            before()
+            # repeat while the next call (no longer than the last one: they get faster as the caches
+            # fill) still ends WARM_GUARD_S before the deadline
+            end = deadline - WARM_GUARD_S
+            a = self._perf()
+            for _ in range(WARM_MAX_CALLS):
+                before()
+                b = self._perf()
+                if b + (b - a) > end:
+                    break
+                a = b
             now = self._perf()
+            while now < deadline:    # stay on the CPU: a real sleep here undoes the warm-up
+                self._sleep(0)       # lets cflib's and the mocap's threads take the GIL meanwhile
+                now = self._perf()
         if now < deadline:
             self._sleep(deadline - now)
             now = self._perf()
@@ -79,26 +98,29 @@ class RealClock:
 class LockstepClock:
     """Virtual time for --lockstep: ``advance(dt)`` moves the simulated world one tick."""
 
-    def __init__(self, dt: float, advance=None):
+    def __init__(self, dt: float, advance=None, warm_calls: int = 0):
         self.dt = float(dt)
         self._advance = advance
-        self._k = -1
+        self.warm_calls = int(warm_calls)   #: before() calls per tick (tests: the warm-up changes nothing)
+        self._k = self._now_k = -1
         self._stall = 0.0
         self.skipped = 0
         self.realtime = False
 
     def start(self) -> None:
-        self._k = -1
+        self._k = self._now_k = -1
 
     def now(self) -> float:
-        return max(self._k, 0) * self.dt
+        return max(self._now_k, 0) * self.dt
 
     @property
     def next_k(self) -> int:
         return self._k + 1
 
     def wait_next(self, before=None, lead_s: float = 0.0) -> Tick:
-        """``before`` is ignored: no wall-clock wait to use."""
+        """One tick on. ``before`` is called ``warm_calls`` times (0 by default: no wall-clock wait
+        to use) after the world moved and with now() at the new tick, as the real-time warm-up
+        runs just before the deadline."""
         late, skipped = 0.0, 0
         if self._k >= 0:
             if self._stall > 0.0:
@@ -108,7 +130,12 @@ class LockstepClock:
                 self._stall = 0.0
             if self._advance is not None:
                 self._advance(self.dt * (1 + skipped))
+            self._now_k = self._k + 1 + skipped
+            if before is not None and skipped == 0:
+                for _ in range(self.warm_calls):
+                    before()
         self._k += 1 + skipped
+        self._now_k = self._k
         self.skipped += skipped
         t = self._k * self.dt
         return Tick(self._k, t, late, skipped, t)

@@ -67,7 +67,7 @@ class FlightConfig:
     quiet: bool = False                          #: no live view
     view_hz: float = 4.0                         #: Hz, live view refresh
     rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
-    prewarm_s: float = 0.001                     #: s before each tick: warm the caches (FlightLoop.prewarm; 0 = off)
+    prewarm_s: float = 0.003                     #: s before each tick: the warm-up window (FlightLoop.prewarm; 0 = off)
     velocity_alpha: float = 1.0                  #: estimator low-pass on pose differences, (0, 1]; 1 = none (docs/flight.md)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 

@@ -67,7 +67,8 @@ def training_profile(track: str, ego: str, obstacles: bool, default: str = "cf21
 
 
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
-            mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None) -> dict:
+            mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
+            lockstep_warm_calls: int = 0) -> dict:
     """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info."""
     from cfrace.simcf.firmware import SimFleet
     from cfrace.simcf.server import SimCrazyflieServer
@@ -97,7 +98,7 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
                           mocap_options=mocap_options, uris=uris, settle=_settle(fleet, lockstep, cfg.dt),
                           extra_meta={"dry_run": True, "seed": seed, "faults": faults or "",
                                       "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s},
-                          console=console)
+                          console=console, lockstep_warm_calls=lockstep_warm_calls)
         if server is not None:
             result["sim"] = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
         return result

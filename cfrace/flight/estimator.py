@@ -19,6 +19,7 @@ Plain float64 arithmetic and no randomness: the same frames and times give the s
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -149,6 +150,18 @@ class PoseEstimator:
         tr.pos, tr.quat, tr.t, tr.now = p, q, t, now
         tr.samples += 1
         tr.out_pos, tr.out_run = None, 0
+
+    def peek(self, frame: MocapFrame | None, now: float) -> dict[str, Estimate]:
+        """What update(frame, now) would return, leaving the estimator as it was (the same code
+        runs on a copy of the state: the flight loop's warm-up uses it)."""
+        tracks, counters, last = self._tracks, self.counters, self._last_frame
+        self._tracks = {b: copy.copy(tr) for b, tr in tracks.items()}
+        self.counters = {b: dict(c) for b, c in counters.items()}
+        self._last_frame = None     # a frame update() has taken runs through the same checks again
+        try:
+            return self.update(frame, now)
+        finally:
+            self._tracks, self.counters, self._last_frame = tracks, counters, last
 
     def update(self, frame: MocapFrame | None, now: float) -> dict[str, Estimate]:
         """Take a new frame (or None when none arrived) at caller time `now` (s); estimates for

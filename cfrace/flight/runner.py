@@ -78,6 +78,8 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
            "late_ms": stats(timing["late"]), "period_jitter_ms": stats(jitter),
            "compute_ms": stats(timing["compute"]), "compute_cpu_ms": stats(timing.get("compute_cpu", [])),
            "prewarm_ms": stats(timing.get("prewarm", [])),
+           "prewarm_calls_mean": (round(float(np.mean(timing["prewarm_calls"])), 2)
+                                  if len(timing.get("prewarm_calls", [])) else None),
            "inference_ms": {n: stats(x) for n, x in zip(names, timing["infer"])},
            "observation_ms": {n: stats(x) for n, x in zip(names, timing.get("obs", [[]] * len(names)))}}
     out["period_jitter_p99_ms"] = out["period_jitter_ms"]["p99"]
@@ -159,10 +161,13 @@ class _Signals:
 
 
 def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=None, mocap_options=None,
-             uris=None, extra_meta=None, settle=None, console=None, announce=None) -> dict:
+             uris=None, extra_meta=None, settle=None, console=None, announce=None,
+             lockstep_warm_calls: int = 0) -> dict:
     """Fly one race (real drones or simulated ones) and return the result dict (see docs/flight.md).
 
-    fleet: the in-process SimFleet for `sim` mocap / sim:// links; lockstep: drive it tick by tick.
+    fleet: the in-process SimFleet for `sim` mocap / sim:// links; lockstep: drive it tick by tick
+    (with lockstep_warm_calls > 0 the loop's warm-up runs that often before every tick, as it does
+    in real time: tests show it changes nothing).
     injector: a faults.FaultInjector; settle(): called after every drone was stopped, returns a
     dict stored in the result and the log summary (the dry-run waits for motors off there).
     announce(meta): called once every check passed and every link answered, before the set-up."""
@@ -180,7 +185,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
     loop_ref: list = []
     links, mocap, log, view = [], None, None, None
     result: dict = {"end": "error", "winner": "draw"}
-    clock = LockstepClock(dt, advance=fleet.advance) if lockstep else RealClock(dt)
+    clock = LockstepClock(dt, advance=fleet.advance, warm_calls=lockstep_warm_calls) if lockstep else RealClock(dt)
     link_clock = clock.now if lockstep else time.monotonic
     meta = {"track": track.name, "obstacles": cfg.obstacles, "laps": cfg.laps, "profile": profile.name,
             "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies), "uris": uris, "mocap": cfg.mocap,
@@ -224,7 +229,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                               obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                               fence=Fence.from_track(track, cfg.safety.geofence_margin_m), safety_cfg=cfg.safety,
                               laps=cfg.laps, timeout_s=cfg.timeout_s, log=log, view=view, faults=injector,
-                              kill=kill, link_clock=link_clock, prewarm_s=0.0 if lockstep else cfg.prewarm_s)
+                              kill=kill, link_clock=link_clock, prewarm_s=0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s)
             loop_ref.append(loop)
             if log is not None:
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
@@ -233,6 +238,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                       "operator_kill": kill.reason, "rt_fifo": fifo, "track": track.name, "profile": profile.name,
                       "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
                       "safety_events": res.safety_events, "drones": res.drones,
+                      "estimator": {b: dict(c) for b, c in loop.estimator.counters.items()},
                       "laps": {d["name"]: d["laps"] for d in res.drones},
                       "lap_times": {d["name"]: d["lap_times"] for d in res.drones}}
             if log is not None:
