@@ -5,9 +5,10 @@ One Crazyflie object per drone; one Crazyradio per drone is the documented setup
 at 100 Hz are ~220-420 packets/s, too many for one radio; docs/flight.md).
 
 Link loss is detected three ways, whichever comes first: cflib's connection_lost / disconnected
-callbacks (radio: too many lost packets; udp: socket errors), and silence: cflib pings the drone
-every 100 ms (link statistics), so ``quality.last_rx`` older than safety.link_timeout_s means the
-drone no longer answers.
+callbacks (radio: too many lost packets; udp: socket errors), and silence: the drone is pinged
+every 100 ms (by cflib's link statistics until the race starts, then by the flight loop itself,
+see ``pace_pings``), so ``quality.last_rx`` older than safety.link_timeout_s means the drone no
+longer answers.
 """
 
 from __future__ import annotations
@@ -151,6 +152,25 @@ class CflibLink:
         r, p, y = cflib_setpoint_args(float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps))
         cf.commander.send_setpoint(r, p, y, int(thrust_counts))
         self.quality.sent += 1
+
+    def pace_pings(self) -> None:
+        """Stop cflib's ping thread (an echo request every 100 ms from its own timer; each answer
+        runs its p95 over the last 100 round trips on cflib's packet thread, holding the GIL): the
+        flight loop sends the same pings itself, right after its setpoints every 10th tick, so that
+        the answers are handled in the idle part of the period instead of inside a tick."""
+        cf = self._cf
+        if cf is not None:
+            cf.link_statistics.latency.stop()   # joins the thread: up to one 100-ms sleep
+
+    def ping(self) -> None:
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            cf.link_statistics.latency.ping()   # the answer updates quality.last_rx and latency_ms
+        except Exception as exc:  # a dying link: the silence check reports it
+            self.quality.errors += 1
+            self.quality.error = f"ping failed: {exc}"[:200]
 
     def stop(self) -> None:
         """Zero thrust, the generic STOP setpoint (motors off), then disarm. Never raises."""

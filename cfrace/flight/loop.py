@@ -179,6 +179,7 @@ class FlightLoop:
         self.laps, self.timeout_s, self.log, self.view, self.faults = laps, timeout_s, log, view, faults
         self.kill = kill or KillSwitch()
         self.link_log_every = link_log_every
+        self.ping_every = max(1, round(0.1 / clock.dt))   #: ticks between pings (100 ms, as cflib's own)
         self.link_clock = link_clock or time.monotonic   #: the clock the links stamp last_rx with
         self.events: list[dict] = []
         self._active: set = set()        # (kind, drone) of violations currently present
@@ -297,6 +298,8 @@ class FlightLoop:
         before = self.prewarm if self.prewarm_s > 0.0 else None
         infer_l, obs_l = [[] for _ in range(n)], [[] for _ in range(n)]
         end, winner = "", "draw"
+        for d in self.drones:
+            d.link.pace_pings()   # pinged by this loop from now on, after the setpoints (Link.ping)
         self.clock.start()
         self.running = True
         prev_wall = None
@@ -380,6 +383,10 @@ class FlightLoop:
     def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu, infer,
                      computed) -> None:
         obs_t, infer = infer
+        if k % self.ping_every == 0:     # right after the setpoints: answers arrive in the idle part
+            for d in self.drones:
+                if not d.stopped:
+                    d.link.ping()
         # safety: log each violation once per episode (it re-arms when it clears)
         present = set()
         for v in decision.violations:
