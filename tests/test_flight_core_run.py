@@ -48,8 +48,9 @@ def lockstep_run(pols, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("lockstep")
     from dataclasses import replace
 
-    # a non-default velocity filter: the replay must take it from the log to reproduce the observations
-    result = dry_run(replace(cfg(pols, tmp), velocity_alpha=0.7), lockstep=True)
+    # a non-default velocity filter and latency compensation: the replay must take them from the log
+    # to reproduce the observations
+    result = dry_run(replace(cfg(pols, tmp), velocity_alpha=0.7, latency_comp_s=0.008), lockstep=True)
     return result, tmp / "flight.mcap"
 
 
@@ -369,3 +370,21 @@ def test_the_warm_up_before_each_tick_changes_nothing_the_loop_computes(tmp_path
     assert [e["kind"] for e in plain["safety_events"]] == [e["kind"] for e in warm["safety_events"]]
     assert "pose_outlier" in [e["kind"] for e in plain["safety_events"]]
     assert plain["drones"] == warm["drones"] and plain["estimator"] == warm["estimator"]
+
+
+def test_mocap_latency_compensation_keeps_a_shipped_policy_flying_at_40_ms(tmp_path):
+    """The shipped ours alone through the lockstep stack with every pose 40 ms late: without
+    compensation it falls in lap 1 (it flies with up to 30 ms); with the estimator predicting each
+    pose 40 ms ahead (position with the velocity, attitude with the body rates; `latency_comp_s`)
+    it flies two laps."""
+    from dataclasses import replace
+
+    base = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile=PROFILE, quiet=True, laps=2, timeout_s=15.0)
+    late = dry_run(replace(base, latency_comp_s=0.0), lockstep=True, faults="nan_policy@0.02:opp",
+                   mocap_latency_s=0.040)
+    ego = late["drones"][0]
+    assert ego["stopped"] and ego["laps"] == 0 and ego["stop_kind"] != "finished", ego
+    comp = dry_run(replace(base, log=tmp_path / "comp.mcap"), lockstep=True, faults="nan_policy@0.02:opp",
+                   mocap_latency_s=0.040)       # latency_comp_s None: the dry-run makes up for its latency
+    assert comp["winner"] == "ego" and comp["drones"][0]["laps"] == 2, comp["drones"][0]
+    assert read_log(tmp_path / "comp.mcap").meta["latency_comp_s"] == 0.040

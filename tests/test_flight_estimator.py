@@ -214,3 +214,47 @@ def test_replayed_log_reproduces_the_logged_estimates(tmp_path):
         assert got == want
     assert replay.read() is None and len(logged) > 250
     assert again.counters == live.counters
+
+
+def _axis_quat(axis, angle: float) -> np.ndarray:
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    return np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * axis])
+
+
+def _qmul(a, b) -> np.ndarray:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+@pytest.mark.parametrize("lead", [0.005, 0.01, 0.03])
+def test_latency_compensation_predicts_the_pose_lead_s_ahead(lead):
+    """A drone turning at constant body rates (6 rad/s about a tilted body axis, from a tilted
+    start) and moving at constant velocity: with lead_s the estimate is the pose lead_s after the
+    newest frame, in position and attitude; the velocity is the measured one."""
+    v = np.array([2.0, -1.0, 0.5])
+    omega = 6.0 * np.array([0.6, -0.3, 0.74]) / np.linalg.norm([0.6, -0.3, 0.74])   # body frame, rad/s
+    q_start = _axis_quat([1.0, 1.0, 0.0], 0.7)
+    w_norm, w_axis = np.linalg.norm(omega), omega / np.linalg.norm(omega)
+
+    def pose(t):   # world-from-body: q(t) = q_start exp(omega t / 2), body rates constant
+        return v * t, _qmul(q_start, _axis_quat(w_axis, w_norm * t))
+
+    est, plain = PoseEstimator(["cf1"], lead_s=lead), PoseEstimator(["cf1"])
+    for k in range(20):
+        f = frame(k, {"cf1": pose(k * DT)})
+        e, e0 = est.update(f, now=k * DT)["cf1"], plain.update(f, now=k * DT)["cf1"]
+    p_true, q_true = pose(19 * DT + lead)
+    np.testing.assert_allclose(e.pos, p_true, atol=1e-9)
+    np.testing.assert_allclose(e.rot, quat_to_rot(q_true), atol=1e-4)   # small-angle rate estimate
+    np.testing.assert_allclose(e.vel, v, atol=1e-9)
+    # without compensation the estimate is the newest frame's pose, lead_s behind the truth
+    np.testing.assert_allclose(e0.pos, pose(19 * DT)[0], atol=1e-12)
+    np.testing.assert_allclose(e0.rot, quat_to_rot(pose(19 * DT)[1]), atol=1e-12)
+    assert np.abs(e0.rot - quat_to_rot(q_true)).max() > 10 * np.abs(e.rot - quat_to_rot(q_true)).max()
+    # between frames the prediction runs on from the newest frame: lead_s plus the frame's age
+    e = est.update(None, now=19 * DT + 0.004)["cf1"]
+    np.testing.assert_allclose(e.pos, pose(19 * DT + 0.004 + lead)[0], atol=1e-9)
+    with pytest.raises(ValueError, match="lead_s"):
+        PoseEstimator(["cf1"], lead_s=-0.01)

@@ -156,6 +156,13 @@ def test_flight_config_checks():
     for bad in (-0.001, 0.01, float("nan")):   # negative, a whole period (100 Hz), NaN
         with pytest.raises(ConfigError, match="prewarm_s"):
             FlightConfig(track="lemniscate", ego="a", opp="b", prewarm_s=bad)
+    # mocap latency compensation: none for the in-process sim, 10 ms for everything else
+    assert FlightConfig(track="lemniscate", ego="a", opp="b", mocap="sim").latency_comp == 0.0
+    assert FlightConfig(track="lemniscate", ego="a", opp="b", mocap="vicon://10.0.0.1").latency_comp == 0.010
+    assert FlightConfig(track="lemniscate", ego="a", opp="b", mocap="sim", latency_comp_s=0.004).latency_comp == 0.004
+    for bad in (-0.001, 0.1, float("nan")):
+        with pytest.raises(ConfigError, match="latency_comp_s"):
+            FlightConfig(track="lemniscate", ego="a", opp="b", latency_comp_s=bad)
 
 
 def test_flight_config_file(tmp_path):
@@ -167,7 +174,8 @@ def test_flight_config_file(tmp_path):
     assert (cfg.safety.geofence_margin_m, cfg.safety.speed_max_mps, cfg.safety.tilt_max_deg) == (0.5, 6.0, 60.0)
     cfg = make_config(f, track="lemniscate", ego="ours", opp="ds", bodies=("x", "y"))
     assert cfg.bodies == ("x", "y")   # the command line wins
-    f.write_text("prewarm_s: 0.002\nvelocity_alpha: 0.5\n")
+    f.write_text("prewarm_s: 0.002\nvelocity_alpha: 0.5\nlatency_comp_s: 0.006\n")
+    assert make_config(f, track="lemniscate", ego="ours", opp="ds").latency_comp == 0.006
     assert make_config(f, track="lemniscate", ego="ours", opp="ds").prewarm_s == 0.002
     assert make_config(f, track="lemniscate", ego="ours", opp="ds").velocity_alpha == 0.5
     assert make_config(f, track="lemniscate", ego="ours", opp="ds", prewarm_s=0.0).prewarm_s == 0.0

@@ -139,6 +139,10 @@ def register(app: typer.Typer) -> None:
                                                               "does not sleep (default 3; 0 = off)."),
         velocity_alpha: Optional[float] = typer.Option(None, help="Velocity filter of the pose estimator: "
                                                                   "v += alpha (difference - v), (0, 1] (default 1: plain differences)."),
+        latency_comp_ms: Optional[float] = typer.Option(None, help="Predict every mocap pose this many ms forward "
+                                                                   "(position and attitude) to make up for the mocap "
+                                                                   "latency (default 10; 0 = off; docs/flight.md, "
+                                                                   "'Mocap latency')."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
@@ -152,7 +156,8 @@ def register(app: typer.Typer) -> None:
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
-                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha)
+                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
+                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")

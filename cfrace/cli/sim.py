@@ -53,6 +53,11 @@ def dry_run_cmd(
                                                             "per loop iteration (fast, deterministic)."),
     timeout_s: float = typer.Option(60.0, help="End the race (draw) after this many seconds of race time."),
     mocap_noise_m: float = typer.Option(0.0, help="Gaussian mocap position noise (m)."),
+    mocap_latency_ms: float = typer.Option(0.0, help="Simulated mocap latency (ms): a pose reaches the loop this "
+                                                     "long after it was taken (the simulated drones are polled "
+                                                     "once per tick, so in effect it rounds up to 10 ms)."),
+    latency_comp_ms: Optional[float] = typer.Option(None, help="The estimator predicts poses this many ms forward "
+                                                               "(as `cfrace fly`; default: the simulated latency)."),
     seed: int = typer.Option(0),
     rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
     prewarm_ms: float = typer.Option(3.0, help="Warm-up window: this many ms before each tick the loop runs the "
@@ -72,8 +77,10 @@ def dry_run_cmd(
         profile = training_profile(track, ego, obstacles)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
-                       rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha)
-    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m, console=console)
+                       rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
+                       latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
+    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
+                     mocap_latency_s=mocap_latency_ms / 1e3, console=console)
     print_result(result)
     write_json(result, json_out)
     code = exit_code(result)
@@ -111,13 +118,16 @@ def register(app: typer.Typer) -> None:
     def bench_loop_cmd(
         duration_s: float = typer.Option(10.0, help="Seconds of real-time flight to measure."),
         track: str = typer.Option("lemniscate", help="Track name."),
-        profile: str = typer.Option("cf21bl", help="Drone profile."),
+        profile: Optional[str] = typer.Option(None, help="Drone profile (default: the shipped policies' training "
+                                                         "profile with --policies shipped, else cf21bl)."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
         rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
         policies: str = typer.Option("paper", help="paper: a hold controller in the paper's actor size "
                                                    "[512, 512, 256, 128]; shipped: policies/ours_TRACK vs ds_TRACK."),
         prewarm_ms: float = typer.Option(3.0, help="Warm-up window this many ms before each tick (as `cfrace fly`); "
                                                    "0 = off."),
+        latency_comp_ms: Optional[float] = typer.Option(None, help="Mocap latency compensation (as `cfrace fly`; "
+                                                                   "default 10: the pose stream is 0-10 ms old)."),
     ):
         """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
         from rich.table import Table
@@ -128,7 +138,8 @@ def register(app: typer.Typer) -> None:
             from cfrace.errors import ConfigError
             raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
         r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                        prewarm_s=prewarm_ms / 1e3)
+                        prewarm_s=prewarm_ms / 1e3,
+                        latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
                         f"({r['policies']}), ms")

@@ -69,16 +69,22 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
     return str(ego), str(opp), "hold controller in a [512, 512, 256, 128] MLP"
 
 
-def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str = "cf21bl",
+def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority: int = 0, policies: str = "paper",
-               prewarm_s: float = 0.003) -> dict:
-    """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict."""
+               prewarm_s: float = 0.003, latency_comp_s: float | None = None) -> dict:
+    """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
+    profile: simulated and flown drone profile; default: the shipped policies' training profile
+    (they crash on another one), cf21bl for the paper-size hold controller."""
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
         ego, opp, kind = bench_policies(track, work, policies)
+        if profile is None:
+            from cfrace.flight.dryrun import training_profile
+            profile = training_profile(track, ego, False) if policies == "shipped" else "cf21bl"
         base = _free_base_port()
         cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track, "--drones", "2",
-               "--port", str(base), "--profile", profile]
+               "--port", str(base), "--profile", profile,
+               "--no-obstacles"]   # as the race: the policies fly the track without obstacles
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
@@ -86,7 +92,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
-                               rt_priority=rt_priority, prewarm_s=prewarm_s)
+                               rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s)
             try:
                 result = run_race(cfg)
             except CfraceError as exc:
@@ -101,6 +107,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "policies": kind, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+    return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

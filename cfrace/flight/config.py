@@ -24,6 +24,14 @@ from cfrace.yamlcfg import Reader, load_yaml
 DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
 
 
+#: default mocap latency compensation (s) for real mocap systems and the sim:// pose stream: a 100-Hz
+#: frame is 0-10 ms old when the tick reads it, plus the system's own latency (Vicon: a few ms). In
+#: lockstep dry-runs the shipped policies flew with 10 ms too much compensation as well as with the
+#: right amount, and compensation kept them flying at latencies where they fell without it
+#: (docs/flight.md, "Mocap latency").
+LATENCY_COMP_DEFAULT_S = 0.010
+
+
 @dataclass(frozen=True)
 class SafetyConfig:
     """Limits of the per-tick safety check (cfrace.flight.safety). See docs/flight.md."""
@@ -69,6 +77,9 @@ class FlightConfig:
     rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
     prewarm_s: float = 0.003                     #: s before each tick: the warm-up window (FlightLoop.prewarm; 0 = off)
     velocity_alpha: float = 1.0                  #: estimator low-pass on pose differences, (0, 1]; 1 = none (docs/flight.md)
+    #: s the estimator predicts every pose forward (position with the velocity, attitude with the
+    #: body rates) to make up for the mocap's latency; None: LATENCY_COMP_DEFAULT_S, 0 for `sim`
+    latency_comp_s: float | None = None
     safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def __post_init__(self):
@@ -88,6 +99,8 @@ class FlightConfig:
             raise ConfigError(f"velocity_alpha: must be in (0, 1], got {self.velocity_alpha}")
         if not (0.0 <= self.prewarm_s < 1.0 / self.rate_hz):
             raise ConfigError(f"prewarm_s: must be in [0, one period = {1.0 / self.rate_hz} s), got {self.prewarm_s}")
+        if self.latency_comp_s is not None and not (0.0 <= self.latency_comp_s < 0.1):
+            raise ConfigError(f"latency_comp_s: must be in [0, 0.1) s, got {self.latency_comp_s}")
         if not 0 <= self.rt_priority <= 99:
             raise ConfigError(f"rt_priority: must be in [0, 99], got {self.rt_priority}")
         if self.timeout_s <= 0:
@@ -96,6 +109,14 @@ class FlightConfig:
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def latency_comp(self) -> float:
+        """latency_comp_s, or its default: none for the in-process `sim` source (its poses are read
+        at the tick, no latency), LATENCY_COMP_DEFAULT_S for every other source."""
+        if self.latency_comp_s is not None:
+            return self.latency_comp_s
+        return 0.0 if self.mocap == "sim" else LATENCY_COMP_DEFAULT_S
 
 
 def split_list(text: str | None) -> tuple[str, ...] | None:
@@ -126,6 +147,8 @@ def load_flight_file(path: str | Path) -> dict:
             out[key] = r.number(key, positive=True)
     if r.has("velocity_alpha"):
         out["velocity_alpha"] = r.number("velocity_alpha", positive=True, max=1.0)
+    if r.has("latency_comp_s"):
+        out["latency_comp_s"] = r.number("latency_comp_s", min=0.0, max=0.099)
     if r.has("prewarm_s"):
         out["prewarm_s"] = r.number("prewarm_s", min=0.0)
     if r.has("rt_priority"):

@@ -75,6 +75,8 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
 
     fault_list = parse_faults(faults)
     cfg = replace(cfg, mocap="sim")
+    if cfg.latency_comp_s is None:    # make up for the simulated latency (the `sim` default is none)
+        cfg = replace(cfg, latency_comp_s=float(mocap_latency_s))
     fleet = SimFleet(cfg.track, cfg.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles)
     injector = FaultInjector(fault_list, dict(zip(("ego", "opp"), cfg.bodies))) if fault_list else None
     server, relays = None, {}

@@ -55,6 +55,21 @@ def _rot_rows(w: float, x: float, y: float, z: float) -> list:
     ]
 
 
+def _rotate_body(q: tuple, omega: tuple, h: float) -> tuple:
+    """q (w, x, y, z) turned for h s at body rates omega (rad/s): q exp(omega h / 2), normalised."""
+    hx, hy, hz = 0.5 * h * omega[0], 0.5 * h * omega[1], 0.5 * h * omega[2]
+    n = math.sqrt(hx * hx + hy * hy + hz * hz)
+    if n < 1e-12:
+        return q
+    s = math.sin(n) / n
+    dw, dx, dy, dz = math.cos(n), hx * s, hy * s, hz * s
+    w, x, y, z = q
+    r = (w * dw - x * dx - y * dy - z * dz, w * dx + x * dw + y * dz - z * dy,
+         w * dy - x * dz + y * dw + z * dx, w * dz + x * dy - y * dx + z * dw)
+    m = math.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2] + r[3] * r[3])
+    return (r[0] / m, r[1] / m, r[2] / m, r[3] / m)
+
+
 @dataclass
 class _Track:
     """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
@@ -65,6 +80,7 @@ class _Track:
     t: float                       # frame clock of the last accepted pose
     now: float                     # caller clock of the update that accepted it
     vel: tuple = (0.0, 0.0, 0.0)
+    omega: tuple = (0.0, 0.0, 0.0)   # body rates, rad/s, from quaternion differences (filtered like vel)
     samples: int = 1
     out_pos: tuple | None = None   # last rejected pose, for re-acquisition
     out_t: float = 0.0
@@ -81,9 +97,12 @@ class PoseEstimator:
 
     def __init__(self, bodies: list[str], *, alpha: float = 0.5, max_speed_mps: float = 20.0,
                  max_jump_m: float = 0.3, stale_after_s: float = 0.1,
-                 predict_s: float | None = None, reacquire_after: int = 5):
+                 predict_s: float | None = None, reacquire_after: int = 5, lead_s: float = 0.0):
         if not 0.0 < alpha <= 1.0:
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
+        if not 0.0 <= lead_s < 0.1:
+            raise ValueError(f"lead_s must be in [0, 0.1) s, got {lead_s}")
+        self.lead_s = float(lead_s)
         self.bodies = list(bodies)
         self.alpha, self.max_speed_mps, self.max_jump_m = alpha, max_speed_mps, max_jump_m
         self.stale_after_s = stale_after_s
@@ -147,6 +166,19 @@ class PoseEstimator:
         pw, pqx, pqy, pqz = tr.quat
         if q[0] * pw + q[1] * pqx + q[2] * pqy + q[3] * pqz < 0.0:
             q = (-q[0], -q[1], -q[2], -q[3])
+        if self.lead_s > 0.0:
+            # body rates from the rotation between the two poses: q_rel = conj(q_prev) q, omega =
+            # 2 vec(q_rel) / dt (small angle: 0.1 rad per frame is 0.04 % off)
+            qw, qx, qy, qz = q
+            ex = pw * qx - pqx * qw - pqy * qz + pqz * qy
+            ey = pw * qy + pqx * qz - pqy * qw - pqz * qx
+            ez = pw * qz - pqx * qy + pqy * qx - pqz * qw
+            w = (2.0 * ex / dt, 2.0 * ey / dt, 2.0 * ez / dt)
+            if tr.samples == 1:
+                tr.omega = w
+            else:
+                a, (ox, oy, oz) = self.alpha, tr.omega
+                tr.omega = (ox + a * (w[0] - ox), oy + a * (w[1] - oy), oz + a * (w[2] - oz))
         tr.pos, tr.quat, tr.t, tr.now = p, q, t, now
         tr.samples += 1
         tr.out_pos, tr.out_run = None, 0
@@ -189,8 +221,12 @@ class PoseEstimator:
             self.counters[body]["stale"] += 1
         h = min(age, self.predict_s)
         (x, y, z), (vx, vy, vz) = tr.pos, tr.vel
+        quat = tr.quat
+        if self.lead_s > 0.0:
+            h += self.lead_s
+            quat = _rotate_body(quat, tr.omega, h)
         return Estimate(pos=np.array((x + vx * h, y + vy * h, z + vz * h)), vel=np.array(tr.vel),
-                        rot=np.array(_rot_rows(*tr.quat)), quat=np.array(tr.quat), t=tr.t, age_s=age,
+                        rot=np.array(_rot_rows(*quat)), quat=np.array(quat), t=tr.t, age_s=age,
                         valid=valid)
 
 

@@ -132,7 +132,8 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
               for i, n in enumerate(DRONE_NAMES)]
     collect = _Collect()
     loop = FlightLoop(drones=drones, mocap=source, estimator=PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s,
-                                                                         alpha=float(meta.get("velocity_alpha", 0.5))),
+                                                                         alpha=float(meta.get("velocity_alpha", 0.5)),
+                                                                         lead_s=float(meta.get("latency_comp_s", 0.0))),
                       progress=FastRaceProgress(track.gate_array(), len(drones)),
                       obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                       fence=Fence.from_track(track, safety.geofence_margin_m), safety_cfg=safety,

@@ -190,6 +190,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
     meta = {"track": track.name, "obstacles": cfg.obstacles, "laps": cfg.laps, "profile": profile.name,
             "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies), "uris": uris, "mocap": cfg.mocap,
             "lockstep": lockstep, "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
+            "latency_comp_s": cfg.latency_comp,
             "policies": {n: {"path": str(p), **pol.meta} for n, (pol, p) in zip(DRONE_NAMES, policies)},
             **(extra_meta or {})}
     with _Signals(kill, loop_ref):
@@ -218,7 +219,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
                 for d in drones:
                     injector.cutters.setdefault(d.name, getattr(d.link, "cut_link", None))
             estimator = PoseEstimator(list(cfg.bodies), stale_after_s=cfg.safety.mocap_stale_s,
-                                      alpha=cfg.velocity_alpha)
+                                      alpha=cfg.velocity_alpha, lead_s=cfg.latency_comp)
             progress = FastRaceProgress(track.gate_array(), len(drones))
             if not cfg.quiet:
                 from cfrace.flight.liveview import LiveView
