@@ -6,7 +6,9 @@ The flight loop sleeps most of each 10 ms period; this measures what that costs 
 (docs/benchmarks.md, "Cache warm-up before each tick"). Actor: the hold controller inside an MLP of
 the paper's size [512, 512, 256, 128] (cfrace.flight.testpolicy), run through cfrace.policy.OnnxPolicy
 as the loop runs it. Prints p50 / p90 / p99 in microseconds per sleep length, and the same with a
-warm-up call 1 ms before each timed call (what `--prewarm-ms 1` does in the loop).
+warm-up call 1 ms before each timed call (the loop's previous warm-up), with a busy loop instead of
+the sleep, and with the loop's current warm-up window (calls over and over from 3 ms before the
+deadline, then no sleep).
 """
 
 from __future__ import annotations
@@ -22,16 +24,34 @@ from cfrace.flight.testpolicy import make_sized_hold_policy
 from cfrace.policy import OnnxPolicy
 
 
-def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0.0) -> np.ndarray:
+def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0.0, mode: str = "once") -> np.ndarray:
+    """Time one call per period. mode: "once" (one warm-up call warm_lead_s before the deadline, then
+    sleep), "spin" (no call: a busy loop instead of the sleep for the whole period), "window" (the
+    loop's warm-up window: from warm_lead_s before the deadline call over and over while one more
+    call ends 0.1 ms before it, then sleep(0) in a loop up to it)."""
     out = []
     t0 = time.perf_counter()
     for k in range(1, calls + 1):
         deadline = t0 + k * period_s
-        if warm_lead_s > 0.0:
+        if mode == "spin":
+            while time.perf_counter() < deadline:
+                pass
+        elif warm_lead_s > 0.0:
             now = time.perf_counter()
             if now < deadline - warm_lead_s:
                 time.sleep(deadline - warm_lead_s - now)
-            policy(obs)
+            if mode == "window":
+                a = time.perf_counter()
+                while True:
+                    policy(obs)
+                    b = time.perf_counter()
+                    if b + (b - a) > deadline - 1e-4:
+                        break
+                    a = b
+                while time.perf_counter() < deadline:
+                    time.sleep(0)
+            else:
+                policy(obs)
         now = time.perf_counter()
         if now < deadline:
             time.sleep(deadline - now)
@@ -52,9 +72,12 @@ def main() -> None:
         print(f"{'case':34s} {'p50 us':>8s} {'p90 us':>8s} {'p99 us':>8s}")
         cases = [("back to back", 0.0, 0.0)] + [(f"every {p * 1e3:g} ms (sleep between)", p, 0.0)
                                                 for p in (0.001, 0.005, 0.01)]
-        cases.append(("every 10 ms, warm-up 1 ms before", 0.01, 0.001))
-        for name, period, lead in cases:
-            v = timed_calls(policy, obs, period, args.calls, lead)
+        cases = [(n, p, lead, "once") for n, p, lead in cases]
+        cases += [("every 10 ms, warm-up 1 ms before", 0.01, 0.001, "once"),
+                  ("every 10 ms, busy loop, no sleep", 0.01, 0.0, "spin"),
+                  ("every 10 ms, 3-ms warm-up window", 0.01, 0.003, "window")]
+        for name, period, lead, mode in cases:
+            v = timed_calls(policy, obs, period, args.calls, lead, mode)
             p50, p90, p99 = np.percentile(v, [50, 90, 99])
             print(f"{name:34s} {p50:8.0f} {p90:8.0f} {p99:8.0f}")
 
