@@ -116,10 +116,11 @@ def test_sim_source_noise_latency_dropout():
                      dropout=0.2, seed=7)
     src.open()
     sim.advance(0.01)
-    first = src.read(0.0)     # the scene as it was one latency before open (drones sit still)
-    assert first.t == pytest.approx(-0.03) and first.seq == 1
+    first = src.read(0.0)     # the scene as it was 30 ms ago: as at open, the drones sat still
+    assert first.t == pytest.approx(-0.02) and first.seq == 1
+    assert src.read(0.0) is None             # time did not move: nothing new
     sim.advance(0.01)
-    assert src.read(0.0) is None             # nothing newer is 30 ms old yet
+    assert src.read(0.0).t == pytest.approx(-0.01)
     frames = []
     for _ in range(2000):
         sim.advance(0.01)
@@ -131,6 +132,18 @@ def test_sim_source_noise_latency_dropout():
     assert abs(err.mean()) < 3e-4 and err.std() == pytest.approx(0.002, rel=0.1)
     present = np.mean([("cf1" in f.poses) for f in frames] + [("cf2" in f.poses) for f in frames])
     assert present == pytest.approx(0.8, abs=0.03)
+    # a latency between two reads of the simulator: interpolated, exact for constant velocity
+    sim = FakeSim()
+    src = open_mocap("sim", bodies=["cf1", "cf2"], sim=sim, latency_s=0.0037)
+    src.open()
+    for k in range(20):
+        sim.advance(0.01)
+        frame = src.read(0.0)
+        assert frame.t == pytest.approx(sim.t - 0.0037)
+        for name in ("cf1", "cf2"):
+            np.testing.assert_allclose(frame.poses[name].pos, sim.true_pos(name, frame.t), atol=1e-12)
+            np.testing.assert_allclose(frame.poses[name].quat, Q0, atol=1e-12)
+        assert src.read(0.0) is None
     # deterministic for a seed, different for another
     def run(seed):
         s = open_mocap("sim", bodies=["cf1"], sim=FakeSim(), noise_m=0.01, dropout=0.3, seed=seed)

@@ -54,8 +54,8 @@ def dry_run_cmd(
     timeout_s: float = typer.Option(60.0, help="End the race (draw) after this many seconds of race time."),
     mocap_noise_m: float = typer.Option(0.0, help="Gaussian mocap position noise (m)."),
     mocap_latency_ms: float = typer.Option(0.0, help="Simulated mocap latency (ms): a pose reaches the loop this "
-                                                     "long after it was taken (the simulated drones are polled "
-                                                     "once per tick, so in effect it rounds up to 10 ms)."),
+                                                     "long after it was taken (interpolated between the "
+                                                     "per-tick reads of the simulated drones)."),
     latency_comp_ms: Optional[float] = typer.Option(None, help="The estimator predicts poses this many ms forward "
                                                                "(as `cfrace fly`; default: the simulated latency)."),
     seed: int = typer.Option(0),

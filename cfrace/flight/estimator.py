@@ -124,8 +124,9 @@ class PoseEstimator:
     def _ingest(self, body: str, pos, quat, t: float, now: float) -> None:
         c = self.counters[body]
         c["frames"] += 1
-        px, py, pz = (float(v) for v in np.ravel(pos).tolist())
-        qw, qx, qy, qz = (float(v) for v in np.ravel(quat).tolist())
+        # tolist() gives Python floats (float64 values) for any float array, one call per vector
+        px, py, pz = pos.tolist() if getattr(pos, "ndim", 0) == 1 else np.ravel(pos).tolist()
+        qw, qx, qy, qz = quat.tolist() if getattr(quat, "ndim", 0) == 1 else np.ravel(quat).tolist()
         # a sum is finite iff every term is (no overflow at mocap magnitudes)
         if not math.isfinite(px + py + pz + qw + qx + qy + qz):
             c["invalid"] += 1

@@ -373,6 +373,21 @@ class SimSource(_Source):
             self._last_t = t
         return t
 
+    def _newest(self) -> tuple[float, dict] | None:
+        """(t, {body: (pos, quat)}) of the simulator's poses if newer than any seen, else None."""
+        try:
+            got = self.sim.poses()
+        except Exception as exc:   # noqa: BLE001 - a broken simulator is a mocap failure here
+            raise MocapError(f"{self.name}: poses() failed: {type(exc).__name__}: {exc}") from None
+        if got is None:
+            return None
+        t, poses = float(got[0]), got[1]
+        self._seen.update(poses)
+        if self._last_t is not None and t <= self._last_t:
+            return None
+        self._last_t = t
+        return t, poses
+
     def open(self, timeout_s: float = 5.0) -> None:
         if self._opened:
             return
@@ -393,18 +408,54 @@ class SimSource(_Source):
     def read(self, timeout_s: float = 0.02) -> MocapFrame | None:
         if not self._opened:
             self.open()
+        if self.latency_s == 0.0 and not self._buffer:
+            # no latency to emulate: the newest poses if they are new, without the buffer and its
+            # copies (the flight loop reads once per tick; the poses are fresh arrays per frame)
+            got = self._newest()
+            if got is not None:
+                return self._frame(*got)
+            if timeout_s <= 0.0:
+                return None
         deadline = time.monotonic() + max(timeout_s, 0.0)
         while True:
-            t_now = self._poll()
-            ready = [i for i, (t, _) in enumerate(self._buffer)
-                     if t <= t_now - self.latency_s + 1e-9]
-            if ready:
-                t, raw = self._buffer[ready[-1]]
-                del self._buffer[:ready[-1] + 1]
-                return self._frame(t, raw)
+            got = self._delayed(self._poll() - self.latency_s)
+            if got is not None:
+                return self._frame(*got)
             if time.monotonic() >= deadline:
                 return None
             time.sleep(0.001)
+
+    def _delayed(self, target: float) -> tuple[float, dict] | None:
+        """The scene at time ``target`` (now minus the latency), if it is later than the last frame
+        delivered: the newest buffered sample at or before it, or, between two samples, both
+        interpolated (position linear, attitude normalised linear; the simulated drones are read
+        once per tick, so a latency that is not a multiple of the tick falls between samples)."""
+        buf = self._buffer
+        j = -1
+        for i, (t, _) in enumerate(buf):
+            if t <= target + 1e-9:
+                j = i
+        if j < 0:
+            return None
+        t0, a = buf[j]
+        if j + 1 < len(buf) and target > t0 + 1e-9:
+            t1, b = buf[j + 1]
+            w = (target - t0) / (t1 - t0)
+            raw = {}
+            for body in a.keys() & b.keys():
+                (pa, qa), (pb, qb) = a[body], b[body]
+                if float(np.dot(qa, qb)) < 0.0:
+                    qb = -qb
+                q = (1.0 - w) * qa + w * qb
+                raw[body] = ((1.0 - w) * pa + w * pb, q / np.linalg.norm(q))
+            t0, a = target, raw
+        if t0 <= self._delivered_t + 1e-9:
+            return None
+        del buf[:j]                # keep sample j: the next frame may fall between it and j + 1
+        if t0 == buf[0][0]:
+            del buf[0]
+        self._delivered_t = t0
+        return t0, a
 
     def _frame(self, t: float, raw: dict) -> MocapFrame:
         poses = {}
