@@ -3,14 +3,13 @@
 RealClock: tick k is due at t0 + k dt (absolute deadlines: no drift, no accumulation of sleep
 overshoot). A tick that starts late never causes a burst: when the previous tick overran one or
 more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
-with fresh mocap data. Waiting is a plain sleep: on this 2-core machine busy-waiting the last
-fraction of a millisecond made the jitter worse (the scheduler preempts spinning threads).
+with fresh mocap data. Without a warm-up, waiting is a plain sleep.
 ``wait_next(before, lead_s)`` sleeps until ``lead_s`` ahead of the deadline, then calls ``before()``
 again and again while one more call still ends ``WARM_GUARD_S`` before the deadline (at most
 ``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``sleep(0)`` in a loop: it
 yields the GIL but keeps the CPU): the flight loop keeps its code and data warm with it
 (FlightLoop.prewarm). On this VM anything the loop does after a real sleep, even one of 0.1 ms,
-runs several times slower (docs/benchmarks.md, "Warm-up").
+runs several times slower (docs/benchmarks.md, "Warm-up window").
 
 LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
 period (or by a requested stall) and the loop's time is k dt.

@@ -15,14 +15,20 @@ latency the loop adds), ``compute_cpu_s`` (the CPU time the loop thread spent on
 without the time other processes took the CPU), and per drone ``obs_s`` (the observation) and
 ``infer_s`` (the ONNX run).
 
-Pre-warming (``prewarm_s`` > 0, real time only): the loop sleeps ~88 % of each period, and the
-first inference after such a sleep is slow: the paper-size actor takes ~0.5 ms after a 10 ms sleep
-against ~0.06 ms back to back on this machine (benchmarks/onnx_cold.py) (caches, and whatever else the VM's host ran
-meanwhile). So ``prewarm_s`` before each tick's deadline (1 ms by default; 0.5 ms made the ticks
-start late, the warm-up itself takes ~0.6 ms) the loop rebuilds the last observation of the drone
-that infers on that tick and runs its policy once, output discarded. The tick itself then computes
-on fresh data as before; the warm-up costs CPU time in the idle part of the period, not latency. Its
-duration is recorded (``prewarm_s`` in /timing).
+Warm-up window (``prewarm_s`` > 0, real time; 3 ms by default): code run after a sleep is slow
+on this machine (the paper-size actor: ~0.4 ms every 10 ms with sleeps in between against ~0.09
+ms back to back; benchmarks/onnx_cold.py). So from ``prewarm_s`` before each deadline the clock
+calls ``prewarm`` over and over (RealClock.wait_next): the tick's pure parts on the newest data
+(estimator and race progress on copies of their state, the observation, policy and action map of
+the drone due on that tick, the safety check), outputs discarded, and then waits the rest without
+sleeping. The tick itself then computes on fresh data as before
+(tests/test_flight_core_run.py: a race with and without it is bit-identical). The warm-up costs
+CPU time in the idle part of the period, not latency; its CPU time and passes per tick are
+recorded (``prewarm_s``, ``prewarm_calls`` in /timing).
+
+Pings: when the race starts the links stop their own ping timers (Link.pace_pings) and the loop
+pings every drone every 100 ms right after its setpoints, so that the answers are handled in the
+idle part of the period, not in the middle of a tick.
 """
 
 from __future__ import annotations
