@@ -388,3 +388,34 @@ def test_mocap_latency_compensation_keeps_a_shipped_policy_flying_at_40_ms(tmp_p
                    mocap_latency_s=0.040)       # latency_comp_s None: the dry-run makes up for its latency
     assert comp["winner"] == "ego" and comp["drones"][0]["laps"] == 2, comp["drones"][0]
     assert read_log(tmp_path / "comp.mcap").meta["latency_comp_s"] == 0.040
+
+
+def test_latency_options_reach_the_flight_and_its_log(pols, tmp_path, monkeypatch, capsys):
+    """`cfrace sim dry-run --mocap-latency-ms` simulates the latency and, unless told otherwise,
+    makes up for it; `--latency-comp-ms` overrides; `cfrace fly` refuses an out-of-range value
+    with one line before anything is opened."""
+    log = tmp_path / "lat.mcap"
+    argv = ["sim", "dry-run", "--lockstep", "--track", "lemniscate", "--ego", pols["ego"], "--opp", pols["opp"],
+            "--profile", PROFILE, "--laps", "1", "--timeout-s", "1", "--log", str(log), "--mocap-latency-ms", "25"]
+    code, out, err = run_cli(argv, monkeypatch, capsys)
+    assert code in (0, None), err   # a timeout draw is a normal end
+    data = read_log(log)
+    assert data.meta["mocap_latency_s"] == 0.025 and data.meta["latency_comp_s"] == 0.025
+
+    def ages(data):   # loop clock at the tick minus the simulator's time of the pose it used
+        timing = {m["k"]: m["now"] for _, m in data.messages("/timing")}
+        return [timing[m["k"]] - m["t_src"] for _, m in data.messages("/mocap/pose") if m["k"] in timing][5:]
+
+    age25 = ages(data)
+    code, out, err = run_cli(argv[:-1] + ["5", "--latency-comp-ms", "0"], monkeypatch, capsys)
+    data = read_log(log)
+    assert data.meta["latency_comp_s"] == 0.0 and data.meta["mocap_latency_s"] == 0.005
+    age5 = ages(data)
+    assert len(age25) > 50 and max(age25) - min(age25) < 1e-6 and max(age5) - min(age5) < 1e-6
+    assert age25[0] - age5[0] == pytest.approx(0.020, abs=1e-6)   # the poses are 20 ms older
+    code, out, err = run_cli(["fly", "--track", "lemniscate", "--ego", pols["ego"], "--opp", pols["opp"],
+                              "--uris", "udp://127.0.0.1:1,udp://127.0.0.1:2", "--mocap", "vicon://10.0.0.1",
+                              "--latency-comp-ms", "150", "--quiet", "--log", str(tmp_path / "x.mcap")],
+                             monkeypatch, capsys)
+    assert code == 2 and err.strip().splitlines() == [
+        "error: latency_comp_s: must be in [0, 0.1) s, got 0.15"], err
