@@ -107,6 +107,7 @@ def announce(meta: dict, con: Console = console) -> None:
     con.print(f"fence x {f.lo[0]:.2f}..{f.hi[0]:.2f}, y {f.lo[1]:.2f}..{f.hi[1]:.2f}, z <= {f.hi[2]:.2f} m; "
               f"speed <= {s['speed_max_mps']:g} m/s, tilt <= {s['tilt_max_deg']:g} deg, "
               f"mocap stale {s['mocap_stale_s'] * 1e3:.0f} ms, link silent {s['link_timeout_s'] * 1e3:.0f} ms; "
+              f"poses predicted {meta.get('latency_comp_s', 0.0) * 1e3:g} ms ahead for the mocap latency; "
               f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
 
 
