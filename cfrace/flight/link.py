@@ -84,7 +84,7 @@ class Link(Protocol):
 
     def pace_pings(self) -> None:
         """From now on the drone is pinged only by ping() (the loop calls it right after its
-        setpoints), not by a background timer at a random phase of the tick."""
+        setpoints), not by a background timer at a random phase of the tick. Never raises."""
 
     def ping(self) -> None:
         """Ask the drone for an echo (link-silence detection, latency). Never raises."""

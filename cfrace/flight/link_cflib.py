@@ -159,8 +159,13 @@ class CflibLink:
         flight loop sends the same pings itself, right after its setpoints every 10th tick, so that
         the answers are handled in the idle part of the period instead of inside a tick."""
         cf = self._cf
-        if cf is not None:
+        if cf is None:
+            return
+        try:
             cf.link_statistics.latency.stop()   # joins the thread: up to one 100-ms sleep
+        except Exception as exc:  # never raises: cflib's pings then simply go on
+            self.quality.errors += 1
+            self.quality.error = f"pace_pings failed: {exc}"[:200]
 
     def ping(self) -> None:
         cf = self._cf
