@@ -304,13 +304,13 @@ class FlightLoop:
         before = self.prewarm if self.prewarm_s > 0.0 else None
         infer_l, obs_l = [[] for _ in range(n)], [[] for _ in range(n)]
         end, winner = "", "draw"
-        for d in self.drones:
-            d.link.pace_pings()   # pinged by this loop from now on, after the setpoints (Link.ping)
-        self.clock.start()
-        self.running = True
         prev_wall = None
         k = 0
         try:
+            for d in self.drones:     # before the clock starts: it may wait for cflib's ping thread
+                d.link.pace_pings()   # pinged by this loop from now on, after the setpoints (Link.ping)
+            self.clock.start()
+            self.running = True
             while True:
                 self._warm_s, self._warm_n = 0.0, 0
                 tick = self.clock.wait_next() if before is None else self.clock.wait_next(before, self.prewarm_s)
