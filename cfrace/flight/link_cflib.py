@@ -74,10 +74,14 @@ class CflibLink:
         self._failed = message
         self._ready.set()
 
+    def _note_error(self, text: str) -> None:
+        """Count a link error and keep its text (one line, 200 characters) for the log and view."""
+        self.quality.errors += 1
+        self.quality.error = " ".join(str(text).split())[:200]
+
     def _on_lost(self, uri, message):
         self.quality.connected = False
-        self.quality.errors += 1
-        self.quality.error = " ".join(message.split())[:200]
+        self._note_error(message)
 
     def _on_disconnected(self, uri):
         self.quality.connected = False
@@ -164,8 +168,7 @@ class CflibLink:
         try:
             cf.link_statistics.latency.stop()   # joins the thread: up to one 100-ms sleep
         except Exception as exc:  # never raises: cflib's pings then simply go on
-            self.quality.errors += 1
-            self.quality.error = f"pace_pings failed: {exc}"[:200]
+            self._note_error(f"pace_pings failed: {exc}")
 
     def ping(self) -> None:
         cf = self._cf
@@ -174,8 +177,7 @@ class CflibLink:
         try:
             cf.link_statistics.latency.ping()   # the answer updates quality.last_rx and latency_ms
         except Exception as exc:  # a dying link: the silence check reports it
-            self.quality.errors += 1
-            self.quality.error = f"ping failed: {exc}"[:200]
+            self._note_error(f"ping failed: {exc}")
 
     def stop(self) -> None:
         """Zero thrust, the generic STOP setpoint (motors off), then disarm. Never raises."""
@@ -189,8 +191,7 @@ class CflibLink:
                 warnings.simplefilter("ignore")
                 cf.supervisor.send_arming_request(False)
         except Exception as exc:  # a dying link must not stop us from stopping the others
-            self.quality.errors += 1
-            self.quality.error = f"stop failed: {exc}"[:200]
+            self._note_error(f"stop failed: {exc}")
 
     def close(self) -> None:
         self.stop()

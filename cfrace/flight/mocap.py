@@ -358,15 +358,22 @@ class SimSource(_Source):
         self._delivered_t = -np.inf
         self._seq = 0
 
-    def _poll(self) -> float:
+    def _get(self) -> tuple[float, dict] | None:
+        """(t, {body: (pos, quat)}) from the simulator (None before its first pose); bodies seen."""
         try:
             got = self.sim.poses()
         except Exception as exc:   # noqa: BLE001 - a broken simulator is a mocap failure here
             raise MocapError(f"{self.name}: poses() failed: {type(exc).__name__}: {exc}") from None
         if got is None:            # nothing received yet (pose stream)
+            return None
+        self._seen.update(got[1])
+        return float(got[0]), got[1]
+
+    def _poll(self) -> float:
+        got = self._get()
+        if got is None:
             return -np.inf if self._last_t is None else self._last_t
-        t, poses = float(got[0]), got[1]
-        self._seen.update(poses)
+        t, poses = got
         if self._last_t is None or t > self._last_t:
             self._buffer.append((t, {b: (np.array(p, dtype=np.float64), np.array(q, dtype=np.float64))
                                      for b, (p, q) in poses.items()}))
@@ -375,14 +382,10 @@ class SimSource(_Source):
 
     def _newest(self) -> tuple[float, dict] | None:
         """(t, {body: (pos, quat)}) of the simulator's poses if newer than any seen, else None."""
-        try:
-            got = self.sim.poses()
-        except Exception as exc:   # noqa: BLE001 - a broken simulator is a mocap failure here
-            raise MocapError(f"{self.name}: poses() failed: {type(exc).__name__}: {exc}") from None
+        got = self._get()
         if got is None:
             return None
-        t, poses = float(got[0]), got[1]
-        self._seen.update(poses)
+        t, poses = got
         if self._last_t is not None and t <= self._last_t:
             return None
         self._last_t = t
