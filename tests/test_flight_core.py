@@ -580,30 +580,6 @@ def test_live_view_renders_every_drone(track):
     assert "test race" in text and "ego" in text and "opp" in text and "0/3" in text and "flying" in text
 
 
-def test_rt_priority_is_set_for_every_thread_and_restored():
-    import os
-
-    from cfrace.flight.runner import _set_fifo
-
-    stop = threading.Event()
-    helper = threading.Thread(target=stop.wait, daemon=True)
-    helper.start()
-    before = os.sched_getscheduler(0)
-    changed = _set_fifo(20)
-    try:
-        if changed is None:
-            pytest.skip("no permission for SCHED_FIFO here")
-        assert os.sched_getscheduler(0) == os.SCHED_FIFO and os.sched_getparam(0).sched_priority == 20
-        assert os.sched_getscheduler(helper.native_id) == os.SCHED_FIFO
-        assert os.sched_getparam(helper.native_id).sched_priority == 19
-    finally:
-        for tid, policy, param in changed or []:
-            os.sched_setscheduler(tid, policy, param)
-        stop.set()
-    assert os.sched_getscheduler(0) == before
-    assert _set_fifo(0) is None
-
-
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibration_curve(profile):
     from cfrace.drone import load_profile

@@ -108,7 +108,9 @@ def announce(meta: dict, con: Console = console) -> None:
               f"speed <= {s['speed_max_mps']:g} m/s, tilt <= {s['tilt_max_deg']:g} deg, "
               f"mocap stale {s['mocap_stale_s'] * 1e3:.0f} ms, link silent {s['link_timeout_s'] * 1e3:.0f} ms; "
               f"poses predicted {meta.get('latency_comp_s', 0.0) * 1e3:g} ms ahead for the mocap latency; "
-              f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
+              + (f"loop thread on CPU {meta['loop_cpu']}, the rest elsewhere; " if meta.get("loop_cpu") is not None
+                 else "loop thread not pinned; ")
+              + f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
 
 
 def register(app: typer.Typer) -> None:
@@ -144,6 +146,9 @@ def register(app: typer.Typer) -> None:
                                                                    "(position and attitude) to make up for the mocap "
                                                                    "latency (default 10; 0 = off; docs/flight.md, "
                                                                    "'Mocap latency')."),
+        loop_cpu: Optional[str] = typer.Option(None, help="CPU of the loop thread: auto (the highest CPU, when "
+                                                          "there are two or more), off, or a CPU number; the "
+                                                          "process's other threads go to the other CPUs."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
@@ -157,6 +162,7 @@ def register(app: typer.Typer) -> None:
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
+                          loop_cpu=loop_cpu,
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                           latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         if not cfg.uris:

@@ -65,6 +65,9 @@ def dry_run_cmd(
                                                "sleep, so that the tick runs warm; 0 = off."),
     velocity_alpha: float = typer.Option(1.0, help="Velocity filter of the pose estimator: v += alpha (difference - v), "
                                                    "(0, 1]; 1 = plain differences."),
+    loop_cpu: str = typer.Option("auto", help="CPU of the loop thread: auto (the highest CPU, when there are two "
+                                              "or more), off, or a CPU number; the other threads (the simulated "
+                                              "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
@@ -78,7 +81,7 @@ def dry_run_cmd(
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                       latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
+                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                      mocap_latency_s=mocap_latency_ms / 1e3, console=console)
     print_result(result)
@@ -128,6 +131,8 @@ def register(app: typer.Typer) -> None:
                                                    "0 = off."),
         latency_comp_ms: Optional[float] = typer.Option(None, help="Mocap latency compensation (as `cfrace fly`; "
                                                                    "default 10: the pose stream is 0-10 ms old)."),
+        loop_cpu: str = typer.Option("auto", help="CPU of the loop thread (as `cfrace fly`): auto, off or a CPU "
+                                                  "number; the simulated drones run on the other CPUs."),
     ):
         """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
         from rich.table import Table
@@ -138,7 +143,7 @@ def register(app: typer.Typer) -> None:
             from cfrace.errors import ConfigError
             raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
         r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                        prewarm_s=prewarm_ms / 1e3,
+                        prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu,
                         latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
@@ -161,6 +166,7 @@ def register(app: typer.Typer) -> None:
         out.print(t)
         out.print("goals met: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in r["goals_met"].items())
                   + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs"
+                  + (f", loop thread on CPU {r['loop_cpu']}" if r["loop_cpu"] is not None else ", loop not pinned")
                   + (", loop thread SCHED_FIFO)" if r["rt_fifo"] else ")"))
         if json_out is not None:
             json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")

@@ -23,6 +23,7 @@ from pathlib import Path
 
 from cfrace.errors import CfraceError, LinkError
 from cfrace.flight.config import FlightConfig
+from cfrace.flight.realtime import other_cpus, resolve_loop_cpu
 from cfrace.flight.runner import run_race
 from cfrace.paths import POLICIES_DIR
 
@@ -71,10 +72,13 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority: int = 0, policies: str = "paper",
-               prewarm_s: float = 0.003, latency_comp_s: float | None = None) -> dict:
+               prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto") -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
     profile: simulated and flown drone profile; default: the shipped policies' training profile
-    (they crash on another one), cf21bl for the paper-size hold controller."""
+    (they crash on another one), cf21bl for the paper-size hold controller.
+    loop_cpu: as `cfrace fly` (cfrace.flight.realtime); when the loop thread is pinned, the
+    simulated drones run on the other CPUs (real drones compute on their own hardware)."""
+    pinned = resolve_loop_cpu(loop_cpu)
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
         ego, opp, kind = bench_policies(track, work, policies)
@@ -88,13 +92,17 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                                 env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
+            if pinned is not None:   # before it starts its threads (they inherit it): Python is still starting
+                os.sched_setaffinity(proc.pid, other_cpus(pinned))
             cfg = FlightConfig(track=track, ego=ego, opp=opp, profile=profile, laps=1000, timeout_s=duration_s,
                                uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
-                               rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s)
+                               rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s,
+                               loop_cpu=loop_cpu)
             try:
                 result = run_race(cfg)
+                sim_cpus = sorted(os.sched_getaffinity(proc.pid)) if hasattr(os, "sched_getaffinity") else None
             except CfraceError as exc:
                 if proc.poll() is not None:   # the simulator process died: say why
                     raise LinkError(f"cfrace sim serve exited: {proc.stderr.read().strip()[-300:]}") from None
@@ -108,5 +116,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
     return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+            "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus,
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -8,7 +8,7 @@ drones; command-line options override it. Example::
     mocap: vicon://192.168.1.10
     profile: cf21bl
     safety: {geofence_margin_m: 0.3, speed_max_mps: 6.0}
-    velocity_alpha: 1.0      # optional: estimator velocity filter; prewarm_s, rt_priority, ... likewise
+    velocity_alpha: 1.0      # optional: estimator velocity filter; prewarm_s, rt_priority, loop_cpu, ... likewise
 
 Unknown keys are errors (cfrace.yamlcfg.Reader).
 """
@@ -19,6 +19,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from cfrace.errors import ConfigError
+from cfrace.flight.realtime import parse_loop_cpu
 from cfrace.yamlcfg import Reader, load_yaml
 
 DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
@@ -75,6 +76,9 @@ class FlightConfig:
     quiet: bool = False                          #: no live view
     view_hz: float = 4.0                         #: Hz, live view refresh
     rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
+    #: CPU of the loop thread: "auto" (the highest CPU of this process when it has two or more),
+    #: "off" or a CPU number; the process's other threads go to the other CPUs (flight/realtime.py)
+    loop_cpu: int | str = "auto"
     prewarm_s: float = 0.003                     #: s before each tick: the warm-up window (FlightLoop.prewarm; 0 = off)
     velocity_alpha: float = 1.0                  #: estimator low-pass on pose differences, (0, 1]; 1 = none (docs/flight.md)
     #: s the estimator predicts every pose forward (position with the velocity, attitude with the
@@ -101,6 +105,7 @@ class FlightConfig:
             raise ConfigError(f"prewarm_s: must be in [0, one period = {1.0 / self.rate_hz} s), got {self.prewarm_s}")
         if self.latency_comp_s is not None and not (0.0 <= self.latency_comp_s < 0.1):
             raise ConfigError(f"latency_comp_s: must be in [0, 0.1) s, got {self.latency_comp_s}")
+        object.__setattr__(self, "loop_cpu", parse_loop_cpu(self.loop_cpu))
         if not 0 <= self.rt_priority <= 99:
             raise ConfigError(f"rt_priority: must be in [0, 99], got {self.rt_priority}")
         if self.timeout_s <= 0:
@@ -153,6 +158,11 @@ def load_flight_file(path: str | Path) -> dict:
         out["prewarm_s"] = r.number("prewarm_s", min=0.0)
     if r.has("rt_priority"):
         out["rt_priority"] = int(r.number("rt_priority", min=0, max=99))
+    if r.has("loop_cpu"):
+        try:
+            out["loop_cpu"] = parse_loop_cpu(r.raw("loop_cpu"))
+        except ConfigError as exc:
+            raise r.fail("loop_cpu", str(exc).removeprefix("loop_cpu: ")) from None
     if r.has("laps"):
         out["laps"] = int(r.number("laps", min=1))
     if r.has("obstacles"):

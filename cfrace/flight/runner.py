@@ -15,7 +15,6 @@ block that stops every drone, closes the links and the mocap source and closes t
 from __future__ import annotations
 
 import gc
-import os
 import signal
 import sys
 import threading
@@ -28,6 +27,7 @@ import numpy as np
 from cfrace.drone import load_profile
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import PolicyError
+from cfrace.flight import realtime
 from cfrace.flight.clock import LockstepClock, RealClock
 from cfrace.flight.config import DRONE_NAMES, FlightConfig
 from cfrace.flight.estimator import PoseEstimator
@@ -88,48 +88,27 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
     return out
 
 
-def _set_fifo(priority: int) -> list | None:
-    """SCHED_FIFO for the calling (loop) thread at ``priority`` and for the process's other threads
-    (cflib's receive/ping/packet threads, the mocap reader) one below, so a thread holding the GIL
-    is never preempted by the machine's ordinary jobs while the loop waits for it (Linux, needs
-    root or CAP_SYS_NICE). Returns [(tid, old policy, old param)] to restore, or None."""
-    if priority <= 0 or not hasattr(os, "sched_setscheduler"):
-        return None
-    me = threading.get_native_id()
-    changed = []
-    try:
-        for th in [threading.current_thread()] + [t for t in threading.enumerate() if t.native_id != me]:
-            tid = 0 if th.native_id == me else th.native_id
-            if tid is None:
-                continue
-            old = (os.sched_getscheduler(tid), os.sched_getparam(tid))
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority if tid == 0 else max(1, priority - 1)))
-            changed.append((tid, *old))
-    except (OSError, PermissionError):
-        if not changed:
-            return None
-    return changed
-
-
-def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0) -> tuple[LoopResult, bool]:
+def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int | None = None
+                           ) -> tuple[LoopResult, bool]:
     """Run the loop with Python tuned for a steady 100 Hz: everything allocated so far is frozen
     out of the garbage collector (no long full collections mid-race), the GIL switch interval
-    drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), and
-    with rt_priority > 0 the loop thread runs SCHED_FIFO (it sleeps ~90 % of each period, so it
-    cannot starve the machine). Returns (result, whether SCHED_FIFO was in effect)."""
+    drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), the
+    loop thread gets ``loop_cpu`` to itself (every other thread of the process goes to the other
+    CPUs; cfrace.flight.realtime) and with rt_priority > 0 it runs SCHED_FIFO (it sleeps most of
+    each period, so it cannot starve the machine). Returns (result, whether SCHED_FIFO was in
+    effect)."""
     gc.collect()
     gc.freeze()
     old_switch = sys.getswitchinterval()
     sys.setswitchinterval(0.0005)
-    old_sched = _set_fifo(rt_priority)
+    old_sched = realtime.set_fifo(rt_priority)
+    old_cpus = None
     try:
+        old_cpus = realtime.pin_loop_thread(loop_cpu)
         return loop.run(), old_sched is not None
     finally:
-        for tid, policy, param in old_sched or []:
-            try:
-                os.sched_setscheduler(tid, policy, param)
-            except OSError:
-                pass   # that thread has ended
+        realtime.restore_affinity(old_cpus)
+        realtime.restore_scheduler(old_sched)
         sys.setswitchinterval(old_switch)
         gc.unfreeze()
 
@@ -181,6 +160,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
         from cfrace.errors import ConfigError
         raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {uris}")
     dt = cfg.dt
+    loop_cpu = None if lockstep else realtime.resolve_loop_cpu(cfg.loop_cpu)   # ConfigError before anything flies
     kill = KillSwitch()
     loop_ref: list = []
     links, mocap, log, view = [], None, None, None
@@ -190,7 +170,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
     meta = {"track": track.name, "obstacles": cfg.obstacles, "laps": cfg.laps, "profile": profile.name,
             "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies), "uris": uris, "mocap": cfg.mocap,
             "lockstep": lockstep, "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
-            "latency_comp_s": cfg.latency_comp,
+            "latency_comp_s": cfg.latency_comp, "loop_cpu": loop_cpu,
             "policies": {n: {"path": str(p), **pol.meta} for n, (pol, p) in zip(DRONE_NAMES, policies)},
             **(extra_meta or {})}
     with _Signals(kill, loop_ref):
@@ -234,9 +214,9 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
             loop_ref.append(loop)
             if log is not None:
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
-            res, fifo = _run_realtime_friendly(loop, 0 if lockstep else cfg.rt_priority)
+            res, fifo = _run_realtime_friendly(loop, 0 if lockstep else cfg.rt_priority, loop_cpu)
             result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
-                      "operator_kill": kill.reason, "rt_fifo": fifo, "track": track.name, "profile": profile.name,
+                      "operator_kill": kill.reason, "rt_fifo": fifo, "loop_cpu": loop_cpu, "track": track.name, "profile": profile.name,
                       "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
                       "safety_events": res.safety_events, "drones": res.drones,
                       "estimator": {b: dict(c) for b, c in loop.estimator.counters.items()},
