@@ -176,8 +176,11 @@ def test_bench_loop_against_a_sim_serve_process():
     and the sim:// pose stream; every figure is measured."""
     from cfrace.flight.benchloop import bench_loop
 
-    r = bench_loop(2.0, profile=PROFILE)
+    r = bench_loop(2.0, profile=PROFILE, floor_s=1.0)
     loop = r["loop"]
+    floor = r["floor"]   # the machine's floor: a loop with no work, same CPU and priority
+    assert floor["ticks"] == 100 and floor["loop_cpu"] == r["loop_cpu"]
+    assert 0 < floor["late_ms"]["p50"] <= floor["late_ms"]["p99"] <= floor["late_ms"]["max"]
     assert r["end"] == "timeout" and loop["ticks"] + loop["skipped"] >= 195
     for key in ("compute_ms", "compute_cpu_ms", "period_jitter_ms", "late_ms"):
         assert 0 < loop[key]["p50"] <= loop[key]["p99"] <= loop[key]["max"], key

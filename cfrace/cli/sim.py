@@ -133,6 +133,8 @@ def register(app: typer.Typer) -> None:
                                                                    "default 10: the pose stream is 0-10 ms old)."),
         loop_cpu: str = typer.Option("auto", help="CPU of the loop thread (as `cfrace fly`): auto, off or a CPU "
                                                   "number; the simulated drones run on the other CPUs."),
+        floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
+                                                "on the same CPU and priority (0 = skip)."),
     ):
         """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
         from rich.table import Table
@@ -143,7 +145,7 @@ def register(app: typer.Typer) -> None:
             from cfrace.errors import ConfigError
             raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
         r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                        prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu,
+                        prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s,
                         latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
@@ -164,6 +166,16 @@ def register(app: typer.Typer) -> None:
                 continue
             t.add_row(name, f"{s['p50']:.3f}", f"{s['p99']:.3f}", f"{s['max']:.3f}", goal)
         out.print(t)
+        fl = r["floor"]
+        if fl is not None:
+            def ratio(ours, floor):
+                return f" = {ours / floor:.1f} x the floor" if ours is not None and floor else ""
+            ours_j, ours_l = loop["period_jitter_ms"]["p99"], loop["late_ms"]["p99"]
+            out.print(f"machine floor, a loop with no work on the same CPU and priority for {floor_s:g} s: tick late "
+                      f"p99 {fl['late_ms']['p99']:.3f} (max {fl['late_ms']['max']:.3f}), period jitter p99 "
+                      f"{fl['period_jitter_ms']['p99']:.3f} ms; the flight loop: late p99 {ours_l:.3f}"
+                      f"{ratio(ours_l, fl['late_ms']['p99'])}, jitter p99 {ours_j:.3f}"
+                      f"{ratio(ours_j, fl['period_jitter_ms']['p99'])}", highlight=False)
         out.print("goals met: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in r["goals_met"].items())
                   + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs"
                   + (f", loop thread on CPU {r['loop_cpu']}" if r["loop_cpu"] is not None else ", loop not pinned")

@@ -70,14 +70,55 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
     return str(ego), str(opp), "hold controller in a [512, 512, 256, 128] MLP"
 
 
+def bare_loop(seconds: float, *, rt_priority: int = 0, loop_cpu="auto", prewarm_s: float = 0.003,
+              dt: float = 0.01) -> dict:
+    """The machine's floor: a 100 Hz loop with no work at all, on the CPU and at the priority the
+    flight loop gets, waiting as the flight loop waits (sleep to ``prewarm_s`` before each absolute
+    deadline, then sleep(0) to it). Its tick lateness and period jitter are what any Python loop
+    gets here; `cfrace bench loop` prints the flight loop's beside them. Returns timing_summary's
+    late_ms / period_jitter_ms plus loop_cpu and rt_fifo."""
+    import numpy as np
+
+    from cfrace.flight import realtime
+    from cfrace.flight.runner import ms_stats
+
+    cpu = realtime.resolve_loop_cpu(loop_cpu)
+    pinned = realtime.pin_loop_thread(cpu)
+    fifo = realtime.set_fifo(rt_priority)
+    late, period = [], []
+    try:
+        t0 = time.perf_counter()
+        prev = None
+        for k in range(1, int(round(seconds / dt)) + 1):
+            deadline = t0 + k * dt
+            now = time.perf_counter()
+            if now < deadline - prewarm_s:
+                time.sleep(deadline - prewarm_s - now)
+            now = time.perf_counter()
+            while now < deadline:
+                time.sleep(0)
+                now = time.perf_counter()
+            late.append(now - deadline)
+            period.append(np.nan if prev is None else now - prev)
+            prev = now
+    finally:
+        realtime.restore_scheduler(fifo)
+        realtime.restore_affinity(pinned)
+    return {"ticks": len(late), "late_ms": ms_stats(late), "period_jitter_ms": ms_stats(np.abs(np.asarray(period) - dt)),
+            "loop_cpu": cpu, "rt_fifo": fifo is not None}
+
+
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority: int = 0, policies: str = "paper",
-               prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto") -> dict:
+               prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto",
+               floor_s: float = 0.0) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
     profile: simulated and flown drone profile; default: the shipped policies' training profile
     (they crash on another one), cf21bl for the paper-size hold controller.
     loop_cpu: as `cfrace fly` (cfrace.flight.realtime); when the loop thread is pinned, the
-    simulated drones run on the other CPUs (real drones compute on their own hardware)."""
+    simulated drones run on the other CPUs (real drones compute on their own hardware).
+    floor_s > 0: first, with the simulated drones already running, the machine's floor
+    (``bare_loop``) for that long, on the same CPU and priority ("floor" in the result)."""
     pinned = resolve_loop_cpu(loop_cpu)
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
@@ -100,6 +141,8 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
                                rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s,
                                loop_cpu=loop_cpu)
+            floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
+                if floor_s > 0 else None
             try:
                 result = run_race(cfg)
                 sim_cpus = sorted(os.sched_getaffinity(proc.pid)) if hasattr(os, "sched_getaffinity") else None
@@ -116,6 +159,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
     return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
-            "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus,
+            "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus, "floor": floor,
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

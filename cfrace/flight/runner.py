@@ -62,16 +62,19 @@ def load_checked_policies(cfg: FlightConfig, track) -> list:
     return out
 
 
+def ms_stats(x) -> dict:
+    """p50 / p99 / max in ms of the finite values of x (s); None where there are none."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if x.size == 0:
+        return {"p50": None, "p99": None, "max": None}
+    return {"p50": round(float(np.percentile(x, 50)) * 1e3, 4), "p99": round(float(np.percentile(x, 99)) * 1e3, 4),
+            "max": round(float(x.max()) * 1e3, 4)}
+
+
 def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
     """p50 / p99 / max in ms of the loop's per-tick figures."""
-    def stats(x):
-        x = np.asarray(x, dtype=np.float64)
-        x = x[np.isfinite(x)]
-        if x.size == 0:
-            return {"p50": None, "p99": None, "max": None}
-        return {"p50": round(float(np.percentile(x, 50)) * 1e3, 4), "p99": round(float(np.percentile(x, 99)) * 1e3, 4),
-                "max": round(float(x.max()) * 1e3, 4)}
-
+    stats = ms_stats
     period = np.asarray(timing["period"])
     jitter = np.abs(period - dt)
     out = {"rate_hz": round(1.0 / dt, 3), "ticks": int(len(timing["compute"])),
