@@ -6,11 +6,13 @@
 Runs `cfrace bench loop` (cfrace.flight.benchloop.bench_loop: the unchanged fly code against a
 `cfrace sim serve` process, real cflib over UDP, flight log on) once per setting per round, the
 settings interleaved within each round so that a change in the machine's load hits all of them
-alike. KEYs: prewarm_ms, loop_cpu (auto/off/N), rt_priority. Prints per setting the median over the
+alike. KEYs: prewarm_ms, loop_cpu (auto/off/N), rt_priority (auto/0/N). Prints per setting the median over the
 rounds of each figure (ms), the spread (min..max over rounds) of the p99s, the goals met in how many
-rounds, and the ratio of each median to the first setting's. Default: the loop thread unpinned
-against pinned to a CPU of its own (docs/benchmarks.md, "Loop CPU"); benchmarks/loop_warmup_ab.py
-compares warm-up windows with it.
+rounds, and the ratio of each median to the first setting's. Unset keys take bench_loop's defaults
+(the flight defaults: loop_cpu auto, rt_priority auto, 3-ms window). Default settings: the loop
+thread unpinned at normal priority, pinned to a CPU of its own, and the default (pinned, SCHED_FIFO
+where permitted) (docs/benchmarks.md, "Loop CPU and priority"); benchmarks/loop_warmup_ab.py compares warm-up
+windows with it.
 """
 
 from __future__ import annotations
@@ -34,8 +36,8 @@ FIGURES = [("compute p50", lambda l: l["compute_ms"]["p50"]),
            ("warm-up CPU / tick p50", lambda l: l["prewarm_ms"]["p50"] or 0.0),
            ("warm-up passes / tick", lambda l: l.get("prewarm_calls_mean") or 0.0)]
 
-KEYS = {"prewarm_ms": float, "loop_cpu": str, "rt_priority": int}
-DEFAULT_CONFIGS = "unpinned:loop_cpu=off;pinned:loop_cpu=auto"
+KEYS = {"prewarm_ms": float, "loop_cpu": str, "rt_priority": str}
+DEFAULT_CONFIGS = "unpinned:loop_cpu=off,rt_priority=0;pinned:loop_cpu=auto,rt_priority=0;default:loop_cpu=auto,rt_priority=auto"
 
 
 def parse_configs(text: str) -> dict[str, dict]:

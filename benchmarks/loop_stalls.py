@@ -1,6 +1,6 @@
 """Where the flight loop's late ticks come from, and the machine's own floor.
 
-    python benchmarks/loop_stalls.py [--seconds 8] [--rt-priority 0] [--loop-cpu auto] [--bare] [--runs 1]
+    python benchmarks/loop_stalls.py [--seconds 8] [--rt-priority auto|0|N] [--loop-cpu auto] [--bare] [--runs 1]
 
 Default: `cfrace bench loop` (cfrace.flight.benchloop.bench_loop, the unchanged fly code against a
 `cfrace sim serve` process) with a probe around each wait for the next tick
@@ -11,7 +11,8 @@ or waiting for the GIL). Linux only.
 
 --bare: instead, the machine's floor (cfrace.flight.benchloop.bare_loop, also printed by `cfrace
 bench loop`): a loop with no work at all, waiting as the flight loop waits, on the same CPU and
-priority: the lateness any 100 Hz Python loop gets on this machine. Used for docs/benchmarks.md ("Loop CPU").
+priority: the lateness any 100 Hz Python loop gets on this machine. Used for docs/benchmarks.md
+("Loop CPU and priority").
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def _schedstat() -> tuple[float, float]:
     return int(f[0]) / 1e9, int(f[1]) / 1e9
 
 
-def bare(seconds: float, rt_priority: int, loop_cpu) -> None:
+def bare(seconds: float, rt_priority, loop_cpu) -> None:
     from cfrace.flight.benchloop import bare_loop
 
     r = bare_loop(seconds, rt_priority=rt_priority, loop_cpu=loop_cpu)
@@ -41,7 +42,7 @@ def bare(seconds: float, rt_priority: int, loop_cpu) -> None:
           f"max {late['max']:.3f} ms, jitter p99 {r['period_jitter_ms']['p99']:.3f} ms ({r['ticks']} ticks)")
 
 
-def probed(seconds: float, rt_priority: int, loop_cpu) -> None:
+def probed(seconds: float, rt_priority, loop_cpu) -> None:
     from cfrace.flight.benchloop import bench_loop
 
     rec = []
@@ -74,7 +75,7 @@ def probed(seconds: float, rt_priority: int, loop_cpu) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=8.0)
-    ap.add_argument("--rt-priority", type=int, default=0)
+    ap.add_argument("--rt-priority", default="auto", help="auto (50 where permitted), 0 = off, or 1-99")
     ap.add_argument("--loop-cpu", default="auto")
     ap.add_argument("--bare", action="store_true")
     ap.add_argument("--runs", type=int, default=1)

@@ -106,6 +106,10 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
     result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False)
     assert result["end"] == "timeout"
+    # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own
+    from test_flight_realtime import fifo_permitted
+    from cfrace.flight.realtime import resolve_loop_cpu
+    assert result["rt_fifo"] == fifo_permitted() and result["loop_cpu"] == resolve_loop_cpu("auto")
     # on a loaded machine a tick can be skipped (reported, action none); nothing may stop a drone
     assert all(e["action"] == "none" for e in result["safety_events"]), result["safety_events"]
     data = check_stopped_and_logged(result, tmp_path / "flight.mcap")

@@ -189,5 +189,7 @@ def test_bench_loop_against_a_sim_serve_process():
     assert loop["prewarm_calls_mean"] >= 1.0
     assert set(r["goals_met"]) == {"compute_p99_ms", "period_jitter_p99_ms", "inference_p99_ms"}
     assert all(e["action"] == "none" for e in r["safety_events"])
+    from test_flight_realtime import fifo_permitted
+    assert r["rt_fifo"] == fifo_permitted() and floor["rt_fifo"] == r["rt_fifo"]   # default: FIFO where permitted
     if r["loop_cpu"] is not None:   # pinned (two or more CPUs): the simulated drones run elsewhere
         assert r["loop_cpu"] == max(os.sched_getaffinity(0)) and r["loop_cpu"] not in r["sim_serve_cpus"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import threading
 
 import pytest
@@ -87,3 +88,63 @@ def test_pinning_gives_the_loop_thread_its_cpu_and_moves_every_other_thread_off_
         stop.set()
     assert os.sched_getaffinity(0) == before and os.sched_getaffinity(helper.native_id) == before
     assert realtime.pin_loop_thread(None) is None
+
+
+@pytest.mark.parametrize("value, want", [("auto", "auto"), (" AUTO", "auto"), (0, 0), ("50", 50), (99, 99)])
+def test_rt_priority_setting_parses(value, want):
+    assert realtime.parse_rt_priority(value) == want
+    assert FlightConfig(track="lemniscate", ego="ds", opp="ds", rt_priority=value).rt_priority == want
+    assert realtime.resolve_rt_priority(value) == (realtime.AUTO_RT_PRIORITY if want == "auto" else want)
+
+
+@pytest.mark.parametrize("value, problem", [(100, "must be in [0, 99], got 100"), ("-1", "expected auto or a priority 0-99"),
+                                            ("high", "expected auto or a priority 0-99"), (True, "expected auto")])
+def test_a_bad_rt_priority_is_one_clear_error(value, problem, tmp_path):
+    with pytest.raises(ConfigError, match=f"rt_priority: {re.escape(problem)}"):
+        FlightConfig(track="lemniscate", ego="ds", opp="ds", rt_priority=value)
+    f = tmp_path / "room.yaml"
+    f.write_text(f"rt_priority: {str(value).lower()}\n")
+    with pytest.raises(ConfigError, match=f"^{re.escape(str(f))}: key 'rt_priority': "):
+        load_flight_file(f)
+
+
+def fifo_permitted() -> bool:
+    """Whether this process may run a thread SCHED_FIFO (tried on a helper thread, then undone)."""
+    res = []
+
+    def probe():
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            res.append(True)
+        except (OSError, AttributeError):
+            res.append(False)
+
+    t = threading.Thread(target=probe)
+    t.start()
+    t.join()
+    return res[0]
+
+
+def test_the_pre_flight_summary_names_the_loop_cpu_and_priority():
+    import io
+    from dataclasses import asdict
+
+    from rich.console import Console
+
+    from cfrace.cli.flight import announce
+    from cfrace.flight.config import SafetyConfig
+    from cfrace.flight.safety import Fence
+    from cfrace.track import load_track
+
+    def text(**kw):
+        buf = io.StringIO()
+        meta = {"policies": {"ego": {"method": "ours", "path": "a.onnx", "obs_layout": "race42"},
+                             "opp": {"method": "ds", "path": "b.onnx", "obs_layout": "solo36"}},
+                "uris": ["udp://127.0.0.1:1", "udp://127.0.0.1:2"], "bodies": ["cf1", "cf2"],
+                "fence": Fence.from_track(load_track("lemniscate"), 0.3), "safety": asdict(SafetyConfig()),
+                "latency_comp_s": 0.01, "laps": 3, "track": "lemniscate", **kw}
+        announce(meta, Console(file=buf, width=400))
+        return " ".join(buf.getvalue().split())
+
+    assert "loop thread on CPU 1, the rest elsewhere, SCHED_FIFO 50 where permitted;" in text(loop_cpu=1, rt_priority=50)
+    assert "loop thread not pinned; 3 laps" in text(loop_cpu=None, rt_priority=0)

@@ -108,8 +108,9 @@ def announce(meta: dict, con: Console = console) -> None:
               f"speed <= {s['speed_max_mps']:g} m/s, tilt <= {s['tilt_max_deg']:g} deg, "
               f"mocap stale {s['mocap_stale_s'] * 1e3:.0f} ms, link silent {s['link_timeout_s'] * 1e3:.0f} ms; "
               f"poses predicted {meta.get('latency_comp_s', 0.0) * 1e3:g} ms ahead for the mocap latency; "
-              + (f"loop thread on CPU {meta['loop_cpu']}, the rest elsewhere; " if meta.get("loop_cpu") is not None
-                 else "loop thread not pinned; ")
+              + (f"loop thread on CPU {meta['loop_cpu']}, the rest elsewhere" if meta.get("loop_cpu") is not None
+                 else "loop thread not pinned")
+              + (f", SCHED_FIFO {meta['rt_priority']} where permitted; " if meta.get("rt_priority") else "; ")
               + f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
 
 
@@ -135,8 +136,9 @@ def register(app: typer.Typer) -> None:
         speed_max_mps: Optional[float] = typer.Option(None, help="Stop a drone above this speed (m/s)."),
         tilt_max_deg: Optional[float] = typer.Option(None, help="Stop a drone tilted more than this (deg)."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
-        rt_priority: Optional[int] = typer.Option(None, help="Run the loop thread SCHED_FIFO at this priority "
-                                                             "(Linux, root or CAP_SYS_NICE); 0 = off."),
+        rt_priority: Optional[str] = typer.Option(None, help="Run the loop thread SCHED_FIFO: auto (the default: "
+                                                             "priority 50 where permitted, i.e. root or "
+                                                             "CAP_SYS_NICE, else normal), 0 = off, or 1-99."),
         prewarm_ms: Optional[float] = typer.Option(None, help="Warm-up window: this many ms before each tick the "
                                                               "loop runs the tick's pure parts over and over and "
                                                               "does not sleep (default 3; 0 = off)."),

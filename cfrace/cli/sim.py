@@ -59,7 +59,8 @@ def dry_run_cmd(
     latency_comp_ms: Optional[float] = typer.Option(None, help="The estimator predicts poses this many ms forward "
                                                                "(as `cfrace fly`; default: the simulated latency)."),
     seed: int = typer.Option(0),
-    rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
+    rt_priority: str = typer.Option("auto", help="SCHED_FIFO priority of the loop thread: auto (50 where permitted: "
+                                                  "root or CAP_SYS_NICE), 0 = off, or 1-99."),
     prewarm_ms: float = typer.Option(3.0, help="Warm-up window: this many ms before each tick the loop runs the "
                                                "tick's pure parts over and over on the newest data and does not "
                                                "sleep, so that the tick runs warm; 0 = off."),
@@ -124,7 +125,8 @@ def register(app: typer.Typer) -> None:
         profile: Optional[str] = typer.Option(None, help="Drone profile (default: the shipped policies' training "
                                                          "profile with --policies shipped, else cf21bl)."),
         json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
-        rt_priority: int = typer.Option(0, help="SCHED_FIFO priority of the loop thread (root); 0 = off."),
+        rt_priority: str = typer.Option("auto", help="SCHED_FIFO priority of the loop thread: auto (50 where permitted: "
+                                                  "root or CAP_SYS_NICE), 0 = off, or 1-99."),
         policies: str = typer.Option("paper", help="paper: a hold controller in the paper's actor size "
                                                    "[512, 512, 256, 128]; shipped: policies/ours_TRACK vs ds_TRACK."),
         prewarm_ms: float = typer.Option(3.0, help="Warm-up window this many ms before each tick (as `cfrace fly`); "
@@ -133,6 +135,7 @@ def register(app: typer.Typer) -> None:
                                                                    "default 10: the pose stream is 0-10 ms old)."),
         loop_cpu: str = typer.Option("auto", help="CPU of the loop thread (as `cfrace fly`): auto, off or a CPU "
                                                   "number; the simulated drones run on the other CPUs."),
+        log: bool = typer.Option(True, "--log/--no-log", help="Write the flight log, as `cfrace fly` does."),
         floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
                                                 "on the same CPU and priority (0 = skip)."),
     ):
@@ -145,7 +148,7 @@ def register(app: typer.Typer) -> None:
             from cfrace.errors import ConfigError
             raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
         r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                        prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s,
+                        prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log,
                         latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         loop = r["loop"]
         t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "

@@ -70,7 +70,7 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
     return str(ego), str(opp), "hold controller in a [512, 512, 256, 128] MLP"
 
 
-def bare_loop(seconds: float, *, rt_priority: int = 0, loop_cpu="auto", prewarm_s: float = 0.003,
+def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s: float = 0.003,
               dt: float = 0.01) -> dict:
     """The machine's floor: a 100 Hz loop with no work at all, on the CPU and at the priority the
     flight loop gets, waiting as the flight loop waits (sleep to ``prewarm_s`` before each absolute
@@ -84,7 +84,7 @@ def bare_loop(seconds: float, *, rt_priority: int = 0, loop_cpu="auto", prewarm_
 
     cpu = realtime.resolve_loop_cpu(loop_cpu)
     pinned = realtime.pin_loop_thread(cpu)
-    fifo = realtime.set_fifo(rt_priority)
+    fifo = realtime.set_fifo(realtime.resolve_rt_priority(rt_priority))
     late, period = [], []
     try:
         t0 = time.perf_counter()
@@ -109,7 +109,7 @@ def bare_loop(seconds: float, *, rt_priority: int = 0, loop_cpu="auto", prewarm_
 
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
-               log: bool = True, rt_priority: int = 0, policies: str = "paper",
+               log: bool = True, rt_priority="auto", policies: str = "paper",
                prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto",
                floor_s: float = 0.0) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.

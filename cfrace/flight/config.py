@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from cfrace.errors import ConfigError
-from cfrace.flight.realtime import parse_loop_cpu
+from cfrace.flight.realtime import parse_loop_cpu, parse_rt_priority
 from cfrace.yamlcfg import Reader, load_yaml
 
 DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
@@ -75,7 +75,9 @@ class FlightConfig:
     rate_hz: float = 100.0                       #: Hz, control loop (setpoints streamed every tick)
     quiet: bool = False                          #: no live view
     view_hz: float = 4.0                         #: Hz, live view refresh
-    rt_priority: int = 0                         #: SCHED_FIFO priority of the loop thread (0: normal)
+    #: SCHED_FIFO priority of the loop thread: "auto" (50 where this process may, else normal), 0
+    #: (normal) or 1-99 (flight/realtime.py)
+    rt_priority: int | str = "auto"
     #: CPU of the loop thread: "auto" (the highest CPU of this process when it has two or more),
     #: "off" or a CPU number; the process's other threads go to the other CPUs (flight/realtime.py)
     loop_cpu: int | str = "auto"
@@ -106,8 +108,7 @@ class FlightConfig:
         if self.latency_comp_s is not None and not (0.0 <= self.latency_comp_s < 0.1):
             raise ConfigError(f"latency_comp_s: must be in [0, 0.1) s, got {self.latency_comp_s}")
         object.__setattr__(self, "loop_cpu", parse_loop_cpu(self.loop_cpu))
-        if not 0 <= self.rt_priority <= 99:
-            raise ConfigError(f"rt_priority: must be in [0, 99], got {self.rt_priority}")
+        object.__setattr__(self, "rt_priority", parse_rt_priority(self.rt_priority))
         if self.timeout_s <= 0:
             raise ConfigError(f"timeout_s: must be > 0, got {self.timeout_s}")
 
@@ -156,13 +157,12 @@ def load_flight_file(path: str | Path) -> dict:
         out["latency_comp_s"] = r.number("latency_comp_s", min=0.0, max=0.099)
     if r.has("prewarm_s"):
         out["prewarm_s"] = r.number("prewarm_s", min=0.0)
-    if r.has("rt_priority"):
-        out["rt_priority"] = int(r.number("rt_priority", min=0, max=99))
-    if r.has("loop_cpu"):
-        try:
-            out["loop_cpu"] = parse_loop_cpu(r.raw("loop_cpu"))
-        except ConfigError as exc:
-            raise r.fail("loop_cpu", str(exc).removeprefix("loop_cpu: ")) from None
+    for key, parse in (("rt_priority", parse_rt_priority), ("loop_cpu", parse_loop_cpu)):
+        if r.has(key):
+            try:
+                out[key] = parse(r.raw(key))
+            except ConfigError as exc:
+                raise r.fail(key, str(exc).removeprefix(f"{key}: ")) from None
     if r.has("laps"):
         out["laps"] = int(r.number("laps", min=1))
     if r.has("obstacles"):

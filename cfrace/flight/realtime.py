@@ -1,5 +1,5 @@
-"""Scheduling of the flight process for a steady 100 Hz: a CPU of its own for the loop thread,
-SCHED_FIFO on request.
+"""Scheduling of the flight process for a steady 100 Hz: a CPU of its own for the loop thread and
+SCHED_FIFO where the process may use it.
 
 Loop CPU (``loop_cpu``, default "auto"): the loop thread is pinned to one CPU and every other
 thread of the process (cflib's receive and packet threads, the mocap reader, the log's fsync
@@ -8,7 +8,12 @@ nor the loop for theirs. "auto" takes the highest CPU this process may use when 
 more (on one CPU there is nothing to separate); "off" leaves scheduling to the OS; a number names
 the CPU. `cfrace bench loop` also keeps its simulated drones (the `cfrace sim serve` process) off
 that CPU, as real drones compute on their own hardware. Measured on the 2-core development
-machine: docs/benchmarks.md, "Loop CPU".
+machine: docs/benchmarks.md, "Loop CPU and priority".
+
+Real-time priority (``rt_priority``, default "auto"): "auto" runs the loop thread SCHED_FIFO at
+AUTO_RT_PRIORITY (and the process's other threads one below) when the process may (root,
+CAP_SYS_NICE or an RLIMIT_RTPRIO of at least that), and at normal priority otherwise; 0 is off; 1-99
+names the priority. Whether it took effect is in every result (``rt_fifo``).
 
 Only Linux has per-thread affinity (os.sched_setaffinity); elsewhere pinning is a no-op and says so
 in the result (``loop_cpu: null``).
@@ -22,6 +27,7 @@ import threading
 from cfrace.errors import ConfigError
 
 AUTO, OFF = "auto", "off"
+AUTO_RT_PRIORITY = 50   #: SCHED_FIFO priority of the loop thread with rt_priority "auto"
 
 
 def allowed_cpus() -> set[int]:
@@ -108,6 +114,28 @@ def restore_affinity(changed: list | None) -> None:
             os.sched_setaffinity(tid, cpus)
         except OSError:
             pass   # that thread has ended
+
+
+def parse_rt_priority(value) -> int | str:
+    """"auto" / 0 (off) / 1-99 (int or digits) -> the normalised setting; ConfigError otherwise."""
+    if isinstance(value, bool):
+        raise ConfigError(f"rt_priority: expected auto or a priority 0-99, got {value!r}")
+    text = str(value).strip().lower()
+    if text == AUTO:
+        return AUTO
+    if isinstance(value, int) or text.isdigit():
+        prio = int(text)
+        if 0 <= prio <= 99:
+            return prio
+        raise ConfigError(f"rt_priority: must be in [0, 99], got {prio}")
+    raise ConfigError(f"rt_priority: expected auto or a priority 0-99, got {value!r}")
+
+
+def resolve_rt_priority(setting) -> int:
+    """The SCHED_FIFO priority to ask for (0: none): "auto" -> AUTO_RT_PRIORITY (set_fifo leaves
+    the scheduling alone where that is not permitted)."""
+    setting = parse_rt_priority(setting)
+    return AUTO_RT_PRIORITY if setting == AUTO else setting
 
 
 def set_fifo(priority: int) -> list | None:

@@ -97,8 +97,8 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
     out of the garbage collector (no long full collections mid-race), the GIL switch interval
     drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), the
     loop thread gets ``loop_cpu`` to itself (every other thread of the process goes to the other
-    CPUs; cfrace.flight.realtime) and with rt_priority > 0 it runs SCHED_FIFO (it sleeps most of
-    each period, so it cannot starve the machine). Returns (result, whether SCHED_FIFO was in
+    CPUs; cfrace.flight.realtime) and with rt_priority > 0 it runs SCHED_FIFO where permitted (it
+    sleeps most of each period, so it cannot starve the machine). Returns (result, whether SCHED_FIFO was in
     effect)."""
     gc.collect()
     gc.freeze()
@@ -174,6 +174,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
             "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies), "uris": uris, "mocap": cfg.mocap,
             "lockstep": lockstep, "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
             "latency_comp_s": cfg.latency_comp, "loop_cpu": loop_cpu,
+            "rt_priority": 0 if lockstep else realtime.resolve_rt_priority(cfg.rt_priority),
             "policies": {n: {"path": str(p), **pol.meta} for n, (pol, p) in zip(DRONE_NAMES, policies)},
             **(extra_meta or {})}
     with _Signals(kill, loop_ref):
@@ -217,7 +218,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
             loop_ref.append(loop)
             if log is not None:
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
-            res, fifo = _run_realtime_friendly(loop, 0 if lockstep else cfg.rt_priority, loop_cpu)
+            res, fifo = _run_realtime_friendly(loop, meta["rt_priority"], loop_cpu)
             result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
                       "operator_kill": kill.reason, "rt_fifo": fifo, "loop_cpu": loop_cpu, "track": track.name, "profile": profile.name,
                       "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
