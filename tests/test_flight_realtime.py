@@ -88,6 +88,7 @@ def test_pinning_gives_the_loop_thread_its_cpu_and_moves_every_other_thread_off_
         stop.set()
     assert os.sched_getaffinity(0) == before and os.sched_getaffinity(helper.native_id) == before
     assert realtime.pin_loop_thread(None) is None
+    assert realtime.pin_loop_thread(4095) is None and os.sched_getaffinity(0) == before   # refused: unpinned
 
 
 @pytest.mark.parametrize("value, want", [("auto", "auto"), (" AUTO", "auto"), (0, 0), ("50", 50), (99, 99)])

@@ -89,13 +89,17 @@ def _thread_ids() -> list[int]:
 def pin_loop_thread(loop_cpu: int | None) -> list | None:
     """Pin the calling (loop) thread to ``loop_cpu`` and every other thread of the process to the
     other CPUs. Returns [(tid, old CPU set)] to give to ``restore_affinity``, or None when nothing
-    was pinned. Threads that end meanwhile are skipped; the loop thread's own failure raises."""
+    was pinned (no CPU given, or the OS refused the loop thread's: the flight goes on unpinned).
+    Threads that end meanwhile are skipped."""
     if loop_cpu is None:
         return None
     me = threading.get_native_id()
     rest = other_cpus(loop_cpu)
-    changed = [(0, set(os.sched_getaffinity(0)))]
-    os.sched_setaffinity(0, {loop_cpu})
+    try:
+        changed = [(0, set(os.sched_getaffinity(0)))]
+        os.sched_setaffinity(0, {loop_cpu})
+    except OSError:
+        return None
     for tid in _thread_ids():
         if tid == me:
             continue

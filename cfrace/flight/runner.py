@@ -92,14 +92,14 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
 
 
 def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int | None = None
-                           ) -> tuple[LoopResult, bool]:
+                           ) -> tuple[LoopResult, bool, int | None]:
     """Run the loop with Python tuned for a steady 100 Hz: everything allocated so far is frozen
     out of the garbage collector (no long full collections mid-race), the GIL switch interval
     drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), the
     loop thread gets ``loop_cpu`` to itself (every other thread of the process goes to the other
     CPUs; cfrace.flight.realtime) and with rt_priority > 0 it runs SCHED_FIFO where permitted (it
-    sleeps most of each period, so it cannot starve the machine). Returns (result, whether SCHED_FIFO was in
-    effect)."""
+    sleeps most of each period, so it cannot starve the machine). Returns (result, whether SCHED_FIFO
+    was in effect, the loop's CPU if it was pinned)."""
     gc.collect()
     gc.freeze()
     old_switch = sys.getswitchinterval()
@@ -108,7 +108,7 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
     old_cpus = None
     try:
         old_cpus = realtime.pin_loop_thread(loop_cpu)
-        return loop.run(), old_sched is not None
+        return loop.run(), old_sched is not None, loop_cpu if old_cpus is not None else None
     finally:
         realtime.restore_affinity(old_cpus)
         realtime.restore_scheduler(old_sched)
@@ -218,7 +218,7 @@ def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=
             loop_ref.append(loop)
             if log is not None:
                 log.write("/event", 0.0, {"kind": "start", "text": "race start"})
-            res, fifo = _run_realtime_friendly(loop, meta["rt_priority"], loop_cpu)
+            res, fifo, loop_cpu = _run_realtime_friendly(loop, meta["rt_priority"], loop_cpu)
             result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
                       "operator_kill": kill.reason, "rt_fifo": fifo, "loop_cpu": loop_cpu, "track": track.name, "profile": profile.name,
                       "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
