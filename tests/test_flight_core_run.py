@@ -4,6 +4,7 @@ input that must be refused with one line before anything is sent to a drone."""
 from __future__ import annotations
 
 import subprocess
+import os
 import sys
 
 import numpy as np
@@ -191,7 +192,8 @@ def _free_port():
 
 
 @pytest.mark.parametrize("case", ["unknown_body", "mismatched_onnx", "corrupt_onnx", "malformed_replay",
-                                  "truncated_replay", "radio_without_crazyradio", "udp_nothing_listening"])
+                                  "truncated_replay", "radio_without_crazyradio", "udp_nothing_listening",
+                                  "loop_cpu_missing", "rt_priority_bad"])
 def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, tmp_path, monkeypatch, capsys):
     _, log = lockstep_run
     args = dict(track="lemniscate", ego=pols["ego"], opp=pols["opp"], uris=",".join(server.uris),
@@ -199,7 +201,9 @@ def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, t
     expect = {"unknown_body": "unknown mocap body 'cf9'", "mismatched_onnx": "trained on track 'complex'",
               "corrupt_onnx": "not a valid ONNX model", "malformed_replay": "not an MCAP flight log",
               "truncated_replay": "replay://", "radio_without_crazyradio": "no Crazyradio found",
-              "udp_nothing_listening": "nothing listens there"}[case]
+              "udp_nothing_listening": "nothing listens there",
+              "loop_cpu_missing": "loop_cpu: CPU 4095 is not available to this process",
+              "rt_priority_bad": "rt_priority: must be in [0, 99], got 120"}[case]
     if case == "unknown_body":
         args["bodies"] = "cf1,cf9"
     elif case == "mismatched_onnx":
@@ -217,6 +221,12 @@ def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, t
         args["uris"] = "radio://0/80/2M/E7E7E7E7E7,radio://0/80/2M/E7E7E7E7E8"
     elif case == "udp_nothing_listening":
         args["uris"] = f"udp://127.0.0.1:{_free_port()},{server.uris[1]}"
+    elif case == "loop_cpu_missing":
+        if not hasattr(os, "sched_setaffinity"):
+            pytest.skip("no CPU affinity on this OS: --loop-cpu pins nothing there")
+        args["loop-cpu"] = "4095"
+    elif case == "rt_priority_bad":
+        args["rt-priority"] = "120"
     argv = ["fly", "--quiet"] + [x for k, v in args.items() for x in (f"--{k}", v)]
     code, out, err = run_cli(argv, monkeypatch, capsys)
     assert code == 2, (out, err)
