@@ -3,8 +3,8 @@ input that must be refused with one line before anything is sent to a drone."""
 
 from __future__ import annotations
 
-import subprocess
 import os
+import subprocess
 import sys
 
 import numpy as np
