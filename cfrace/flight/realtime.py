@@ -3,8 +3,8 @@ SCHED_FIFO where the process may use it.
 
 Loop CPU (``loop_cpu``, default "auto"): the loop thread is pinned to one CPU and every other
 thread of the process (cflib's receive and packet threads, the mocap reader, the log's fsync
-thread, an in-process simulator) to the remaining CPUs, so that they never wait for the loop's CPU
-nor the loop for theirs. "auto" takes the highest CPU this process may use when it may use two or
+thread, an in-process simulator) to the remaining CPUs, so that none of them competes with the
+loop for its CPU. "auto" takes the highest CPU this process may use when it may use two or
 more (on one CPU there is nothing to separate); "off" leaves scheduling to the OS; a number names
 the CPU. `cfrace bench loop` also keeps its simulated drones (the `cfrace sim serve` process) off
 that CPU, as real drones compute on their own hardware. Measured on the 2-core development
