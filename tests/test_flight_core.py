@@ -431,6 +431,26 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
     return loop
 
 
+def test_policies_are_warmed_before_the_first_tick_only_with_a_warm_up_window(track):
+    """The first ticks have no warm-up window before them: with one (prewarm_s > 0) every policy
+    runs PRE_RACE_WARM_CALLS times before the clock starts, and the race computes the same."""
+    from cfrace.flight.loop import PRE_RACE_WARM_CALLS
+
+    path = gate_path(track, 5.0, laps=1)
+    results, calls = [], []
+    for prewarm_s in (0.0, 0.003):
+        loop = make_loop(track, {"cf1": path, "cf2": path[::-1]}, timeout_s=0.5)
+        loop.prewarm_s = prewarm_s
+        started = []
+        start = loop.clock.start
+        loop.clock.start = lambda: (started.append([d.policy.calls for d in loop.drones]), start())[1]
+        res = loop.run()
+        calls.append(started[0])
+        results.append([(s["laps"], s["gates_passed"]) for s in res.drones] + [res.ticks])
+    assert calls == [[0, 0], [PRE_RACE_WARM_CALLS, PRE_RACE_WARM_CALLS]]
+    assert results[0] == results[1]
+
+
 def test_loop_race_winner_laps_and_decimation(track):
     fast, slow = gate_path(track, 6.0, laps=2), gate_path(track, 4.0, laps=2)
     loop = make_loop(track, {"cf1": fast, "cf2": slow}, laps=2)
