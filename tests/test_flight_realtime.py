@@ -149,3 +149,42 @@ def test_the_pre_flight_summary_names_the_loop_cpu_and_priority():
 
     assert "loop thread on CPU 1, the rest elsewhere, SCHED_FIFO 50 where permitted;" in text(loop_cpu=1, rt_priority=50)
     assert "loop thread not pinned; 3 laps" in text(loop_cpu=None, rt_priority=0)
+
+
+def test_link_warm_exercises_the_udp_send_path_and_sends_nothing_to_the_drone():
+    import socket
+
+    from cfrace.flight.link_cflib import CflibLink
+
+    drone = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)   # where the drone would listen
+    drone.bind(("127.0.0.1", 0))
+    drone.setblocking(False)
+    link = CflibLink(f"udp://127.0.0.1:{drone.getsockname()[1]}")
+    for _ in range(50):
+        link.warm()
+    sink, tx = link._sink
+    assert tx.getpeername() == sink.getsockname() and sink.getsockname()[0] == "127.0.0.1"
+    with pytest.raises(BlockingIOError):
+        sink.recv(64)                      # every warm datagram was read back: nothing piles up
+    with pytest.raises(BlockingIOError):
+        drone.recv(64)                     # and nothing went to the drone
+    link._shutdown()
+    assert link._sink is None and sink.fileno() == -1 and tx.fileno() == -1
+    radio = CflibLink("radio://0/80/2M/E7E7E7E7E7")
+    radio.warm()
+    assert radio._sink is None             # radio: cflib's radio thread sends, nothing to warm here
+    drone.close()
+
+
+def test_the_warm_up_window_warms_every_flying_drones_link():
+    from test_flight_core import gate_path, make_loop
+
+    from cfrace.track import load_track
+
+    track = load_track("lemniscate")
+    path = gate_path(track, 5.0, laps=1)
+    loop = make_loop(track, {"cf1": path, "cf2": path[::-1]}, timeout_s=0.3)
+    loop.prewarm_s = 0.003
+    loop.clock.warm_calls = 2
+    res = loop.run()
+    assert [d.link.warms for d in loop.drones] == [2 * (res.ticks - 1)] * 2

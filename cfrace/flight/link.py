@@ -89,6 +89,10 @@ class Link(Protocol):
     def ping(self) -> None:
         """Ask the drone for an echo (link-silence detection, latency). Never raises."""
 
+    def warm(self) -> None:
+        """Called over and over in the loop's warm-up window: exercise the send path without
+        sending anything to the drone, so that the tick's send runs warm. Never raises."""
+
     def close(self) -> None:
         """Stop (if connected) and release the link."""
 
@@ -157,6 +161,9 @@ class DirectSimLink:
     def ping(self) -> None:
         pass
 
+    def warm(self) -> None:
+        pass                          # a function call: nothing to warm
+
     def stop(self) -> None:
         if self.cut or not self.quality.connected:
             return
@@ -181,6 +188,7 @@ class RecordingLink:
         self.stops = 0
         self.setups = 0
         self.pings = 0
+        self.warms = 0
         self.paced = False
 
     def connect(self, timeout_s: float = 5.0) -> None:
@@ -203,6 +211,9 @@ class RecordingLink:
 
     def ping(self) -> None:
         self.pings += 1
+
+    def warm(self) -> None:
+        self.warms += 1
 
     def close(self) -> None:
         self.quality.connected = False

@@ -20,8 +20,9 @@ on this machine (the paper-size actor: ~0.4 ms every 10 ms with sleeps in betwee
 ms back to back; benchmarks/onnx_cold.py). So from ``prewarm_s`` before each deadline the clock
 calls ``prewarm`` over and over (RealClock.wait_next): the tick's pure parts on the newest data
 (estimator and race progress on copies of their state, the observation, policy and action map of
-the drone due on that tick, the safety check), outputs discarded, and then waits the rest without
-sleeping. The tick itself then computes on fresh data as before
+the drone due on that tick, the safety check), outputs discarded, and each link's send path
+(Link.warm: for udp:// links a datagram to a socket of our own, nothing to the drone), and then
+waits the rest without sleeping. The tick itself then computes on fresh data as before
 (tests/test_flight_core_run.py: a race with and without it is bit-identical). The warm-up costs
 CPU time in the idle part of the period, not latency; its CPU time and passes per tick are
 recorded (``prewarm_s``, ``prewarm_calls`` in /timing).
@@ -267,6 +268,8 @@ class FlightLoop:
                 ests = [est_map[d.body] for d in self.drones]
                 self.progress.peek(self._positions(ests))
             for i, d in enumerate(self.drones):
+                if not d.stopped:
+                    d.link.warm()
                 if not self._due(d, k):
                     continue
                 obs = self._observation(i, ests) if ests is not None else np.zeros(d.layout.dim, np.float32)
