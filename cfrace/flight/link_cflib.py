@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import struct
 import threading
 import time
 import warnings
@@ -24,12 +25,12 @@ from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_arg
 
 import cflib.crtp  # noqa: E402  (the one place cflib is imported)
 from cflib.crazyflie import Crazyflie  # noqa: E402
+from cflib.crtp.crtpstack import CRTPPacket, CRTPPort  # noqa: E402
+from cflib.crtp.udpdriver import UdpDriver  # noqa: E402
 
 _log = logging.getLogger("cflib")
 _log.addHandler(logging.NullHandler())
 _log.propagate = False   # cflib logs tracebacks for expected failures; we report one line ourselves
-
-_WARM_DATAGRAM = bytes(16)   #: warm(): a legacy setpoint's size (1 header byte + <fffH)
 
 _drivers_ready = False
 _drivers_lock = threading.Lock()
@@ -66,7 +67,7 @@ class CflibLink:
         self._ready = threading.Event()
         self._failed: str | None = None
         self._params: dict[str, threading.Event] = {}
-        self._sink: tuple[socket.socket, socket.socket] | None = None   #: warm(): (receiver, sender)
+        self._sink: tuple | None = None   #: warm(): (our receiving socket, a UdpDriver sending to it)
 
     # ------------------------------------------------------------------ callbacks (cflib threads)
     def _on_connected(self, uri):
@@ -184,11 +185,12 @@ class CflibLink:
             self._note_error(f"ping failed: {exc}")
 
     def warm(self) -> None:
-        """udp:// links: send one datagram of a setpoint's size to a socket of our own on
-        127.0.0.1 (the kernel's UDP send path, the same as the setpoint's) and read it back. On
-        this VM a UDP send every 10 ms costs ~50-70 us of CPU against ~8 us when the path was used
-        just before (benchmarks/udp_cold.py), and the loop sends two per tick. radio:// links:
-        nothing (cflib hands the packet to its radio thread; there is no kernel path in the tick)."""
+        """udp:// links: send one zero setpoint through cflib's own packet and UDP driver code to a
+        socket of our own on 127.0.0.1 and read it back: the same Python and kernel path as the
+        tick's send, nothing to the drone. On this VM a UDP send every 10 ms costs ~55 us of CPU
+        against ~10 us when the path was used just before (benchmarks/udp_cold.py), and the loop
+        sends two per tick. radio:// links: nothing (cflib hands their packets to its radio
+        thread). Never raises."""
         if not self.uri.startswith("udp://"):
             return
         try:
@@ -196,13 +198,17 @@ class CflibLink:
                 sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
                 sink.bind(("127.0.0.1", 0))
                 sink.setblocking(False)
-                tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                tx.connect(sink.getsockname())
-                self._sink = (sink, tx)
-            sink, tx = self._sink
-            tx.send(_WARM_DATAGRAM)
+                driver = UdpDriver()     # never connected (no thread): its socket is ours, to the sink
+                driver.socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                driver.socket.connect(sink.getsockname())
+                self._sink = (sink, driver)
+            sink, driver = self._sink
+            pk = CRTPPacket()
+            pk.port = CRTPPort.COMMANDER
+            pk.data = struct.pack("<fffH", 0.0, -0.0, 0.0, 0)   # as Commander.send_setpoint packs it
+            driver.send_packet(pk)
             sink.recv(64)
-        except OSError:
+        except (OSError, AttributeError):
             pass   # warming is optional: the tick's send reports real link errors
 
     def stop(self) -> None:
@@ -225,8 +231,9 @@ class CflibLink:
 
     def _shutdown(self) -> None:
         sink, self._sink = self._sink, None
-        for sock in sink or ():
-            sock.close()
+        if sink is not None:
+            sink[0].close()
+            sink[1].close()
         cf, self._cf = self._cf, None
         self.quality.connected = False
         if cf is not None:

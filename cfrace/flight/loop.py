@@ -20,9 +20,9 @@ on this machine (the paper-size actor: ~0.4 ms every 10 ms with sleeps in betwee
 ms back to back; benchmarks/onnx_cold.py). So from ``prewarm_s`` before each deadline the clock
 calls ``prewarm`` over and over (RealClock.wait_next): the tick's pure parts on the newest data
 (estimator and race progress on copies of their state, the observation, policy and action map of
-the drone due on that tick, the safety check), outputs discarded, and each link's send path
-(Link.warm: for udp:// links a datagram to a socket of our own, nothing to the drone), and then
-waits the rest without sleeping. The tick itself then computes on fresh data as before
+the drone due on that tick, the safety check), outputs discarded; then, once, each link's send
+path (``warm_links``, Link.warm: for udp:// links a zero setpoint through cflib's UDP driver to a
+socket of our own, nothing to the drone); then it waits the rest without sleeping. The tick itself then computes on fresh data as before
 (tests/test_flight_core_run.py: a race with and without it is bit-identical). The warm-up costs
 CPU time in the idle part of the period, not latency; its CPU time and passes per tick are
 recorded (``prewarm_s``, ``prewarm_calls`` in /timing).
@@ -268,8 +268,6 @@ class FlightLoop:
                 ests = [est_map[d.body] for d in self.drones]
                 self.progress.peek(self._positions(ests))
             for i, d in enumerate(self.drones):
-                if not d.stopped:
-                    d.link.warm()
                 if not self._due(d, k):
                     continue
                 obs = self._observation(i, ests) if ests is not None else np.zeros(d.layout.dim, np.float32)
@@ -281,6 +279,16 @@ class FlightLoop:
             pass
         self._warm_s += perf() - t0
         self._warm_n += 1
+
+    def warm_links(self) -> None:
+        """Once per tick after the warm-up passes, just before the deadline: every flying drone's
+        link exercises its send path without sending to the drone (Link.warm). Never raises."""
+        for d in self.drones:
+            if not d.stopped:
+                try:
+                    d.link.warm()
+                except Exception:  # noqa: BLE001 - the tick's real send reports link errors
+                    pass
 
     def warm_policies(self, calls: int = PRE_RACE_WARM_CALLS) -> None:
         """Before the race: run every drone's policy and action map ``calls`` times on a zero
@@ -330,7 +338,8 @@ class FlightLoop:
             self.running = True
             while True:
                 self._warm_s, self._warm_n = 0.0, 0
-                tick = self.clock.wait_next() if before is None else self.clock.wait_next(before, self.prewarm_s)
+                tick = (self.clock.wait_next() if before is None
+                        else self.clock.wait_next(before, self.prewarm_s, self.warm_links))
                 t_start = perf()
                 cpu_start = thread_time()
                 k, t = tick.k, tick.t
