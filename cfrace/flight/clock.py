@@ -5,9 +5,10 @@ overshoot). A tick that starts late never causes a burst: when the previous tick
 more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
 with fresh mocap data. Without a warm-up, waiting is a plain sleep.
 ``wait_next(before, lead_s, final)`` sleeps until ``lead_s`` ahead of the deadline, then calls
-``before()`` again and again while one more call still ends ``WARM_GUARD_S`` before the deadline (at
-most ``WARM_MAX_CALLS`` times), then ``final()`` once, then waits out the rest without sleeping (``sleep(0)`` in a loop: it
-yields the GIL but keeps the CPU): the flight loop keeps its code and data warm with it
+``before()`` again and again while one more call still ends ``WARM_GUARD_S`` (plus the time the
+last ``final()`` took) before the deadline (at most ``WARM_MAX_CALLS`` times), then ``final()``
+once, then waits out the rest without sleeping (``sleep(0)`` in a loop: it yields the GIL but
+keeps the CPU): the flight loop keeps its code and data warm with it
 (FlightLoop.prewarm). On this VM anything the loop does after a real sleep, even one of 0.1 ms,
 runs several times slower (docs/benchmarks.md, "Warm-up window").
 

@@ -22,8 +22,9 @@ calls ``prewarm`` over and over (RealClock.wait_next): the tick's pure parts on 
 (estimator and race progress on copies of their state, the observation, policy and action map of
 the drone due on that tick, the safety check), outputs discarded; then, once, each link's send
 path (``warm_links``, Link.warm: for udp:// links a zero setpoint through cflib's UDP driver to a
-socket of our own, nothing to the drone); then it waits the rest without sleeping. The tick itself then computes on fresh data as before
-(tests/test_flight_core_run.py: a race with and without it is bit-identical). The warm-up costs
+socket of our own, nothing to the drone); then it waits the rest without sleeping. The tick
+itself then computes on fresh data as before (tests/test_flight_core_run.py: a race with and
+without it is bit-identical). The warm-up costs
 CPU time in the idle part of the period, not latency; its CPU time and passes per tick are
 recorded (``prewarm_s``, ``prewarm_calls`` in /timing).
 
