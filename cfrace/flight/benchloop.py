@@ -73,39 +73,32 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
 def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s: float = 0.003,
               dt: float = 0.01) -> dict:
     """The machine's floor: a 100 Hz loop with no work at all, on the CPU and at the priority the
-    flight loop gets, waiting as the flight loop waits (sleep to ``prewarm_s`` before each absolute
-    deadline, then sleep(0) to it). Its tick lateness and period jitter are what any Python loop
-    gets here; `cfrace bench loop` prints the flight loop's beside them. Returns timing_summary's
-    late_ms / period_jitter_ms plus loop_cpu and rt_fifo."""
+    flight loop gets, waiting exactly as the flight loop waits (RealClock.wait_next with an empty
+    warm-up and final step). Its tick lateness and period jitter are what any Python loop gets
+    here; `cfrace bench loop` prints the flight loop's beside them. Returns late_ms and
+    period_jitter_ms (as timing_summary) plus loop_cpu and rt_fifo."""
     import numpy as np
 
     from cfrace.flight import realtime
+    from cfrace.flight.clock import RealClock
     from cfrace.flight.runner import ms_stats
 
     cpu = realtime.resolve_loop_cpu(loop_cpu)
     pinned = realtime.pin_loop_thread(cpu)
     fifo = realtime.set_fifo(realtime.resolve_rt_priority(rt_priority))
-    late, period = [], []
+    nothing = (lambda: None) if prewarm_s > 0 else None
+    clock = RealClock(dt)
+    ticks = []
     try:
-        t0 = time.perf_counter()
-        prev = None
-        for k in range(1, int(round(seconds / dt)) + 1):
-            deadline = t0 + k * dt
-            now = time.perf_counter()
-            if now < deadline - prewarm_s:
-                time.sleep(deadline - prewarm_s - now)
-            now = time.perf_counter()
-            while now < deadline:
-                time.sleep(0)
-                now = time.perf_counter()
-            late.append(now - deadline)
-            period.append(np.nan if prev is None else now - prev)
-            prev = now
+        clock.start()
+        while len(ticks) < int(round(seconds / dt)):
+            ticks.append(clock.wait_next(nothing, prewarm_s, nothing))
     finally:
         realtime.restore_scheduler(fifo)
         realtime.restore_affinity(pinned)
-    return {"ticks": len(late), "late_ms": ms_stats(late), "period_jitter_ms": ms_stats(np.abs(np.asarray(period) - dt)),
-            "loop_cpu": cpu, "rt_fifo": fifo is not None}
+    period = np.diff([t.wall for t in ticks])
+    return {"ticks": len(ticks), "late_ms": ms_stats([t.late_s for t in ticks]),
+            "period_jitter_ms": ms_stats(np.abs(period - dt)), "loop_cpu": cpu, "rt_fifo": fifo is not None}
 
 
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
