@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cfrace.rl.logs import finish_steps_plot
+
 CURVE_COLUMNS = ("env_steps", "wall_s", "return_agent0", "return_agent1", "stat_gates_per_s", "stat_success",
                  "stat_crash_rate", "stat_lap_time_s", "stat_win_share_agent0")
 MAX_ROWS = 200
@@ -95,15 +97,5 @@ def plot_curves(groups: dict[str, list[Path]], path: Path, y: str = "return_agen
     if not drawn:
         plt.close(fig)
         return None
-    ax.set_xlabel("environment steps (world transitions)")
     ax.set_ylabel(LABELS.get(y, y))
-    if title:
-        ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
-    plt.close(fig)
-    return path
+    return finish_steps_plot(fig, ax, path, title, legend_size=8)
