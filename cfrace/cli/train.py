@@ -100,6 +100,9 @@ def train_cmd(
                                            help="learning rate of the critic warm-up iterations"),
     precision: Optional[str] = typer.Option(None, "--precision",
                                             help="PPO update in auto (measured at start, default) | fp32 | bf16"),
+    ground_start_prob: Optional[float] = typer.Option(None, "--ground-start-prob",
+                                                      help="share of training races started on the floor "
+                                                           "(default: the track's spawn.ground_start_prob)"),
     keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
                                           help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
@@ -134,7 +137,8 @@ def train_cmd(
                           init_critic=init_critic, random_phase=random_phase,
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
                           fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
-                          keep_checkpoints=keep_checkpoints, precision=precision or "auto")
+                          keep_checkpoints=keep_checkpoints, precision=precision or "auto",
+                          ground_start_prob=ground_start_prob)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"

@@ -8,6 +8,7 @@ out/training_curve.png   episode return per drone against env steps
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -60,6 +61,7 @@ class TrainConfig:
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
+    ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
 
     def ippo(self) -> IPPOConfig:
@@ -106,6 +108,11 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     from cfrace.env.race_env import RaceEnv
 
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
+        if not 0.0 <= cfg.ground_start_prob <= 1.0:
+            raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
+        track = dataclasses.replace(track, spawn=dataclasses.replace(track.spawn,
+                                                                     ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs)
@@ -119,7 +126,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "obs_layout": layout.name if layout is not None else None, "obs_dim": int(env.obs_dim),
             **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
-            "flight_obs": bool(getattr(env, "flight_obs", False))}
+            "flight_obs": bool(getattr(env, "flight_obs", False)),
+            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
 
 
 def load_checkpoint(path: str | Path) -> dict:
