@@ -159,6 +159,8 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
         keep[key] = given.get(key)
     if given.get("precision") is not None:  # how the update computes, not what the task is
         keep["precision"] = given["precision"]
+    if given.get("keep_checkpoints"):  # a resumed run may start keeping its checkpoints
+        keep["keep_checkpoints"] = True
     keep["out"] = str(given.get("out") or resume)
     if keep["checkpoint_every_s"] is None:
         keep["checkpoint_every_s"] = saved.get("checkpoint_every_s", 300.0)
