@@ -20,8 +20,9 @@ from dataclasses import dataclass
 
 import torch
 
-METHODS = ("ours", "ds", "ss", "dm")
-MULTI_AGENT = {"ours": True, "dm": True, "ds": False, "ss": False}
+from cfrace.contract import METHODS, MULTI_AGENT_METHODS
+
+MULTI_AGENT = {m: m in MULTI_AGENT_METHODS for m in METHODS}   #: method -> trained two drones per world
 
 
 @dataclass(frozen=True)

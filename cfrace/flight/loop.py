@@ -35,17 +35,15 @@ idle part of the period, not in the middle of a tick.
 
 from __future__ import annotations
 
-import bisect
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, GRAVITY
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, SetpointMap
 from cfrace.env.observations import ObsLayout, build_observation
 from cfrace.flight import safety as sf
-from cfrace.flight.link import THRUST_MAX_COUNTS
 from cfrace.flight.mocap import frame_to_msg
 
 #: thrust counts sent at least while a drone races: the Crazyflie firmware turns a legacy setpoint
@@ -59,46 +57,6 @@ PRE_RACE_WARM_CALLS = 20   #: policy calls per drone before the clock starts (Fl
 
 perf = time.perf_counter
 thread_time = time.thread_time   # CPU time of this thread: the tick's own cost, without preemption
-
-
-class SetpointMap:
-    """One drone's action (4,) -> (thrust N, body rates deg/s, thrust counts): the training action
-    map (cfrace.env.actions.action_to_command), np.degrees and the calibration curve
-    (cfrace.flight.link.thrust_to_counts), done with the same float64 operations in the same order
-    on Python floats. Bit-identical to those (tests/test_flight_core.py) and a fraction of their
-    cost on a 4-vector: about 10 numpy calls fewer in every tick."""
-
-    def __init__(self, mass: float, max_thrust_weights: float, max_rates_deg, curve):
-        self.scale = max_thrust_weights * mass * GRAVITY
-        self.k = tuple(math.radians(v) for v in max_rates_deg)
-        self.xp = [float(v) for v in curve.newtons]
-        self.fp = [float(v) for v in curve.counts]
-
-    def _interp(self, x: float) -> float:
-        """np.interp(x, newtons, counts) for one finite x: numpy's rule and arithmetic
-        (compiled_base.c: clamp at the ends, knot values exact, slope * (x - x_j) + y_j)."""
-        xp, fp = self.xp, self.fp
-        if x > xp[-1]:
-            return fp[-1]
-        if x < xp[0]:
-            return fp[0]
-        j = bisect.bisect_right(xp, x) - 1           # xp[j] <= x < xp[j + 1]
-        if j == len(xp) - 1 or xp[j] == x:
-            return fp[j]
-        slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-        return slope * (x - xp[j]) + fp[j]
-
-    def __call__(self, act) -> tuple[float, tuple[float, float, float], int]:
-        """act: 4 numbers. Counts are 0 for a non-finite thrust (never sent: the safety check stops
-        the drone)."""
-        a0, a1, a2, a3 = (min(max(float(x), -1.0), 1.0) for x in act)   # NaN stays NaN, like clip
-        thrust = (a0 + 1.0) * 0.5 * self.scale
-        k = self.k
-        rates = (math.degrees(a1 * k[0]), math.degrees(a2 * k[1]), math.degrees(a3 * k[2]))
-        if not math.isfinite(thrust):
-            return thrust, rates, 0
-        c = round(self._interp(thrust))                             # round half to even, as np.rint
-        return thrust, rates, min(max(c, 0), THRUST_MAX_COUNTS)
 
 
 class KillSwitch:

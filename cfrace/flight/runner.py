@@ -31,7 +31,7 @@ from cfrace.flight import realtime
 from cfrace.flight.clock import LockstepClock, RealClock
 from cfrace.flight.config import DRONE_NAMES, FlightConfig
 from cfrace.flight.estimator import PoseEstimator
-from cfrace.flight.link import open_link
+from cfrace.flight.links import open_link
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.progress import FastRaceProgress

@@ -1,0 +1,123 @@
+"""The package's structure: no import cycles, no torch on the `fly` path, one policy contract."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+import cfrace
+
+ROOT = Path(cfrace.__file__).parent
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT.parent).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def import_graph() -> dict[str, set[str]]:
+    """cfrace module -> the cfrace modules it imports, at module level or inside functions."""
+    files = {_module_name(p): p for p in ROOT.rglob("*.py")}
+    graph: dict[str, set[str]] = {m: set() for m in files}
+    for mod, path in files.items():
+        package = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    base = ".".join(up + ([base] if base else []))
+                names = [base] + [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            graph[mod] |= {n for n in names if n in files and n != mod}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle as [a, b, ..., a], or None (depth-first search)."""
+    state: dict[str, int] = {}   # 1 on the stack, 2 done
+    stack: list[str] = []
+
+    def visit(m: str) -> list[str] | None:
+        state[m] = 1
+        stack.append(m)
+        for n in sorted(graph[m]):
+            if state.get(n) == 1:
+                return stack[stack.index(n):] + [n]
+            if n not in state and (found := visit(n)):
+                return found
+        stack.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(graph):
+        if m not in state and (found := visit(m)):
+            return found
+    return None
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_the_import_graph_sees_function_level_and_relative_imports():
+    graph = import_graph()
+    assert "cfrace.flight.link_cflib" in graph["cfrace.flight.links"]   # imported inside open_link
+    assert "cfrace.contract" in graph["cfrace.policy"]
+
+
+def test_no_import_cycles_in_cfrace():
+    assert find_cycle(import_graph()) is None
+
+
+def _modules_loaded_by(code: str) -> set[str]:
+    out = subprocess.run([sys.executable, "-c", code + "\nimport sys; print('\\n'.join(sys.modules))"],
+                         capture_output=True, text=True, check=True).stdout
+    return set(out.split())
+
+
+FLY_PATH = ["cfrace.cli.flight", "cfrace.flight.loop", "cfrace.flight.runner", "cfrace.flight.links",
+            "cfrace.flight.link_cflib", "cfrace.flight.mocap", "cfrace.flight.estimator", "cfrace.flight.safety",
+            "cfrace.flight.progress", "cfrace.flight.flightlog", "cfrace.flight.config", "cfrace.policy",
+            "cfrace.contract", "cfrace.env.observations", "cfrace.env.actions"]
+
+
+def test_the_fly_path_imports_no_torch():
+    loaded = _modules_loaded_by("\n".join(f"import {m}" for m in FLY_PATH))
+    assert set(FLY_PATH) <= loaded
+    assert "torch" not in loaded, "a module on the fly path imports torch at module level"
+
+
+def test_the_policy_contract_imports_neither_torch_nor_the_trainer():
+    loaded = _modules_loaded_by("import cfrace.contract, cfrace.policy")
+    assert "torch" not in loaded and not any(m.startswith("cfrace.rl") for m in loaded)
+
+
+def test_the_gate_rule_is_defined_once():
+    """kernel.c takes the gate rule's constants from cfrace.sim.gates (through the constants array)
+    instead of literals of its own; the flight stack imports them from there too."""
+    import re
+
+    from cfrace.drone import load_profile
+    from cfrace.sim import ckernel, gates
+    from cfrace.sim.dynamics import Constants
+    from cfrace.sim.simulator import CrashRules
+
+    src = (ROOT / "sim" / "kernel.c").read_text()
+    for literal in ("1.0f", "0.5f", "0.4f"):
+        assert not re.search(rf"(<|>=)\s*{re.escape(literal)}", src), f"kernel.c compares against {literal}"
+    cst = ckernel.constants_array(Constants.from_profile(load_profile("cf2x_paper")), 0.05, 0.01,
+                                  (0, 1, 0, 1, 3), 0.7, CrashRules())
+    rule = [gates.PASS_RADIUS, gates.PASS_HALF, gates.FRAME_HIT_HALF]
+    assert cst[-3:].tolist() == [float(np.float32(v)) for v in rule]
+    for path in ROOT.rglob("*.py"):
+        if path.name != "gates.py":
+            assert not re.search(r"^(PASS_HALF|PASS_RADIUS|FRAME_HIT_HALF)\s*=", path.read_text(), re.M), path
