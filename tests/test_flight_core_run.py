@@ -130,13 +130,14 @@ def test_real_time_dry_run_through_cflib(pols, tmp_path):
 # ------------------------------------------------------------------------------- refused before flying
 
 def _fleet_and_race(pols, tmp_path, **kw):
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.dryrun import sim_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
     c = cfg(pols, tmp_path, **kw)
     fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
     try:
-        run_race(c, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"])
+        sim_race(resolve_race(c), fleet)
     finally:
         for i in range(2):
             assert fleet.status(i)["setpoints_received"] == 0         # nothing was sent
@@ -264,7 +265,8 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     from cfrace.drone import load_profile
     from cfrace.env.actions import action_to_command
     from cfrace.env.observations import LAYOUTS, build_observations
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.dryrun import sim_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.policy import OnnxPolicy
     from cfrace.sim.simulator import Simulator
     from cfrace.simcf.firmware import SimFleet
@@ -277,7 +279,7 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     fleet = SimFleet(track, prof, 2, start_positions=start, obstacles=False)
     c = FlightConfig(track="lemniscate", ego=str(paths[0]), opp=str(paths[1]), profile=PROFILE, quiet=True,
                      timeout_s=2.0, log=tmp_path / "f.mcap")
-    run_race(c, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"])
+    sim_race(resolve_race(c), fleet)
     flown = {round(t, 4): np.array(m["poses"]["cf1"]["pos"]) for t, m in read_log(tmp_path / "f.mcap").messages("/mocap/pose")}
 
     sim = Simulator(track, prof, worlds=1, drones=2, obstacles=False)

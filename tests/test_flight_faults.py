@@ -145,8 +145,9 @@ def test_real_signal_mid_race_stops_everything(pols, tmp_path, sig, code):
 
 
 def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, tmp_path):
+    from cfrace.flight.dryrun import sim_race
     from cfrace.flight.faults import FaultInjector
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
     class Boom(FaultInjector):
@@ -159,7 +160,7 @@ def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, t
                        timeout_s=3.0, log=tmp_path / "f.mcap")
     fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
     with pytest.raises(RuntimeError, match="exploded"):
-        run_race(cfg, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"], injector=Boom([], {}))
+        sim_race(resolve_race(cfg), fleet, injector=Boom([], {}))
     for _ in range(5):
         fleet.advance(0.01)
     for i in range(2):

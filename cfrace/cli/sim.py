@@ -75,16 +75,18 @@ def dry_run_cmd(
     from cfrace.cli.flight import exit_code, print_result, write_json
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
+    from cfrace.flight.setup import resolve_race, training_profile
+    from cfrace.track import load_track
 
+    the_track = load_track(track)
     if profile is None:
-        from cfrace.flight.dryrun import training_profile
-        profile = training_profile(track, ego, obstacles)
+        profile = training_profile(the_track, ego, obstacles)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
-                     mocap_latency_s=mocap_latency_ms / 1e3, console=console)
+                     mocap_latency_s=mocap_latency_ms / 1e3, console=console, setup=resolve_race(cfg, the_track))
     print_result(result)
     write_json(result, json_out)
     code = exit_code(result)

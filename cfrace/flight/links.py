@@ -5,24 +5,18 @@ from __future__ import annotations
 import time
 
 from cfrace.errors import LinkError
-from cfrace.flight.link import DirectSimLink, Link, RecordingLink
+from cfrace.flight.link import Link, RecordingLink
 
 
-def open_link(uri: str, *, fleet=None, clock=time.monotonic) -> Link:
-    """A Link for ``uri``: radio:// and udp:// go through cflib (link_cflib.py); sim://N is a
-    DirectSimLink to drone N of ``fleet``; null:// records only."""
+def open_link(uri: str, *, clock=time.monotonic) -> Link:
+    """A Link for ``uri``: radio:// and udp:// go through cflib (link_cflib.py); null:// records
+    only. sim://N (a drone of an in-process simulator) is made by cfrace.flight.dryrun, which has it."""
     if uri.startswith(("radio://", "udp://", "usb://")):
         from cfrace.flight.link_cflib import CflibLink
 
         return CflibLink(uri)
     if uri.startswith("sim://"):
-        if fleet is None:
-            raise LinkError(f"{uri}: a sim:// link needs the in-process simulator (cfrace sim dry-run --lockstep)")
-        try:
-            index = int(uri[len("sim://"):])
-        except ValueError:
-            raise LinkError(f"{uri}: expected sim://INDEX") from None
-        return DirectSimLink(fleet, index, clock=clock)
+        raise LinkError(f"{uri}: a sim:// link needs the in-process simulator (cfrace sim dry-run --lockstep)")
     if uri.startswith("null://"):
         return RecordingLink(uri, clock=clock)
     raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N)")
