@@ -327,7 +327,7 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     from cfrace.flight.estimator import Estimate, PoseEstimator
     from cfrace.flight.loop import ObservationBuilder
     from cfrace.flight.mocap import MocapFrame, Pose
-    from cfrace.flight.testpolicy import hold_policy_layers
+    from cfrace.flight.holdpolicy import hold_policy_layers
     from cfrace.sim.simulator import Simulator
 
     profile = load_profile(PROFILE)

@@ -15,7 +15,7 @@ from cfrace.flight.config import FlightConfig
 from cfrace.flight.dryrun import dry_run
 from cfrace.flight.flightlog import read_log
 from cfrace.flight.replay import replay_log
-from cfrace.flight.testpolicy import make_hold_policy
+from cfrace.flight.holdpolicy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 

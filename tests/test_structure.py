@@ -121,3 +121,41 @@ def test_the_gate_rule_is_defined_once():
     for path in ROOT.rglob("*.py"):
         if path.name != "gates.py":
             assert not re.search(r"^(PASS_HALF|PASS_RADIUS|FRAME_HIT_HALF)\s*=", path.read_text(), re.M), path
+
+
+#: files over 400 lines and functions over 60 lines that stay so, each with its reason
+LONG_FILES = {
+    "sim/kernel.c": "one fused C kernel: its blocks share the lane layout and must be read together",
+    "simcf/firmware.py": "the simulated firmware's one state machine (setpoints, watchdog, arming, params)",
+}
+LONG_FUNCTIONS = {
+    "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",
+    "cli/train.py:train_cmd": "the `train` command's option list; in the trainer's files, restructured with them",
+    "cli/logs.py:info_cmd": "one table of a log's summary, printed row by row",
+    "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper; in the trainer's files",
+    "rl/train.py:train": "the training loop with budgets, logs and resume; in the trainer's files",
+    "sim/simulator.py:_substep": "the torch reference of one physics step, kept in the order of kernel.c",
+    "evaluate/rollout.py:rollout": "the evaluation rollout, one loop over policy steps",
+    "evaluate/plots.py:race_plots": "one figure with its panels",
+    "flight/logplot.py:plot_log": "one figure with its panels",
+    "flight/replay.py:replay_log": "one lockstep replay loop with its comparisons",
+    "flight/estimator.py:_ingest": "the per-frame estimator update, kept in one place for the 100 Hz tick",
+}
+
+
+def test_no_long_files_or_functions_beyond_the_justified_ones():
+    long_files, long_functions = set(), set()
+    for path in sorted(ROOT.rglob("*")):
+        if path.suffix not in (".py", ".c"):
+            continue
+        rel, text = path.relative_to(ROOT).as_posix(), path.read_text()
+        if len(text.splitlines()) > 400:
+            long_files.add(rel)
+        if path.suffix == ".py":
+            for node in ast.walk(ast.parse(text)):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and \
+                        node.end_lineno - node.lineno + 1 > 60:
+                    long_functions.add(f"{rel}:{node.name}")
+    assert long_files <= set(LONG_FILES), f"files over 400 lines: {sorted(long_files - set(LONG_FILES))}"
+    assert long_functions <= set(LONG_FUNCTIONS), \
+        f"functions over 60 lines: {sorted(long_functions - set(LONG_FUNCTIONS))}"

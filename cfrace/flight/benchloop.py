@@ -64,7 +64,7 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
             from cfrace.errors import PolicyError
             raise PolicyError(f"no shipped policies {ours.name} and {ds.name} in {POLICIES_DIR}")
         return str(ours), str(ds), "shipped ours vs ds"
-    from cfrace.flight.testpolicy import make_sized_hold_policy
+    from cfrace.flight.holdpolicy import make_sized_hold_policy
 
     ego = make_sized_hold_policy(workdir / "ego.onnx", "race42", track, False)
     opp = make_sized_hold_policy(workdir / "opp.onnx", "solo36", track, False, seed=1)
