@@ -1,14 +1,13 @@
 """Training checkpoints on disk: the file name, the format tag and the one reader.
 
 Read by the trainer (resume), warm starts and export; written by cfrace.rl.train. A checkpoint is
-a torch file of the trainer's own making (trusted: never load one from elsewhere).
+a torch file of the trainer's own making (trusted: never load one from elsewhere). torch is imported
+only to read one, so that the names here cost nothing to import (the sweep planner uses them).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-
-import torch
 
 from cfrace.errors import ConfigError
 
@@ -24,6 +23,8 @@ def load_checkpoint(path: str | Path) -> dict:
         path = path / CHECKPOINT
     if not path.exists():
         raise ConfigError(f"{path}: no such checkpoint")
+    import torch
+
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # torch raises many types for damaged files
