@@ -171,7 +171,7 @@ def register(app: typer.Typer) -> None:
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
-        result = fly(resolve_race(cfg), console=console, announce=announce)
+        result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)
         write_json(result, json_out)
         code = exit_code(result)

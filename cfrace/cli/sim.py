@@ -86,7 +86,8 @@ def dry_run_cmd(
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
-                     mocap_latency_s=mocap_latency_ms / 1e3, console=console, setup=resolve_race(cfg, the_track))
+                     mocap_latency_s=mocap_latency_ms / 1e3, console=console,
+                     setup=resolve_race(cfg, the_track)).to_json()
     print_result(result)
     write_json(result, json_out)
     code = exit_code(result)

@@ -138,7 +138,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
             floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
                 if floor_s > 0 else None
             try:
-                result = run_race(resolve_race(cfg), real_io(cfg))
+                result = run_race(resolve_race(cfg), real_io(cfg)).to_json()
                 sim_cpus = sorted(os.sched_getaffinity(proc.pid)) if hasattr(os, "sched_getaffinity") else None
             except CfraceError as exc:
                 if proc.poll() is not None:   # the simulator process died: say why

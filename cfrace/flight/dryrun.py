@@ -24,6 +24,7 @@ from cfrace.flight.config import DRONE_NAMES, FlightConfig
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
 from cfrace.flight.link import DirectSimLink
 from cfrace.flight.links import open_link
+from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.runner import run_race
 from cfrace.flight.setup import RaceIO, RaceSetup, resolve_race
@@ -93,14 +94,14 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
 
 
 def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=("sim://0", "sim://1"),
-             injector: FaultInjector | None = None, **run_options) -> dict:
+             injector: FaultInjector | None = None, **run_options) -> RaceResult:
     """run_race on an in-process fleet (tests and the dry-run)."""
     return run_race(setup, sim_io(setup.cfg, fleet, lockstep=lockstep, uris=uris, injector=injector), **run_options)
 
 
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
-            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None) -> dict:
+            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None) -> RaceResult:
     """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info.
     ``setup``: the race resolved already (the CLI's), else resolved here from cfg."""
     fault_list = parse_faults(faults)
@@ -133,7 +134,7 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
                           extra_meta={"dry_run": True, "seed": seed, "faults": faults or "",
                                       "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s})
         if server is not None:
-            result["sim"] = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
+            result.sim = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
         return result
     finally:
         for relay in relays.values():

@@ -3,7 +3,7 @@ builder, the per-tick timing figures and the result of a race."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -112,3 +112,45 @@ class TickTimes:
                 "compute": np.asarray(self.compute), "compute_cpu": np.asarray(self.cpu),
                 "prewarm": np.asarray(self.warm), "prewarm_calls": np.asarray(self.warm_n),
                 "infer": [np.asarray(x) for x in self.infer], "obs": [np.asarray(x) for x in self.obs]}
+
+
+_RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
+                "drones", "estimator", "laps", "lap_times")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim")
+
+
+@dataclass
+class RaceResult:
+    """What a race (`cfrace fly`, `cfrace sim dry-run`) came to; ``to_json()`` is its JSON document
+    (docs/flight.md). The race fields are set when the loop ran to an end, the way-out fields when
+    they apply; ``end`` is "error" when the race did not get to run or raised."""
+
+    end: str = "error"            #: finished, all_stopped, timeout, operator_kill, a stop_all safety kind, error
+    winner: str = "draw"          #: ego, opp or draw
+    duration_s: float | None = None
+    operator_kill: str | None = None   #: SIGINT / SIGTERM when the operator ended the race
+    rt_fifo: bool = False
+    loop_cpu: int | None = None
+    track: str = ""
+    profile: str = ""
+    loop: dict | None = None      #: timing figures (cfrace.flight.runner.timing_summary) plus skipped
+    safety_events: list = field(default_factory=list)
+    drones: list = field(default_factory=list)       #: per drone: laps, lap times, stop, speeds, link
+    estimator: dict = field(default_factory=dict)    #: per body: frames, occluded, outliers, ...
+    laps: dict = field(default_factory=dict)         #: drone name -> laps
+    lap_times: dict = field(default_factory=dict)    #: drone name -> lap times s
+    error: str | None = None
+    drones_final: list | None = None                 #: the simulated drones' state after the race (dry-run)
+    drones_final_error: str | None = None
+    faults: list | None = None                       #: what the fault injection did (dry-run)
+    log: str | None = None                           #: the flight log's path
+    sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
+
+    def to_json(self) -> dict:
+        out = {"end": self.end, "winner": self.winner}
+        if self.loop is not None:
+            out.update({k: getattr(self, k) for k in _RACE_FIELDS})
+        elif self.operator_kill is not None:
+            out["operator_kill"] = self.operator_kill
+        out.update({k: getattr(self, k) for k in _WAY_OUT_FIELDS if getattr(self, k) is not None})
+        return out

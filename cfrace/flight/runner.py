@@ -29,6 +29,7 @@ from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
+from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
@@ -136,7 +137,7 @@ class RaceRun:
         rt_priority = realtime.resolve_rt_priority(cfg.rt_priority) if real_time else 0
         self.kill, self.loop_ref = KillSwitch(), []
         self.links, self.mocap, self.log, self.view = [], None, None, None
-        self.result: dict = {"end": "error", "winner": "draw"}
+        self.result = RaceResult()
         self.meta = {"track": setup.track.name, "obstacles": cfg.obstacles, "laps": cfg.laps,
                      "profile": setup.profile.name, "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies),
                      "uris": list(io.uris), "mocap": cfg.mocap, "lockstep": not real_time,
@@ -146,15 +147,15 @@ class RaceRun:
                                   for n, p in zip(DRONE_NAMES, setup.policies)},
                      **(extra_meta or {})}
 
-    def run(self) -> dict:
+    def run(self) -> RaceResult:
         with _Signals(self.kill, self.loop_ref):
             try:
                 loop = self._open()
                 self._fly(loop)
             except BaseException as exc:
-                self.result["error"] = f"{type(exc).__name__}: {exc}"
+                self.result.error = f"{type(exc).__name__}: {exc}"
                 if self.kill.reason is not None:
-                    self.result["operator_kill"] = self.kill.reason
+                    self.result.operator_kill = self.kill.reason
                 raise
             finally:
                 self._shut_down()
@@ -209,15 +210,13 @@ class RaceRun:
         if log is not None:
             log.write("/event", 0.0, {"kind": "start", "text": "race start"})
         res, fifo, loop_cpu = _run_realtime_friendly(loop, self.meta["rt_priority"], self.loop_cpu)
-        self.result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
-                       "operator_kill": self.kill.reason, "rt_fifo": fifo, "loop_cpu": loop_cpu,
-                       "track": s.track.name, "profile": s.profile.name,
-                       "loop": timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones])
-                       | {"skipped": res.skipped},
-                       "safety_events": res.safety_events, "drones": res.drones,
-                       "estimator": {b: dict(c) for b, c in loop.estimator.counters.items()},
-                       "laps": {d["name"]: d["laps"] for d in res.drones},
-                       "lap_times": {d["name"]: d["lap_times"] for d in res.drones}}
+        self.result = RaceResult(
+            end=res.end, winner=res.winner, duration_s=round(res.t_end, 3), operator_kill=self.kill.reason,
+            rt_fifo=fifo, loop_cpu=loop_cpu, track=s.track.name, profile=s.profile.name,
+            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones]) | {"skipped": res.skipped},
+            safety_events=res.safety_events, drones=res.drones,
+            estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
+            laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones})
         if log is not None:
             log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
 
@@ -230,28 +229,30 @@ class RaceRun:
             self.view.__exit__(None, None, None)
         if self.settle is not None:
             try:
-                result["drones_final"] = self.settle()
+                result.drones_final = self.settle()
             except Exception as exc:  # noqa: BLE001
-                result["drones_final_error"] = str(exc)
+                result.drones_final_error = str(exc)
         for link in self.links:
             _quietly(link.close)
         if self.mocap is not None:
             _quietly(self.mocap.close)
         if self.io.hooks is not None and hasattr(self.io.hooks, "log"):
-            result["faults"] = self.io.hooks.log
+            result.faults = self.io.hooks.log
         if self.log is not None:
-            self.log.close({k: v for k, v in result.items() if k != "loop"} | {"loop": result.get("loop")})
-            result["log"] = str(self.setup.cfg.log)
+            doc = result.to_json()
+            self.log.close({k: v for k, v in doc.items() if k != "loop"} | {"loop": doc.get("loop")})
+            result.log = str(self.setup.cfg.log)
 
 
-def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None, announce=None) -> dict:
-    """Fly one race and return the result dict (docs/flight.md). settle(): called after every drone
+def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None,
+             announce=None) -> RaceResult:
+    """Fly one race and return its RaceResult (docs/flight.md). settle(): called after every drone
     was stopped, returns what the result and the log summary store as drones_final (the dry-run
     waits for motors off there); announce(meta): called once every check passed and every link
     answered, before the set-up."""
     return RaceRun(setup, io, extra_meta=extra_meta, settle=settle, console=console, announce=announce).run()
 
 
-def fly(setup: RaceSetup, console=None, announce=None) -> dict:
+def fly(setup: RaceSetup, console=None, announce=None) -> RaceResult:
     """`cfrace fly`: real drones (radio:// or udp://) from a mocap system."""
     return run_race(setup, real_io(setup.cfg), console=console, announce=announce)

@@ -229,26 +229,8 @@ class Simulator:
         self._update_params()
 
     # ----------------------------------------------------------------- state access
-    @property
-    def pos(self) -> torch.Tensor:
-        return self.state.pos
-
-    @property
-    def vel(self) -> torch.Tensor:
-        return self.state.vel
-
-    @property
-    def quat(self) -> torch.Tensor:
-        return self.state.quat
-
-    @property
-    def omega(self) -> torch.Tensor:
-        return self.state.omega
-
-    @property
-    def motor(self) -> torch.Tensor:
-        return self.state.motor
-
+    # sim.pos, vel, quat, omega, motor (the drone state's tensors) and sim.target, crashed, ...
+    # (the race state's): properties added below the class
     def rot(self) -> torch.Tensor:
         """(W, D, 3, 3) world-from-body."""
         return quat_to_rot(self.state.quat)
@@ -299,9 +281,11 @@ class Simulator:
         return [[REASONS[int(v)] for v in row] for row in self.race.reason.cpu()]
 
 
-def _race_field(name: str) -> property:
-    return property(lambda self: getattr(self.race, name), doc=f"self.race.{name} (W, D)")
+def _field(part: str, name: str) -> property:
+    return property(lambda self: getattr(getattr(self, part), name), doc=f"self.{part}.{name}")
 
 
-for _name in RaceState._fields:   # sim.target, sim.crashed, ...: the race state's tensors
-    setattr(Simulator, _name, _race_field(_name))
+for _name in ("pos", "vel", "quat", "omega", "motor"):
+    setattr(Simulator, _name, _field("state", _name))
+for _name in RaceState._fields:
+    setattr(Simulator, _name, _field("race", _name))
