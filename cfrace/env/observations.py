@@ -1,6 +1,6 @@
 """Observations, shared by the environment and the flight loop (one function, no skew).
 
-Layout (facts.md, paper Sec. III-B), each drone from its own body frame:
+Layout (paper Sec. III-B and the authors' code), each drone from its own body frame:
     [world position (3), only with obstacles]
     linear velocity in body frame (3)
     rotation matrix world-from-body, row-major (9)

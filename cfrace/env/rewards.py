@@ -1,7 +1,7 @@
 """Reward terms of the paper's four training schemes, as named tensors (each one logged).
 
 All inputs are (E, A) tensors for E worlds and A agents (A = 2 multi-agent, 1 single-agent).
-facts.md:
+The paper's schemes with the authors' weights:
 - ours (sparse multi-agent): gate pass 10 if leading else 5; lap bonus 50 to the leader only, paid
   once per lap per race; rate cost (0.15 (a1^2 + a2^2) + 0.05 a3^2) dt; contact -0.1 per step;
   crash -2 once.

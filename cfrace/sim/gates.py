@@ -1,6 +1,6 @@
 """Gate passing: one rule for the simulator, the environment and the flight loop.
 
-facts.md: a gate is passed when the drone's x in the gate frame goes from > 0 to <= 0 (it
+The authors' rule: a gate is passed when the drone's x in the gate frame goes from > 0 to <= 0 (it
 approaches from the +n side and flies along -n), within 1.0 m of the centre, with |y| < 0.5 and
 |z| < 0.5 in the gate frame. Crossing the target gate's plane with |y| or |z| >= 0.4 (inside the
 outer frame) is a gate-frame hit, a terminal crash.
