@@ -128,6 +128,7 @@ LONG_FILES = {
     "sim/kernel.c": "one fused C kernel: its blocks share the lane layout and must be read together",
     "simcf/firmware.py": "the simulated firmware's one state machine (setpoints, watchdog, arming, params)",
     "sweep/spec.py": "the sweep file format (landed from its branch during the consolidation; its owner splits it)",
+    "evaluate/reproduce.py": "the reproduction report (landed from main during the consolidation; its owner splits it)",
 }
 LONG_FUNCTIONS = {
     "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",

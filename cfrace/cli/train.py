@@ -231,6 +231,7 @@ def bench_train_cmd(
     table.add_column("value", justify="right")
     table.add_row("worlds x drones", f"{r['num_envs']} x {r['num_agents']}")
     table.add_row("env steps / s (whole iterations)", f"{r['env_steps_per_s']:,.0f}")
+    table.add_row("env steps / CPU s of this process", f"{r['env_steps_per_cpu_s']:,.0f}")
     table.add_row("drone steps / s", f"{r['drone_steps_per_s']:,.0f}")
     table.add_row("simulation only, env steps / s", f"{r['sim_env_steps_per_s']:,.0f}")
     table.add_row("seconds per iteration", f"{r['iteration_s']:.2f}")
@@ -264,10 +265,13 @@ def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str
         p = res[key]["precision"]
         table.add_column(f"{key.upper()}: {cfg.label}" + (f" ({p['dtype']})" if p else ""), justify="right")
     table.add_column("A / B", justify="right")
-    for f, spec in (("env_steps_per_s", "{:,.0f}"), ("iteration_s", "{:.2f}"), ("share_update", "{:.0%}"),
-                    ("share_sim", "{:.0%}"), ("share_inference", "{:.0%}")):
-        table.add_row(f.replace("_", " "), spec.format(res["a"]["median"][f]), spec.format(res["b"]["median"][f]),
-                      f"{res['ratio_a_over_b'][f]:.2f}x")
+    fmt = lambda spec, v: "–" if v is None else spec.format(v)
+    for f, label, spec in (("env_steps_per_s", "env steps / s (wall clock)", "{:,.0f}"),
+                           ("env_steps_per_cpu_s", "env steps / CPU s", "{:,.0f}"),
+                           ("iteration_s", "s per iteration", "{:.2f}"), ("share_update", "share update", "{:.0%}"),
+                           ("share_sim", "share sim", "{:.0%}"), ("share_inference", "share inference", "{:.0%}")):
+        table.add_row(label, fmt(spec, res["a"]["median"][f]), fmt(spec, res["b"]["median"][f]),
+                      fmt("{:.2f}x", res["ratio_a_over_b"][f]))
     console.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

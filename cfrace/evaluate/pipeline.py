@@ -96,7 +96,7 @@ def _selected(run, out_root: Path) -> bool:
     return mark.exists() and mark.stat().st_mtime >= run.checkpoint(out_root).stat().st_mtime
 
 
-def post_stage(run, out_dir: Path, echo=print) -> None:
+def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR / "curves") -> None:
     """After a stage is done: choose and export its checkpoint (select), keep its training curve."""
     from cfrace.evaluate.select import score_run
     from cfrace.rl.curves import reduce_metrics
@@ -119,7 +119,7 @@ def post_stage(run, out_dir: Path, echo=print) -> None:
         echo(f"{run.name}: chose iteration {scored.chosen['iteration']} -> {dest}")
     metrics = out_dir / "metrics.csv"
     if metrics.exists() and (run.export is not None or run.select is not None):
-        reduce_metrics(metrics, POLICIES_DIR / "curves" / f"{opts['method']}_{setting}_s{run.seed}.csv")
+        reduce_metrics(metrics, Path(curves_dir) / f"{opts['method']}_{setting}_s{run.seed}.csv")
 
 
 def run_pipeline(sweep, out_root: Path, echo=print) -> None:

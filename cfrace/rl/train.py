@@ -323,10 +323,12 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     setup_s = time.perf_counter() - t0
     runner.iterate()
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
+    cpu0 = time.process_time()
     for _ in range(iterations):
         m = runner.iterate()
         for k in sums:
             sums[k] += m[k]
+    cpu_s = time.process_time() - cpu0  # the process's CPU time: what other processes on the machine don't change
     steps = iterations * ippo.rollout * ippo.num_envs
     drones = steps * runner.num_agents
     return {"method": method, "track": meta["track"], "obstacles": obstacles, "preset": ippo.preset,
@@ -335,6 +337,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
             "iterations": iterations, "setup_s": setup_s,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],
+            "env_steps_per_cpu_s": steps / cpu_s if cpu_s > 0 else math.inf,
             "sim_env_steps_per_s": steps / sums["sim_s"] if sums["sim_s"] > 0 else math.inf,
             "iteration_s": sums["iter_s"] / iterations,
             "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],
