@@ -139,7 +139,6 @@ LONG_FUNCTIONS = {
     "sim/simulator.py:_substep": "the torch reference of one physics step, kept in the order of kernel.c",
     "evaluate/rollout.py:rollout": "the evaluation rollout, one loop over policy steps",
     "evaluate/plots.py:race_plots": "one figure with its panels",
-    "flight/logplot.py:plot_log": "one figure with its panels",
     "flight/estimator.py:_ingest": "the per-frame estimator update, kept in one place for the 100 Hz tick",
     # landed from other branches during the consolidation; their owners split them when they next change
     "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
