@@ -21,18 +21,16 @@ from typing import Callable
 import torch
 
 from cfrace import __version__
+from cfrace.contract import METHODS, MULTI_AGENT_METHODS
 from cfrace.drone import DEFAULT_PROFILE, load_profile
 from cfrace.env.actions import action_map_constants
 from cfrace.errors import ConfigError
-from cfrace.export import METHODS, MULTI_AGENT_METHODS
+from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
 from cfrace.rl.precision import Precision, choose_precision
 from cfrace.rl.runner import Runner
 from cfrace.track import load_track
-
-CHECKPOINT = "checkpoint.pt"
-FORMAT = "cfrace-ippo-1"
 
 
 @dataclass(frozen=True)
@@ -128,21 +126,6 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.exists():
-        raise ConfigError(f"{path}: no such checkpoint")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises many types for damaged files
-        raise ConfigError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:120]})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ConfigError(f"{path}: not a cfrace training checkpoint")
-    return ckpt
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:

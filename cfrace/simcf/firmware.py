@@ -35,11 +35,12 @@ import numpy as np
 
 from cfrace.drone import DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf.params import PARAM_BY_NAME, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.track import Track, load_track
 
-DT = 0.002                 #: s, physics step of the simulator (500 Hz)
+DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
 MIN_THRUST = 1000          #: counts, below this the firmware commands zero thrust
 MAX_THRUST = 60000         #: counts, the firmware caps the legacy setpoint thrust here
 WDT_LEVEL = 0.5            #: s without setpoint -> level out

@@ -1,7 +1,7 @@
 """Hand-made linear ONNX policies that really fly (for flight-stack tests and demos without
 trained policies): take off, level, hold the current target gate's height and, with seek > 0,
 drift towards the target gate's centre. Linear in the training observation, so it is one Gemm
-layer written by cfrace.export.build_model with valid metadata; it does NOT race well (a trained
+layer written by cfrace.policygraph.build_model with valid metadata; it does NOT race well (a trained
 policy does), it only gives the flight stack a drone in the air.
 
 Observation entries used (layout without world position; +3 with it):
@@ -16,8 +16,13 @@ import math
 from pathlib import Path
 
 import numpy as np
+import onnx
 
-G = 9.81
+from cfrace import __version__
+from cfrace.drone import GRAVITY, load_profile
+from cfrace.env.actions import action_map_constants
+from cfrace.env.observations import LAYOUTS
+from cfrace.policygraph import build_model
 
 
 def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek: float = 0.0,
@@ -39,10 +44,10 @@ def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek
     b = np.zeros(4, np.float64)
     a_per_weight = 2.0 / max_thrust_weights          # a0 units per weight of thrust
     kp_z, kd_z = 4.0, 3.0                            # 1/s^2, 1/s
-    b[0] = a_per_weight - 1.0 + a_per_weight * kp_z * height_offset / G
+    b[0] = a_per_weight - 1.0 + a_per_weight * kp_z * height_offset / GRAVITY
     for c in range(4):
-        w[0, corner[c][2]] += a_per_weight * kp_z / G / 4.0
-    w[0, vz] -= a_per_weight * kd_z / G
+        w[0, corner[c][2]] += a_per_weight * kp_z / GRAVITY / 4.0
+    w[0, vz] -= a_per_weight * kd_z / GRAVITY
     k_att = 6.0                                     # 1/s, angle error -> rate
     k_pos, k_vel = 0.08 * seek, 0.25                 # rad per m, rad per m/s
     rate_scale = [math.radians(v) for v in max_rates_deg]
@@ -71,14 +76,6 @@ def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek
 def make_hold_policy(path: str | Path, layout_name: str, track: str, obstacles: bool, *, seek: float = 0.0,
                      method: str | None = None, profile: str = "cf2x_paper", height_offset: float = 0.0) -> Path:
     """Write the linear take-off-and-hold policy as an ONNX file with valid cfrace metadata."""
-    import onnx
-
-    from cfrace import __version__
-    from cfrace.drone import load_profile
-    from cfrace.env.actions import action_map_constants
-    from cfrace.env.observations import LAYOUTS
-    from cfrace.export import build_model
-
     layout = LAYOUTS[layout_name]
     prof = load_profile(profile)
     consts = action_map_constants(prof)
@@ -101,14 +98,6 @@ def make_sized_hold_policy(path: str | Path, layout_name: str, track: str, obsta
     """The hold controller inside an MLP of the paper's actor size (dense random weights that do
     not reach the output), so inference costs what a trained actor costs: ReLU pairs carry the
     4 controller outputs through, relu(h) - relu(-h) = h, for `cfrace bench loop`."""
-    import onnx
-
-    from cfrace import __version__
-    from cfrace.drone import load_profile
-    from cfrace.env.actions import action_map_constants
-    from cfrace.env.observations import LAYOUTS
-    from cfrace.export import build_model
-
     layout = LAYOUTS[layout_name]
     prof = load_profile(profile)
     consts = action_map_constants(prof)
