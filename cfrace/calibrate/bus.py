@@ -7,6 +7,7 @@ channel = a multicast group, e.g. 239.74.163.2) for the simulated stand.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -86,6 +87,7 @@ class SensorReader:
         self.bias = np.zeros(6)
         self.fault: str | None = None
         self.last_sample: float | None = None   #: host time of the newest complete sample
+        self.last_poll: float | None = None     #: host time the reader last came back from the bus
         self.bad_frames = 0                     #: frames that did not decode or broke a sample apart
         self._partial: dict = {}
         self._counter_base = 0
@@ -109,6 +111,7 @@ class SensorReader:
             except Exception as e:   # a bus that dies: the timeout check reports silence
                 self.fault = self.fault or f"{self.where}: bus error ({' '.join(str(e).split())[:120]})"
                 return
+            self.last_poll = time.monotonic()
             if msg is None or msg.is_error_frame or msg.is_remote_frame:
                 continue
             k = self._ids.get((msg.arbitration_id, bool(msg.is_extended_id)))
@@ -166,6 +169,14 @@ class SensorReader:
                 return (f"{self.where}: {names[k]} = {w[k]:.3g} {unit} beyond the sensor's range "
                         f"{limits[k]:g} {unit}")
         return None
+
+    def silent_for(self) -> float | None:
+        """s the reader has listened without a complete sample (None: not listened since the last one).
+        Counts only time the reader thread actually ran: a host that stalls is not a silent sensor."""
+        last, poll = self.last_sample, self.last_poll
+        if last is None:
+            return None if poll is None else math.inf
+        return poll - last if poll is not None and poll > last else None
 
     def count(self) -> int:
         with self._lock:

@@ -110,8 +110,9 @@ class Fit:
     k_m_ratio: float               #: m, yaw torque per N of thrust
     k_m_ratio_spread: float        #: m, std over single-motor holds
     spin_dirs: list[int]           #: measured spin direction of motors 1-4 (0: not measured)
-    tau_m: float
+    tau_m: float                   #: s, the step responses' median times the battery-sag factor
     tau_m_spread: float            #: s, std over steps
+    sag: float                     #: the battery-sag factor applied to tau_m (1 + k, see sag_factor)
     tau_steps: list[dict]          #: per step: t (s, rel.), e (normalised error), fitted tau
     stats: list[HoldStats]
     samples: int
@@ -180,37 +181,61 @@ def _k_m_ratio(stats: list[HoldStats], min_fz: float) -> tuple[float, float, lis
     return mean, float(np.abs(ratios).std()), dirs
 
 
+def _step_lsq(t: np.ndarray, s: np.ndarray, taus: np.ndarray, t0s: np.ndarray) -> tuple[float, float, float, float, float]:
+    """Least squares of s(t) = s1 + (s0 - s1) exp(-max(0, t - t0) / tau) over a (tau, t0) grid, s0 and s1
+    solved in closed form at each point. -> (sse, tau, t0, s0, s1)."""
+    g = np.exp(-np.clip(t[None, None, :] - t0s[None, :, None], 0.0, None) / taus[:, None, None])   # (T, T0, n)
+    h = 1.0 - g
+    a, b, c = (g * g).sum(-1), (g * h).sum(-1), (h * h).sum(-1)
+    p, q = (g * s).sum(-1), (h * s).sum(-1)
+    det = np.where(np.abs(a * c - b * b) < 1e-30, 1e-30, a * c - b * b)
+    s0, s1 = (c * p - b * q) / det, (a * q - b * p) / det
+    sse = (s * s).sum() - s0 * p - s1 * q
+    k = np.unravel_index(int(np.argmin(sse)), sse.shape)
+    return float(sse[k]), float(taus[k[0]]), float(t0s[k[1]]), float(s0[k]), float(s1[k])
+
+
 def _tau(rec: Recording) -> tuple[float, float, list[dict]]:
-    """tau_m from the lag test's steps: rotor speed ~ sqrt(thrust); ln of the normalised error
-    is linear in time with slope -1/tau between 80 % and 15 % of the step (no need to know when
-    the command reached the motors)."""
+    """tau_m from the lag test's steps: rotor speed ~ sqrt(thrust) follows a first-order step from an
+    unknown instant t0 (when the command reached the motors); least squares over tau and t0 on the
+    sensor's own time base, the levels before and after solved with them."""
     taus, curves = [], []
     for st in rec.steps:
-        pre = (rec.host >= st.t - 0.06) & (rec.host < st.t)
-        post = (rec.host >= st.t) & (rec.host <= st.t_end)
-        if pre.sum() < 3 or post.sum() < 10:
+        win = (rec.host >= st.t - 0.06) & (rec.host <= st.t_end)
+        if win.sum() < 15:
             continue
-        s_pre = np.sqrt(np.maximum(rec.wrench[pre, 2], 0.0)).mean()
-        t, s = rec.stime[post], np.sqrt(np.maximum(rec.wrench[post, 2], 0.0))
-        n_tail = max(3, len(s) // 3)
-        s_end = s[-n_tail:].mean()
-        e = (s - s_end) / (s_pre - s_end)
-        first = np.argmax(e < 0.8)
-        if e[first] >= 0.8:
+        t, s = rec.stime[win], np.sqrt(np.maximum(rec.wrench[win, 2], 0.0))
+        t = t - t[0]
+        _, tau, t0, _, _ = _step_lsq(t, s, np.geomspace(5e-4, 0.3, 120), np.linspace(0.0, t[-1] * 0.6, 120))
+        dt = max(t[-1] / 200.0, 2e-4)
+        _, tau, t0, s0, s1 = _step_lsq(t, s, np.linspace(tau * 0.85, tau * 1.15, 61),
+                                       np.linspace(max(0.0, t0 - 3 * dt), t0 + 3 * dt, 61))
+        if not abs(s0 - s1) > 0 or tau >= 0.29:
             continue
-        last = first + int(np.argmax(e[first:] < 0.15))
-        if last - first < 3:
-            continue
-        slope, _ = np.polyfit(t[first:last], np.log(e[first:last]), 1)
-        if slope >= 0:
-            continue
-        taus.append(-1.0 / slope)
-        curves.append({"t": (t - t[first]).tolist(), "e": e.tolist(), "tau": -1.0 / slope,
+        taus.append(tau)
+        curves.append({"t": (t - t0).tolist(), "e": ((s - s1) / (s0 - s1)).tolist(), "tau": tau,
                        "from": st.from_counts, "to": st.to_counts})
     if not taus:
-        raise FitError("the lag test gave no usable step (too few sensor samples after each step: "
+        raise FitError("the lag test gave no usable step (too few sensor samples around each step: "
                        "a faster sensor or longer steps)")
     return float(np.median(taus)), float(np.std(taus)), curves
+
+
+def sag_factor(stats: list[HoldStats], steps: list[Step], gamma: float) -> float:
+    """The battery makes a motor look faster: its voltage drops as the thrust rises, which lowers the
+    speed the motor heads for (w_des ~ V^(gamma/2)). Linearised about the lag test's thrust T, the
+    measured time constant is tau / (1 + k) with k = -gamma T (dV/dT) / V. -> 1 + k, from the
+    all-motor holds' voltage against thrust (a parabola's slope at T)."""
+    pts = np.array([(s.fz, s.volts) for s in stats if s.hold.kind == "all"])
+    if len(pts) < 3 or not steps:
+        return 1.0
+    mid = np.mean([(st.from_counts + st.to_counts) / 2.0 for st in steps])
+    near = min(stats, key=lambda s: abs(s.hold.counts - mid) + (0 if s.hold.kind == "all" else 1e9))
+    t_mid = near.fz * (mid / near.hold.counts) if near.hold.counts else near.fz
+    c = np.polyfit(pts[:, 0], pts[:, 1], 2)
+    slope = 2 * c[0] * t_mid + c[1]
+    volts = np.polyval(c, t_mid)
+    return float(max(1.0, 1.0 - gamma * t_mid * slope / volts))
 
 
 def fit_recording(rec: Recording) -> Fit:
@@ -219,8 +244,10 @@ def fit_recording(rec: Recording) -> Fit:
     k_eta, k_eta_res = _k_eta(stats)
     w_max = None if k_eta is None else math.sqrt(newtons[-1] / (4.0 * k_eta))
     ratio, spread, dirs = _k_m_ratio(stats, 0.05 * newtons[-1] / 4.0)
-    tau, tau_sd, curves = _tau(rec)
-    return Fit(counts, newtons, gamma, fitted, resid, k_eta, k_eta_res, w_max, ratio, spread, dirs, tau, tau_sd,
+    tau_raw, tau_sd, curves = _tau(rec)
+    sag = sag_factor(stats, rec.steps, gamma)
+    tau, tau_sd = tau_raw * sag, tau_sd * sag
+    return Fit(counts, newtons, gamma, fitted, resid, k_eta, k_eta_res, w_max, ratio, spread, dirs, tau, tau_sd, sag,
                curves, stats, int(len(rec.host)), int(len(rec.log_t)))
 
 
@@ -266,7 +293,7 @@ def profile_dict(fit: Fit, base: DroneProfile, name: str, info: dict) -> dict:
                       f"{len(single)} single-motor holds ({sum(s.n for s in single)} samples), spread "
                       f"{fit.k_m_ratio_spread * 1e3:.3f} mm, times k_eta")
     sources["tau_m"] = (f"measured with {where}: {len(fit.tau_steps)} step responses, median, spread "
-                        f"{fit.tau_m_spread * 1e3:.2f} ms")
+                        f"{fit.tau_m_spread * 1e3:.2f} ms, x {fit.sag:.3f} for the battery's sag")
     d["sources"] = sources
     return d
 
@@ -275,7 +302,10 @@ def write_profile(path: Path, data: dict) -> None:
     header = ("# Drone profile written by `cfrace calibrate thrust` (docs/calibration.md). Measured values\n"
               "# say so in `sources:`; the others are the base profile's.\n")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(header + yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=200))
+    body = {k: v for k, v in data.items() if k != "sources"}
+    text = yaml.safe_dump(body, sort_keys=False, default_flow_style=None, width=200)
+    text += yaml.safe_dump({"sources": data["sources"]}, sort_keys=False, default_flow_style=False, width=100000)
+    Path(path).write_text(header + text)
 
 
 def compare(recovered: DroneProfile, true: DroneProfile, step: int = 500) -> dict:

@@ -96,8 +96,9 @@ class _Session:
         r, sensor = self.reader, self.reader.sensor
         if r.fault:
             raise StandError(r.fault)
-        if r.last_sample is None or now - r.last_sample > sensor.timeout_s:
-            age = "never" if r.last_sample is None else f"for {(now - r.last_sample) * 1e3:.0f} ms"
+        silent = r.silent_for()
+        if silent is not None and silent > sensor.timeout_s:
+            age = "since the start" if silent == math.inf else f"for {silent * 1e3:.0f} ms"
             raise StandError(f"{r.where}: CAN timeout, no sample from the sensor {age} "
                              f"(limit {sensor.timeout_s * 1e3:g} ms)")
         q = self.link.quality

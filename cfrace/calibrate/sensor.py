@@ -198,7 +198,7 @@ def load_sensor(name_or_path: str | Path) -> SensorSpec:
     """Load a sensor description by name (calibration/sensors/NAME.yaml) or path; strict, one-line errors."""
     r = read_named(name_or_path, SENSORS_DIR, "sensor description")
     name = r.string("name")
-    description = r.string("description", "")
+    description = r.string("description") if r.has("description") else ""
     rate = r.number("rate_hz", positive=True)
     order = r.string("byte_order", "little")
     if order not in ("little", "big"):

@@ -178,7 +178,7 @@ class StandRig:
                 self._stop.wait(next_t - now)
                 continue
             next_t += period
-            if next_t < now - 0.1:          # fell far behind (machine stalled): no burst
+            if next_t < now - 0.5:          # fell far behind (machine stalled): no burst
                 next_t = now + period
             body = self.step(period)
             for name in FAULTS:
