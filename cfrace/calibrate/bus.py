@@ -8,6 +8,7 @@ channel = a multicast group, e.g. 239.74.163.2) for the simulated stand.
 from __future__ import annotations
 
 import math
+import struct
 import threading
 import time
 from dataclasses import dataclass
@@ -119,7 +120,7 @@ class SensorReader:
                 continue
             try:
                 values, sat = self.sensor.decode(k, bytes(msg.data))
-            except (ValueError, Exception):
+            except (ValueError, struct.error):
                 self.bad_frames += 1
                 continue
             if k == 0:

@@ -153,7 +153,7 @@ def _axes(r: Reader) -> tuple[tuple[int, float], ...]:
     return tuple(out)
 
 
-def _frame(r: Reader, k: int, item, byte_order: str) -> Frame:
+def _frame(r: Reader, k: int, item) -> Frame:
     fr = r.child(f"frames[{k}]", item)
     can_id = fr.raw("can_id")
     extended = fr.raw("extended", False)
@@ -203,7 +203,7 @@ def load_sensor(name_or_path: str | Path) -> SensorSpec:
     order = r.string("byte_order", "little")
     if order not in ("little", "big"):
         raise r.fail("byte_order", f"expected little or big, got {order!r}")
-    frames = tuple(_frame(r, k, item, order) for k, item in enumerate(r.sequence("frames")))
+    frames = tuple(_frame(r, k, item) for k, item in enumerate(r.sequence("frames")))
     if not frames:
         raise r.fail("frames", "needs at least one frame")
     ids = [(fr.can_id, fr.extended) for fr in frames]
