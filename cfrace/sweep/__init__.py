@@ -1,0 +1,5 @@
+"""Sweeps: many `cfrace train` runs from one file, run one after another or on Ray (docs/sweep.md)."""
+
+from cfrace.sweep.spec import Run, Sweep, load_spec, parse_spec
+
+__all__ = ["Run", "Sweep", "load_spec", "parse_spec"]
