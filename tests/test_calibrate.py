@@ -343,3 +343,17 @@ def test_cross_process_stand_over_udp_multicast(tmp_path):
     finally:
         stand.terminate()
         stand.wait(timeout=10)
+
+
+def test_low_battery_stops_the_run(patient_sensor):
+    bus = _bus()
+    with SimStand(sensor=str(patient_sensor), bus=bus) as stand:
+        with pytest.raises(StandError, match=r"battery at 4\.\d\d V, below 4.5 V: charge it"):
+            run_stand(stand.uri, stand.sensor, bus, Plan(min_vbat=4.5), confirmed=True, out=lambda s: None)
+        assert not stand.motors_running()
+
+
+def test_sim_stand_refuses_the_in_process_bus():
+    r = _cfrace("sim", "stand", "--bus", "can://virtual/x", "--duration", "1")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "the virtual interface only reaches this process" in r.stderr
