@@ -152,6 +152,7 @@ class SimFleet:
         self._cmd_thrust = np.zeros(self.n)   # N, collective thrust commanded in the last chunk
         self._fw = [DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
                     for i in range(self.n)]
+        self.log_hooks: list = []   #: callables drone index -> {log name: value} overriding log_values
         self._reset_physics()
 
     # ---------------------------------------------------------------- time and state
@@ -415,7 +416,7 @@ class SimFleet:
             fw = self._fw[i]
             pos, vel, om = self._pos[i], self._vel[i], np.degrees(self._omega[i])
             info = self.supervisor_bitfield(i)
-            return {
+            values = {
                 "stateEstimate.x": pos[0], "stateEstimate.y": pos[1], "stateEstimate.z": pos[2],
                 "stateEstimate.vx": vel[0], "stateEstimate.vy": vel[1], "stateEstimate.vz": vel[2],
                 "stateEstimate.roll": math.degrees(roll), "stateEstimate.pitch": -math.degrees(pitch),
@@ -426,7 +427,11 @@ class SimFleet:
                 "pm.vbat": 4.0, "pm.state": 0,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
                 "sys.isTumbled": (info >> 5) & 1,
+                **{f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)},
             }
+            for hook in self.log_hooks:   # e.g. the thrust stand (simcf/stand.py): pm.vbat, rpm.*, motor.*
+                values.update(hook(i))
+            return values
 
     def drain_events(self, i: int) -> list[str]:
         """Console lines produced by drone i since the last call (the server prints them)."""
