@@ -13,7 +13,7 @@ from cfrace.errors import ConfigError
 from cfrace.rl import precision as prec
 from cfrace.rl.benchcompare import Config, compare, parse_compare
 from cfrace.rl.config import preset
-from cfrace.rl.ippo import make_optimizer, ppo_update
+from cfrace.rl.ippo import forward, make_optimizer, ppo_update
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -107,3 +107,21 @@ def test_bench_train_json_records_precision(tmp_path):
                                  "--track", "lemniscate", "--precision", "fp32", "--json", str(js)])
     assert r.exit_code == 0, r.output
     assert json.loads(js.read_text())["precision"]["dtype"] == "fp32"
+
+
+def test_bf16_keeps_the_output_layers_in_float32(ppo_batch):
+    """Returns reach thousands: the value head stays float32, so a bf16 hidden layer moves the value by
+    a relative 1e-2 at most, not by the whole-number steps of a bf16 output near 4000."""
+    model, batch = ppo_batch(**SIZES)
+    with torch.no_grad():
+        model.critic.net[-1].bias.fill_(4000.0)
+        obs_n, critic_n = model.obs_norm(batch["obs"]), model.critic_norm(batch["critic"])
+        _, v32 = forward(model, obs_n, critic_n)
+        dist16, v16 = forward(model, obs_n, critic_n, lambda: BF16.autocast(torch.device("cpu")))
+        whole = model.critic(critic_n)
+        with BF16.autocast(torch.device("cpu")):
+            all_bf16 = model.critic(critic_n)
+    assert v16.dtype == torch.float32 and dist16.mean.dtype == torch.float32
+    torch.testing.assert_close(v32, whole)
+    assert (v16 - v32).abs().max() < 1.0            # hidden layers in bf16, head in float32
+    assert (all_bf16.float() - v32).abs().max() >= 1.0  # what a bf16 head would give (steps of 16 near 4000)

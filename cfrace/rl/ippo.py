@@ -38,14 +38,25 @@ def make_optimizer(model: AgentModels, lr: float) -> torch.optim.Optimizer:
         return torch.optim.Adam(params, lr=lr)
 
 
+def forward(model: AgentModels, obs_n: torch.Tensor, critic_n: torch.Tensor, autocast=contextlib.nullcontext):
+    """The policy's Gaussian and the values of normalised inputs, with the hidden layers under
+    ``autocast`` and the two output layers in float32: a bf16 value of a return in the thousands is off
+    by several units (8-bit mantissa), the size of the advantages it is meant to resolve."""
+    with autocast():
+        h_actor = model.actor.mean_net[:-1](obs_n)
+        h_critic = model.critic.net[:-1](critic_n)
+    dist = model.actor.distribution(model.actor.mean_net[-1](h_actor.float()))
+    return dist, model.critic.net[-1](h_critic.float()).squeeze(-1)
+
+
 def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict[str, torch.Tensor],
                cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None,
                precision: Precision | None = None) -> tuple[dict, float]:
     """Run cfg.epochs x cfg.minibatches updates on ``batch`` (flat alive samples, see
     RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation).
 
-    With a bf16 ``precision`` the two networks' forward (and so backward) passes run under autocast;
-    their outputs are cast back to float32 before the distribution, the losses and the KL."""
+    With a bf16 ``precision`` the two networks' hidden layers run under autocast (forward and
+    backward); their output layers, the distribution, the losses and the KL in float32."""
     n = batch["obs"].shape[0]
     stats = {"surrogate": 0.0, "value_loss": 0.0, "entropy": 0.0, "kl": 0.0, "clip_frac": 0.0}
     if n < cfg.minibatches:  # nothing (or almost nothing) alive this rollout
@@ -61,11 +72,7 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
         for k in range(cfg.minibatches):
             idx = perm[k * size:(k + 1) * size]
             adv, ret, v_old = batch["advantages"][idx], batch["returns"][idx], batch["values"][idx]
-            with autocast():
-                mu = model.actor.mean_net(obs_n[idx])
-                value = model.critic(critic_n[idx])
-            dist = model.actor.distribution(mu.float())
-            value = value.float()
+            dist, value = forward(model, obs_n[idx], critic_n[idx], autocast)
             log_prob = dist.log_prob(batch["actions"][idx]).sum(-1)
             entropy = dist.entropy().sum(-1).mean()
 
