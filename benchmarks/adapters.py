@@ -1,0 +1,113 @@
+"""Cost of the Gymnasium / PettingZoo adapters over the native batched RaceEnv, at equal world counts.
+
+    .venv/bin/python benchmarks/adapters.py [--worlds 1,16,256] [--seconds 2] [--json FILE]
+
+For each world count N, world-steps per second (one 50 Hz step of one world, all its drones) of:
+  native ds     RaceEnv(N worlds, ds), torch actions
+  vector ds     RaceVectorEnv(N) (gymnasium.vector.VectorEnv over the same RaceEnv), NumPy actions
+  N x gym ds    N RaceGymEnv (one world each), stepped one after another (what SyncVectorEnv does)
+  native ours   RaceEnv(N worlds, ours: 2 drones)
+  N x pz ours   N RaceParallelEnv (one world each, dict API), one after another
+Uniform random actions in [-1, 1] (drones crash and worlds reset often, as early in training).
+One thread; records the machine's load. Prints a table and one JSON document.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+
+def _rate(step, seconds: float) -> float:
+    """Calls of step() per second over about ``seconds`` (after 5 warm-up calls)."""
+    for _ in range(5):
+        step()
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        step()
+        n += 1
+    return n / (time.perf_counter() - t0)
+
+
+def measure(n: int, seconds: float, per_env_max: int) -> dict:
+    from cfrace.env.adapters import make_race_env
+    from cfrace.env.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv
+    from cfrace.env.adapters.pettingzoo_env import RaceParallelEnv
+
+    rng = np.random.default_rng(0)
+    out = {"worlds": n}
+    native, _ = make_race_env("ds", num_envs=n)
+    native.reset()
+    act_t = torch.as_tensor(rng.uniform(-1, 1, (n, 1, 4)).astype(np.float32))
+    out["native_ds"] = n * _rate(lambda: native.step(act_t), seconds)
+    venv = RaceVectorEnv(n, "ds")
+    venv.reset(seed=0)
+    act = rng.uniform(-1, 1, (n, 4)).astype(np.float32)
+    out["vector_ds"] = n * _rate(lambda: venv.step(act), seconds)
+    native2, _ = make_race_env("ours", num_envs=n)
+    native2.reset()
+    act2 = torch.as_tensor(rng.uniform(-1, 1, (n, 2, 4)).astype(np.float32))
+    out["native_ours"] = n * _rate(lambda: native2.step(act2), seconds)
+    if n <= per_env_max:
+        envs = [RaceGymEnv("ds", seed=i) for i in range(n)]
+        for e in envs:
+            e.reset(seed=0)
+
+        def gym_step():
+            for i, e in enumerate(envs):
+                _, _, term, trunc, _ = e.step(act[i])
+                if term or trunc:
+                    e.reset()
+
+        out["per_env_gym_ds"] = n * _rate(gym_step, seconds)
+        pzs = [RaceParallelEnv("ours", seed=i) for i in range(n)]
+        for p in pzs:
+            p.reset(seed=0)
+        a2 = act2.numpy()
+
+        def pz_step():
+            for i, p in enumerate(pzs):
+                p.step({a: a2[i, k] for k, a in enumerate(p.agents)})
+                if not p.agents:
+                    p.reset()
+
+        out["per_env_pz_ours"] = n * _rate(pz_step, seconds)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--worlds", default="1,16,256")
+    ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--per-env-max", type=int, default=256, help="largest N for the one-world-per-env forms")
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    load_before = os.getloadavg()
+    rows = [measure(int(n), args.seconds, args.per_env_max) for n in args.worlds.split(",")]
+    doc = {"rows": rows, "load_before": load_before, "load_after": os.getloadavg(), "cpu_count": os.cpu_count(),
+           "torch_threads": 1, "unit": "world-steps per second"}
+    cols = ("native_ds", "vector_ds", "per_env_gym_ds", "native_ours", "per_env_pz_ours")
+    print(f"{'worlds':>7} " + " ".join(f"{c:>16}" for c in cols) + f" {'vector/native':>14} {'gym/native':>11}"
+          f" {'pz/native':>10}")
+    for r in rows:
+        ratio = lambda a, b: f"{r[a] / r[b]:.2f}" if a in r else "-"
+        print(f"{r['worlds']:>7} " + " ".join(f"{r[c]:>16,.0f}" if c in r else f"{'-':>16}" for c in cols)
+              + f" {ratio('vector_ds', 'native_ds'):>14} {ratio('per_env_gym_ds', 'native_ds'):>11}"
+              f" {ratio('per_env_pz_ours', 'native_ours'):>10}")
+    print(f"load average before {load_before}, after {doc['load_after']}", file=sys.stderr)
+    text = json.dumps(doc, indent=2)
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""Train DS (dense single-agent reward) on the lemniscate with a third-party trainer: skrl's PPO
+(the library the paper's authors used) on cfrace's Gymnasium vector environment.
+
+    pip install "cfrace[envs]" skrl
+    python examples/train_skrl_ppo.py --minutes 3 [--worlds 256] [--out runs/skrl_ds]
+
+cfrace provides only the environment (RaceVectorEnv: 256 worlds of the batched RaceEnv in one
+gymnasium.vector.VectorEnv); models, PPO, memory, logging and the trainer loop are skrl's. The
+episode statistics RaceEnv reports (gates/s, share of races with a lap, crash rate...) reach
+skrl's TensorBoard logs through infos["episode"]. At the end the script prints how the mean
+action of the trained policy flies 64 fresh races, with the same environment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+from torch import nn
+
+
+def build(worlds: int, seed: int, rollouts: int, out: str):
+    from skrl.agents.torch.ppo import PPO, PPO_CFG
+    from skrl.envs.wrappers.torch import wrap_env
+    from skrl.memories.torch import RandomMemory
+    from skrl.models.torch import DeterministicMixin, GaussianMixin, Model
+    from skrl.resources.preprocessors.torch import RunningStandardScaler
+
+    from cfrace.env.adapters.gymnasium_env import RaceVectorEnv
+
+    class Policy(GaussianMixin, Model):
+        def __init__(self, observation_space, action_space, device):
+            Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+            GaussianMixin.__init__(self, clip_actions=False, clip_log_std=True, min_log_std=-5.0, max_log_std=1.0)
+            self.net = nn.Sequential(nn.Linear(self.num_observations, 128), nn.ELU(), nn.Linear(128, 128), nn.ELU(),
+                                     nn.Linear(128, self.num_actions))
+            self.log_std = nn.Parameter(torch.zeros(self.num_actions))
+
+        def compute(self, inputs, role=""):
+            return self.net(inputs["observations"]), {"log_std": self.log_std}
+
+    class Value(DeterministicMixin, Model):
+        def __init__(self, observation_space, action_space, device):
+            Model.__init__(self, observation_space=observation_space, action_space=action_space, device=device)
+            DeterministicMixin.__init__(self)
+            self.net = nn.Sequential(nn.Linear(self.num_observations, 256), nn.ELU(), nn.Linear(256, 128), nn.ELU(),
+                                     nn.Linear(128, 1))
+
+        def compute(self, inputs, role=""):
+            return self.net(inputs["observations"]), {}
+
+    venv = RaceVectorEnv(worlds, "ds", "lemniscate", seed=seed)
+    env = wrap_env(venv, wrapper="gymnasium")
+    device = env.device
+    models = {"policy": Policy(env.observation_space, env.action_space, device),
+              "value": Value(env.observation_space, env.action_space, device)}
+    cfg = PPO_CFG(rollouts=rollouts, learning_epochs=5, mini_batches=4, discount_factor=0.99, gae_lambda=0.95,
+                  learning_rate=5e-4, grad_norm_clip=1.0, ratio_clip=0.2, value_clip=0.0, value_loss_scale=1.0,
+                  entropy_loss_scale=0.0, time_limit_bootstrap=True,
+                  observation_preprocessor=RunningStandardScaler,
+                  observation_preprocessor_kwargs={"size": env.observation_space, "device": device},
+                  experiment={"directory": out, "experiment_name": "ppo", "write_interval": rollouts,
+                              "checkpoint_interval": 0})
+    memory = RandomMemory(memory_size=rollouts, num_envs=env.num_envs, device=device)
+    agent = PPO(models=models, memory=memory, observation_space=env.observation_space,
+                action_space=env.action_space, device=device, cfg=cfg)
+    return venv, env, agent
+
+
+def evaluate(agent, worlds: int = 64, seed: int = 123, steps: int = 500) -> dict:
+    """Mean-action races of 10 s in a fresh RaceVectorEnv: share of worlds with a lap before any crash."""
+    from cfrace.env.adapters.gymnasium_env import RaceVectorEnv
+
+    venv = RaceVectorEnv(worlds, "ds", "lemniscate", seed=seed, episode_s=steps * 0.02 + 1)
+    obs, _ = venv.reset(seed=seed)
+    crashed = torch.zeros(worlds, dtype=torch.bool)
+    with torch.no_grad():
+        for _ in range(steps):
+            x = agent._observation_preprocessor(torch.as_tensor(obs))
+            mean, _ = agent.policy.compute({"observations": x})
+            obs, _, term, _, _ = venv.step(mean.clamp(-1, 1).numpy())
+            crashed |= torch.as_tensor(term)
+            # a world resets itself after a crash: count only what happened before
+    laps = venv.race.sim.race.laps[:, 0] >= 1
+    return {"worlds": worlds, "crashed": float(crashed.float().mean()),
+            "lap_without_crash": float((laps & ~crashed).float().mean())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description="skrl PPO on cfrace's Gymnasium vector environment")
+    ap.add_argument("--minutes", type=float, default=3.0)
+    ap.add_argument("--worlds", type=int, default=256)
+    ap.add_argument("--rollouts", type=int, default=24)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="runs/skrl_ds")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    from skrl.trainers.torch import SequentialTrainer
+
+    venv, env, agent = build(args.worlds, args.seed, args.rollouts, args.out)
+    # measure one update's time, then size the run to the budget
+    trainer_cfg = {"disable_progressbar": True, "headless": True, "close_environment_at_exit": False}
+    t0 = time.perf_counter()
+    SequentialTrainer(env=env, agents=agent, cfg={"timesteps": args.rollouts, **trainer_cfg}).train()
+    per_update = time.perf_counter() - t0
+    updates = max(1, int(args.minutes * 60 / per_update))
+    print(f"one update of {args.worlds} worlds x {args.rollouts} steps took {per_update:.1f} s: "
+          f"{updates} more updates for {args.minutes:g} min", flush=True)
+    before = evaluate(agent)
+    SequentialTrainer(env=env, agents=agent, cfg={"timesteps": updates * args.rollouts, **trainer_cfg}).train()
+    after = evaluate(agent)
+    steps = (updates + 1) * args.rollouts * args.worlds
+    wall = time.perf_counter() - t0
+    print(f"trained {steps:,} env steps in {wall / 60:.1f} min ({steps / wall:,.0f} env steps/s); "
+          f"TensorBoard logs in {agent.experiment_dir}")
+    print(f"mean action, 64 races of 10 s: lap without a crash {before['lap_without_crash']:.0%} -> "
+          f"{after['lap_without_crash']:.0%}, crashed {before['crashed']:.0%} -> {after['crashed']:.0%}")
+
+
+if __name__ == "__main__":
+    main()
