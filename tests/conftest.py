@@ -10,3 +10,29 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def ppo_batch():
+    """make(seed, n, obs_dim, critic_dim, actor_hidden, critic_hidden) -> (fresh AgentModels, a flat PPO
+    batch sampled from it): advantages favour a0 > 0, returns depend on the critic input."""
+    import torch
+
+    from cfrace.rl.models import AgentModels
+
+    def make(seed=0, n=512, obs_dim=6, critic_dim=12, actor_hidden=(32, 32), critic_hidden=(32,)):
+        gen = torch.Generator().manual_seed(seed)
+        torch.manual_seed(seed)
+        model = AgentModels(obs_dim, critic_dim, actor_hidden, critic_hidden, 1.0)
+        obs = torch.randn(n, obs_dim, generator=gen)
+        critic = torch.randn(n, critic_dim, generator=gen)
+        with torch.no_grad():
+            dist = model.actor(model.obs_norm(obs))
+            actions = dist.sample()
+            batch = {"obs": obs, "critic": critic, "actions": actions, "log_prob": dist.log_prob(actions).sum(-1),
+                     "values": model.critic(model.critic_norm(critic)), "mu": dist.mean, "sigma": dist.stddev}
+        batch["advantages"] = actions[:, 0] - actions[:, 0].mean()
+        batch["returns"] = critic[:, 0] * 2.0 + 1.0
+        return model, batch
+
+    return make

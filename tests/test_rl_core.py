@@ -101,26 +101,10 @@ def test_running_norm_matches_numpy():
     assert torch.all(big == 10.0)
 
 
-def _fixed_batch(seed=0, n=512, obs_dim=6, critic_dim=12):
-    gen = torch.Generator().manual_seed(seed)
-    model = AgentModels(obs_dim, critic_dim, (32, 32), (32,), 1.0)
-    obs = torch.randn(n, obs_dim, generator=gen)
-    critic = torch.randn(n, critic_dim, generator=gen)
-    with torch.no_grad():
-        dist = model.actor(model.obs_norm(obs))
-        actions = dist.sample()
-        batch = {"obs": obs, "critic": critic, "actions": actions, "log_prob": dist.log_prob(actions).sum(-1),
-                 "values": model.critic(model.critic_norm(critic)), "mu": dist.mean, "sigma": dist.stddev}
-    # advantages favour a0 > 0; returns depend on the critic input
-    batch["advantages"] = actions[:, 0] - actions[:, 0].mean()
-    batch["returns"] = critic[:, 0] * 2.0 + 1.0
-    return model, batch
-
-
 @pytest.mark.parametrize("adaptive", [False, True])
-def test_ppo_update_reduces_loss(adaptive):
+def test_ppo_update_reduces_loss(adaptive, ppo_batch):
     cfg = preset("cpu", multi_agent=not adaptive, value_clip=None, epochs=8, minibatches=4)
-    model, batch = _fixed_batch()
+    model, batch = ppo_batch()
     before = ppo_loss(model, batch, cfg)
     mean_before = model.actor(model.obs_norm(batch["obs"])).mean[:, 0].mean().item()
     opt = make_optimizer(model, cfg.lr)
@@ -134,9 +118,9 @@ def test_ppo_update_reduces_loss(adaptive):
         assert opt.param_groups[0]["lr"] == lr
 
 
-def test_value_clip_limits_value_change():
+def test_value_clip_limits_value_change(ppo_batch):
     cfg = preset("cpu", multi_agent=True, value_clip=0.2, lr=1e-2, epochs=5)
-    model, batch = _fixed_batch()
+    model, batch = ppo_batch()
     batch["returns"] = batch["values"] + 100.0  # far away targets
     ppo_update(model, make_optimizer(model, cfg.lr), batch, cfg, cfg.lr, torch.Generator().manual_seed(0))
     with torch.no_grad():

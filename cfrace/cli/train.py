@@ -98,6 +98,10 @@ def train_cmd(
                                      help="with --init-from: copy the critic too (same layout, sizes, reward)"),
     critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
                                            help="learning rate of the critic warm-up iterations"),
+    precision: Optional[str] = typer.Option(None, "--precision",
+                                            help="PPO update in auto (measured at start, default) | fp32 | bf16"),
+    keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
+                                          help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
@@ -115,7 +119,8 @@ def train_cmd(
             raise ConfigError("--set cannot change the hyperparameters of a resumed run")
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
-                            out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0)
+                            out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
+                            precision=precision)
     else:
         if method is None or track is None:
             raise ConfigError("--method and --track are required (or --resume DIR)")
@@ -128,7 +133,8 @@ def train_cmd(
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
                           init_critic=init_critic, random_phase=random_phase,
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
-                          fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs)
+                          fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
+                          keep_checkpoints=keep_checkpoints, precision=precision or "auto")
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
@@ -140,8 +146,12 @@ def train_cmd(
     grid = Table.grid()
     grid.add_row(progress)
     last_line = [0.0]
+    said_precision: list[bool] = []
     with Live(grid, console=console, refresh_per_second=4, transient=False) as live:
         def update(metrics: dict, info: dict) -> None:
+            if metrics["iteration"] == 1 or not said_precision:
+                said_precision.append(True)
+                live.console.print(f"update precision: {info['precision'].dtype} ({info['precision'].reason})")
             progress.update(task, completed=info["progress"], it=metrics["iteration"], steps=f"{metrics['env_steps']:,}")
             view = Table.grid()
             view.add_row(progress)
@@ -192,14 +202,25 @@ def bench_train_cmd(
     device: Optional[str] = typer.Option(None, "--device"),
     threads: Optional[int] = typer.Option(None, "--threads", min=1),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
+    precision: str = typer.Option("auto", "--precision", help="PPO update in auto | fp32 | bf16"),
+    compare: Optional[str] = typer.Option(None, "--compare",
+                                          help="time a second configuration side by side: KEY=VALUE[,...] "
+                                               "(e.g. precision=fp32) or a git revision (e.g. main)"),
+    rounds: int = typer.Option(2, "--rounds", min=1, help="with --compare: alternating runs of each"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures to this JSON file"),
 ) -> None:
     """Env-steps/s of whole training iterations, split into simulation, policy inference and update."""
     from cfrace.rl.config import parse_overrides
+
+    overrides = parse_overrides(set_ or [])
+    if compare is not None:
+        _bench_compare(compare, rounds, json_out, set_ or [], method=method, track=track, preset=preset,
+                       envs=envs, iterations=iterations, device=device, threads=threads, precision=precision)
+        return
     from cfrace.rl.train import bench_train
 
     r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads,
-                    overrides=parse_overrides(set_ or []))
+                    overrides=overrides, precision=precision)
     table = Table(title=f"training speed: {method} on {r['track']}, preset {r['preset']}, {r['device']}, "
                         f"{r['threads']} thread(s)")
     table.add_column("figure")
@@ -211,10 +232,42 @@ def bench_train_cmd(
     table.add_row("seconds per iteration", f"{r['iteration_s']:.2f}")
     for k in ("sim", "inference", "update", "other"):
         table.add_row(f"share {k}", f"{r['share_' + k]:.0%}")
+    table.add_row("update precision", f"{r['precision']['dtype']} ({r['precision']['reason']})")
     console.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(r, indent=2) + "\n")
+        console.print(f"wrote {json_out}")
+
+
+def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str], **options) -> None:
+    """`bench train --compare`: this configuration (A) against the other (B), alternating; ratios A / B."""
+    from cfrace.rl.benchcompare import Config, compare, parse_compare
+
+    base = {k: v for k, v in options.items() if v is not None}
+    a, b = Config("this tree", base), parse_compare(text, base)
+    if b.rev is not None:  # an older revision may not know --precision: time both with its default
+        b = Config(b.label, {k: v for k, v in base.items() if k != "precision"}, b.rev)
+
+    def said(r: int, cfg: Config, res: dict) -> None:
+        console.print(f"round {r + 1}: {cfg.label}: {res['env_steps_per_s']:,.0f} env steps/s")
+
+    res = compare(a, b, set_, rounds, on_result=said)
+    table = Table(title=f"bench train, {options.get('method')} on {options.get('track')}, preset "
+                        f"{options.get('preset')}: medians of {rounds} alternating runs each")
+    table.add_column("figure")
+    for key, cfg in (("a", a), ("b", b)):
+        p = res[key]["precision"]
+        table.add_column(f"{key.upper()}: {cfg.label}" + (f" ({p['dtype']})" if p else ""), justify="right")
+    table.add_column("A / B", justify="right")
+    for f, spec in (("env_steps_per_s", "{:,.0f}"), ("iteration_s", "{:.2f}"), ("share_update", "{:.0%}"),
+                    ("share_sim", "{:.0%}"), ("share_inference", "{:.0%}")):
+        table.add_row(f.replace("_", " "), spec.format(res["a"]["median"][f]), spec.format(res["b"]["median"][f]),
+                      f"{res['ratio_a_over_b'][f]:.2f}x")
+    console.print(table)
+    if json_out is not None:
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(res, indent=2) + "\n")
         console.print(f"wrote {json_out}")
 
 

@@ -14,10 +14,13 @@ then clip the global grad norm and take an Adam step. With a desired KL the lear
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 from cfrace.rl.config import IPPOConfig
 from cfrace.rl.models import AgentModels
+from cfrace.rl.precision import Precision
 
 
 def gaussian_kl(mu_old, sigma_old, mu, sigma) -> torch.Tensor:
@@ -36,9 +39,13 @@ def make_optimizer(model: AgentModels, lr: float) -> torch.optim.Optimizer:
 
 
 def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict[str, torch.Tensor],
-               cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None) -> tuple[dict, float]:
+               cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None,
+               precision: Precision | None = None) -> tuple[dict, float]:
     """Run cfg.epochs x cfg.minibatches updates on ``batch`` (flat alive samples, see
-    RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation)."""
+    RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation).
+
+    With a bf16 ``precision`` the two networks' forward (and so backward) passes run under autocast;
+    their outputs are cast back to float32 before the distribution, the losses and the KL."""
     n = batch["obs"].shape[0]
     stats = {"surrogate": 0.0, "value_loss": 0.0, "entropy": 0.0, "kl": 0.0, "clip_frac": 0.0}
     if n < cfg.minibatches:  # nothing (or almost nothing) alive this rollout
@@ -47,16 +54,20 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
     critic_n = model.critic_norm(batch["critic"])
     params = [p for g in optimizer.param_groups for p in g["params"]]
     size = n // cfg.minibatches
+    autocast = (lambda: precision.autocast(obs_n.device)) if precision is not None else contextlib.nullcontext
     updates = 0
     for _ in range(cfg.epochs):
         perm = torch.randperm(n, generator=generator, device="cpu").to(obs_n.device)
         for k in range(cfg.minibatches):
             idx = perm[k * size:(k + 1) * size]
             adv, ret, v_old = batch["advantages"][idx], batch["returns"][idx], batch["values"][idx]
-            dist = model.actor(obs_n[idx])
+            with autocast():
+                mu = model.actor.mean_net(obs_n[idx])
+                value = model.critic(critic_n[idx])
+            dist = model.actor.distribution(mu.float())
+            value = value.float()
             log_prob = dist.log_prob(batch["actions"][idx]).sum(-1)
             entropy = dist.entropy().sum(-1).mean()
-            value = model.critic(critic_n[idx])
 
             with torch.no_grad():
                 kl = gaussian_kl(batch["mu"][idx], batch["sigma"][idx], dist.mean, dist.stddev)

@@ -125,11 +125,19 @@ def plot_training_curve(rows: list[dict], path: Path, title: str, num_agents: in
         label = AGENT_NAMES[a] if num_agents > 1 else "agent"
         ax.plot(x, y, color=colours[a % 2], alpha=0.25, linewidth=0.8)
         ax.plot(x, _ema(list(y), 0.1), color=colours[a % 2], linewidth=1.8, label=f"{label} (agent {a})")
-    ax.set_xlabel("environment steps (world transitions)")
     ax.set_ylabel("episode return (cumulative reward)" if has_returns else "mean reward per step")
-    ax.set_title(title)
+    return finish_steps_plot(fig, ax, path, title)
+
+
+def finish_steps_plot(fig, ax, path: Path, title: str = "", legend_size: float | None = None) -> Path:
+    """Label the env-step axis, add grid, title and legend, save ``fig`` to ``path`` and close it."""
+    import matplotlib.pyplot as plt
+
+    ax.set_xlabel("environment steps (world transitions)")
+    if title:
+        ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(loc="best")
+    ax.legend(loc="best", fontsize=legend_size)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -74,7 +74,10 @@ class Actor(nn.Module):
         self.log_std = nn.Parameter(torch.full((action_dim,), math.log(init_std)))
 
     def forward(self, obs_n: torch.Tensor) -> torch.distributions.Normal:
-        mu = self.mean_net(obs_n)
+        return self.distribution(self.mean_net(obs_n))
+
+    def distribution(self, mu: torch.Tensor) -> torch.distributions.Normal:
+        """The Gaussian around means ``mu`` (N, 4), in mu's dtype (float32 for log-probs and losses)."""
         return torch.distributions.Normal(mu, self.log_std.exp().expand_as(mu))
 
 

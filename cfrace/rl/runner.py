@@ -24,6 +24,7 @@ from torch import nn
 from cfrace.rl.config import IPPOConfig
 from cfrace.rl.ippo import make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
+from cfrace.rl.precision import Precision
 from cfrace.rl.storage import RolloutStorage
 
 
@@ -50,6 +51,7 @@ class Runner:
         self.update_gen = torch.Generator().manual_seed(seed + 1)  # minibatch shuffles
         self.iteration = 0
         self.update_actor_norm = True  #: False keeps the actors' input statistics fixed (warm starts)
+        self.precision = Precision("fp32", "fp32", "default")  #: of the PPO update (cfrace/rl/precision.py)
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
@@ -119,7 +121,8 @@ class Runner:
         alive_count = st.alive.sum((0, 1)).float()                 # (A,)
         for a, m in enumerate(self.agents):
             batch = st.agent_batch(a)
-            stats, self.lrs[a] = ppo_update(m, self.optimizers[a], batch, cfg, self.lrs[a], self.update_gen)
+            stats, self.lrs[a] = ppo_update(m, self.optimizers[a], batch, cfg, self.lrs[a], self.update_gen,
+                                            self.precision)
             for k, v in stats.items():
                 metrics[f"{k}_agent{a}"] = v
             alive_mask = st.alive[:, :, a]

@@ -26,6 +26,7 @@ from cfrace.errors import ConfigError
 from cfrace.export import METHODS, MULTI_AGENT_METHODS
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
+from cfrace.rl.precision import Precision, choose_precision
 from cfrace.rl.runner import Runner
 from cfrace.track import load_track
 
@@ -58,6 +59,8 @@ class TrainConfig:
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
+    precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
+    keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -75,6 +78,7 @@ class TrainResult:
     interrupted: bool
     exact_resume: bool | None
     last: dict
+    precision: Precision | None = None
 
 
 def pick_device(device: str | None) -> torch.device:
@@ -145,6 +149,8 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
     keep["overrides"] = tuple(tuple(p) for p in keep.get("overrides", ()))
     for key in ("minutes", "steps", "device", "threads", "checkpoint_every_s"):
         keep[key] = given.get(key)
+    if given.get("precision") is not None:  # how the update computes, not what the task is
+        keep["precision"] = given["precision"]
     keep["out"] = str(given.get("out") or resume)
     if keep["checkpoint_every_s"] is None:
         keep["checkpoint_every_s"] = saved.get("checkpoint_every_s", 300.0)
@@ -153,10 +159,16 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
 
 def _save(path: Path, cfg: TrainConfig, meta: dict, runner: Runner, wall_s: float) -> None:
     state = {"format": FORMAT, "cfrace_version": __version__, "train_config": asdict(cfg), "meta": meta,
-             "runner": runner.state_dict(), "wall_s": wall_s, "saved_at": time.time()}
+             "runner": runner.state_dict(), "wall_s": wall_s, "saved_at": time.time(),
+             "precision": runner.precision.to_dict()}
     tmp = path.with_suffix(".pt.tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
+    if cfg.keep_checkpoints:  # a history to choose from on validation races (hard link: no extra disk)
+        keep = path.parent / "checkpoints" / f"it{runner.iteration:05d}.pt"
+        keep.parent.mkdir(exist_ok=True)
+        if not keep.exists():
+            os.link(path, keep)
 
 
 class _StopFlag:
@@ -202,6 +214,7 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
         ippo = IPPOConfig.from_dict(saved["runner"]["ippo"])
     env, meta = (env_factory or make_env)(cfg, device, ippo.num_envs)
     runner = Runner(env, ippo, seed=cfg.seed)
+    runner.precision = resolve_precision(cfg.precision, runner)
     exact = None
     wall_before = 0.0
     if saved is not None:
@@ -221,7 +234,8 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     last_ckpt = start
     metrics: dict = {}
     interrupted = False
-    info = {"threads": threads, "device": str(device), "num_envs": ippo.num_envs, "ippo": ippo, "meta": meta}
+    info = {"threads": threads, "device": str(device), "num_envs": ippo.num_envs, "ippo": ippo, "meta": meta,
+            "precision": runner.precision}
 
     def progress() -> float:
         parts = []
@@ -270,7 +284,15 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
         tb.close()
     curve = plot_training_curve(csv_log.rows, out / "training_curve.png", title, runner.num_agents)
     return TrainResult(out, ckpt_path, curve, runner.iteration, runner.env_steps,
-                       wall_before + time.perf_counter() - start, interrupted, exact, metrics)
+                       wall_before + time.perf_counter() - start, interrupted, exact, metrics, runner.precision)
+
+
+def resolve_precision(mode: str, runner: Runner) -> Precision:
+    """``--precision`` for this runner's networks and minibatch size (measured when auto)."""
+    ippo, env = runner.cfg, runner.env
+    minibatch = ippo.num_envs * ippo.rollout // ippo.minibatches
+    return choose_precision(mode, runner.device, env.obs_dim, env.critic_dim, ippo.actor_hidden,
+                            ippo.critic_hidden, minibatch)
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
@@ -294,7 +316,8 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
-                threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = ()) -> dict:
+                threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
+                precision: str = "auto") -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
@@ -305,6 +328,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     t0 = time.perf_counter()
     env, meta = (env_factory or make_env)(cfg, dev, ippo.num_envs)
     runner = Runner(env, ippo, seed=0)
+    runner.precision = resolve_precision(precision, runner)
     setup_s = time.perf_counter() - t0
     runner.iterate()
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
@@ -324,4 +348,5 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "iteration_s": sums["iter_s"] / iterations,
             "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],
             "share_update": sums["update_s"] / sums["iter_s"],
-            "share_other": 1.0 - (sums["sim_s"] + sums["infer_s"] + sums["update_s"]) / sums["iter_s"]}
+            "share_other": 1.0 - (sums["sim_s"] + sums["infer_s"] + sums["update_s"]) / sums["iter_s"],
+            "precision": runner.precision.to_dict()}

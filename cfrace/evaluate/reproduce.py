@@ -1,0 +1,331 @@
+"""`cfrace reproduce`: the paper's evidence, measured on the shipped policies, in one report.
+
+For each of the four settings (lemniscate / complex, without / with obstacles) and the shipped
+policies of the four schemes (ds, ss, dm, ours; a scheme without a shipped policy is reported as
+missing): Table I (the single-agent benchmark), the head-to-head matrix with its heatmap, ours
+against DS on fresh seeds; then the competition-behaviour figure (ours in self-play on the complex
+track: speed against a live opponent and after it crashed), the training curves committed beside
+the policies (policies/curves/), and each claim of the paper next to the measured figure with
+whether its trend holds here. Everything goes to OUT/report.md, OUT/report.json and PNGs in OUT.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+from cfrace.errors import ConfigError, PolicyError
+from cfrace.evaluate import paper
+from cfrace.evaluate.paper import SCHEMES, SETTINGS, setting_name
+from cfrace.paths import POLICIES_DIR
+
+CURVES_DIR = POLICIES_DIR / "curves"
+
+
+@dataclass(frozen=True)
+class ReproduceConfig:
+    out: Path
+    quick: bool = False                    #: a few runs per cell (CI size)
+    seed: int = 0                          #: seed of Table I and the matrices
+    test_seeds: tuple[int, ...] = (1, 2, 3)  #: fresh seeds of the ours-vs-DS races
+    runs: int = 50                         #: Table I runs per policy
+    races: int = 50                        #: races per pair
+    laps: int = 3
+    settings: tuple = SETTINGS
+
+    @staticmethod
+    def make(out: Path, quick: bool = False, **kw) -> "ReproduceConfig":
+        if quick:
+            kw = {"runs": 4, "races": 4, "laps": 1, "test_seeds": (1,), **kw}
+        cfg = ReproduceConfig(Path(out), quick, **kw)
+        if cfg.runs < 1 or cfg.races < 1 or cfg.laps < 1:
+            raise ConfigError("runs, races and laps must be >= 1")
+        return cfg
+
+
+def slug(track: str, obstacles: bool) -> str:
+    return f"{track}{'_obstacles' if obstacles else ''}"
+
+
+def shipped(track: str, obstacles: bool) -> list[str]:
+    """The schemes that have a shipped policy for this setting, in SCHEMES order."""
+    from cfrace.policy import resolve_policy
+
+    have = []
+    for scheme in SCHEMES:
+        try:
+            resolve_policy(scheme, track, obstacles)
+        except PolicyError:
+            continue
+        have.append(scheme)
+    return have
+
+
+# ------------------------------------------------------------------------------------ sections
+
+def table_i(cfg: ReproduceConfig, track: str, obstacles: bool, schemes: list[str]) -> list[dict]:
+    """Single-agent benchmark rows of this setting, with the paper's figures and the trend check."""
+    from cfrace.evaluate.single import evaluate
+
+    rows = []
+    for scheme in SCHEMES:  # the paper's rows without a shipped policy: its figures, nothing measured
+        ref = paper.TABLE_I.get((scheme, track, obstacles))
+        if scheme not in schemes and ref is not None:
+            rows.append({"setting": setting_name(track, obstacles), "scheme": scheme, "ttc_s": None, "speed_mps": None,
+                         "collisions": None, "success": None, "trend_holds": None,
+                         "paper": dict(zip(("ttc_s", "speed_mps", "collisions", "success_pct"), ref))})
+    if not schemes:
+        return rows
+    res = evaluate(schemes, track, obstacles, cfg.runs, cfg.laps, cfg.seed)
+    for r in res.rows:
+        ref = paper.TABLE_I.get((r["method"], track, obstacles))
+        row = {"setting": setting_name(track, obstacles), "scheme": r["method"], "ttc_s": r["lap_time_s"],
+               "speed_mps": r["avg_speed_mps"], "collisions": r["collisions"], "success": r["success_rate"],
+               "paper": None if ref is None else dict(zip(("ttc_s", "speed_mps", "collisions", "success_pct"), ref))}
+        # the trend: succeeds (>= 50 % of runs) or fails, as in the paper
+        row["trend_holds"] = None if ref is None else (r["success_rate"] >= 0.5) == (ref[3] >= 50)
+        rows.append(row)
+    return sorted(rows, key=lambda r: SCHEMES.index(r["scheme"]))
+
+
+def matrix(cfg: ReproduceConfig, track: str, obstacles: bool, schemes: list[str]) -> dict | None:
+    """Head-to-head matrix of this setting (win rate of row vs column) and its heatmap."""
+    from cfrace.evaluate.race import tournament
+
+    if len(schemes) < 2:
+        return None
+    png = cfg.out / f"h2h_{slug(track, obstacles)}.png"
+    res = tournament(schemes, track, obstacles, cfg.races, cfg.laps, cfg.seed, heatmap=png)
+    avg = dict(zip(res.policies, res.average_win_rate()))
+    return {"policies": res.policies, "win_rate": res.win_rate, "draw_rate": res.draw_rate, "average_win_rate": avg,
+            "heatmap": png.name}
+
+
+def ours_vs_ds(cfg: ReproduceConfig, track: str, obstacles: bool, schemes: list[str]) -> dict | None:
+    """ours against DS on the default seed and on fresh seeds (the races it was not chosen on)."""
+    from cfrace.evaluate.race import race
+
+    if not {"ours", "ds"} <= set(schemes):
+        return None
+    seeds = (cfg.seed, *[s for s in cfg.test_seeds if s != cfg.seed])
+    wins = {s: race(track, "ours", "ds", obstacles, cfg.races, cfg.laps, s).rates()["ego_win_rate"] for s in seeds}
+    fresh = [wins[s] for s in seeds[1:]]
+    return {"by_seed": wins, "default_seed": wins[cfg.seed],
+            "fresh_mean": sum(fresh) / len(fresh) if fresh else None, "fresh_seeds": list(seeds[1:])}
+
+
+def competition(cfg: ReproduceConfig) -> dict | None:
+    """ours in self-play on the complex track: speeds against a live and a crashed opponent."""
+    from cfrace.evaluate.race import race
+
+    if "ours" not in shipped("complex", False):
+        return None
+    plot_dir = cfg.out / "competition"
+    res = race("complex", "ours", "ours", False, cfg.races, cfg.laps, cfg.seed, plot_dir=plot_dir)
+    prof = res.speed_profile
+    live, dead = prof["vs_live_opponent"], prof["vs_crashed_opponent"]
+    holds = None
+    if live.get("max_mps") is not None and dead.get("max_mps") is not None:
+        holds = live["max_mps"] > dead["max_mps"] and live["mean_mps"] > dead["mean_mps"]
+    return {"measured": prof, "paper": paper.COMPETITION, "trend_holds": holds,
+            "plots": [str(p.relative_to(cfg.out)) for p in res.plots]}
+
+
+def curve_files() -> dict[tuple[str, str], list[Path]]:
+    """policies/curves/{scheme}_{track}[_obstacles]_s{seed}.csv grouped by (scheme, setting slug)."""
+    groups: dict[tuple[str, str], list[Path]] = {}
+    for f in sorted(CURVES_DIR.glob("*.csv")):
+        m = re.fullmatch(r"(ds|ss|dm|ours)_(.+)_s\d+", f.stem)
+        if m:
+            groups.setdefault((m.group(1), m.group(2)), []).append(f)
+    return groups
+
+
+def curves(cfg: ReproduceConfig) -> list[dict]:
+    """One plot per setting: each scheme's mean episode return and gates/s over its runs' seeds."""
+    from cfrace.rl.curves import plot_curves
+
+    groups = curve_files()
+    out = []
+    for track, obstacles in cfg.settings:
+        s = slug(track, obstacles)
+        mine = {scheme: files for (scheme, setting), files in groups.items() if setting == s}
+        if not mine:
+            continue
+        for y in ("stat_gates_per_s", "return_agent0"):
+            png = plot_curves(mine, cfg.out / f"curves_{s}_{y}.png", y,
+                              f"{setting_name(track, obstacles)}: training curves (mean, min-max over seeds)")
+            if png is not None:
+                out.append({"setting": setting_name(track, obstacles), "y": y, "png": png.name,
+                            "runs": {k: [f.name for f in v] for k, v in mine.items()}})
+    return out
+
+
+# ------------------------------------------------------------------------------------ claims
+
+def claims(report: dict) -> list[dict]:
+    """The paper's claims, each with the measured figure and whether its trend holds here."""
+    out = []
+    rows = {(r["scheme"], r["setting"]): r for r in report["table_i"] if r["success"] is not None}
+
+    def add(text: str, measured, paper_value, holds) -> None:
+        out.append({"claim": text, "measured": measured, "paper": paper_value, "holds": holds})
+
+    for track, obstacles in SETTINGS:
+        name = setting_name(track, obstacles)
+        sec = report["settings"].get(name)
+        if sec is None:
+            continue
+        ovd = sec.get("ours_vs_ds")
+        ref = paper.H2H.get(("ours", "ds", track, obstacles))
+        if ovd is not None:
+            add(f"ours beats DS on the {name}", f"{ovd['default_seed']:.0%} (seed {report['config']['seed']}), "
+                f"{ovd['fresh_mean']:.0%} (mean of fresh seeds {ovd['fresh_seeds']})" if ovd["fresh_mean"] is not None
+                else f"{ovd['default_seed']:.0%}", f"{ref:.0f} %" if ref is not None else "wins (matrix figure)",
+                ovd["default_seed"] > 0.5 and (ovd["fresh_mean"] is None or ovd["fresh_mean"] > 0.5))
+        mat = sec.get("matrix")
+        if mat is not None and "ours" in mat["average_win_rate"]:
+            avg = mat["average_win_rate"]
+            best = max(v for v in avg.values() if v is not None)
+            add(f"ours has the highest average win rate on the {name}", f"{avg['ours']:.0%}",
+                f"{paper.OURS_AVERAGE_WIN:.0f} % (all settings)", avg["ours"] == best)
+    ds_obs = [rows.get(("ds", setting_name(t, True))) for t in ("lemniscate", "complex")]
+    if all(ds_obs):
+        add("the dense reward fails with obstacles", ", ".join(f"{r['success']:.0%}" for r in ds_obs), "0 %, 0 %",
+            all(r["success"] < 0.5 for r in ds_obs))
+    ss_obs = rows.get(("ss", setting_name("lemniscate", True)))
+    if ss_obs:
+        add("the sparse reward gets through the lemniscate's obstacles", f"{ss_obs['success']:.0%}", "98 %",
+            ss_obs["success"] >= 0.5)
+    for track in ("lemniscate", "complex"):
+        ds, ss = rows.get(("ds", track)), rows.get(("ss", track))
+        if ds and ss and ds["ttc_s"] and ss["ttc_s"]:
+            add(f"SS laps slower than DS on the {track}", f"{ss['ttc_s']:.2f} vs {ds['ttc_s']:.2f} s",
+                {"lemniscate": "5.29 vs 4.76 s", "complex": "6.42 vs 5.68 s"}[track], ss["ttc_s"] > ds["ttc_s"])
+    comp = report.get("competition")
+    if comp is not None:
+        live, dead = comp["measured"]["vs_live_opponent"], comp["measured"]["vs_crashed_opponent"]
+        fmt = lambda d: (f"{d.get('max_mps') or float('nan'):.1f} / {d.get('mean_mps') or float('nan'):.1f}"
+                         " m/s")
+        add("ours flies faster against a live opponent than after it crashed (complex, self-play, max / mean)",
+            f"{fmt(live)} vs {fmt(dead)}", "9.9 / 5.9 vs 8.7 / 5.3 m/s", comp["trend_holds"])
+    return out
+
+
+# ------------------------------------------------------------------------------------ report
+
+def _commit() -> str:
+    try:
+        return subprocess.run(["git", "-C", str(POLICIES_DIR.parent), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, timeout=5).stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def reproduce(cfg: ReproduceConfig, on_progress=None) -> dict:
+    """Run every section, write OUT/report.md and OUT/report.json; the report as a dict."""
+    t0 = time.perf_counter()
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    say = on_progress or (lambda text: None)
+    report: dict = {"config": {**asdict(cfg), "out": str(cfg.out)}, "commit": _commit(),
+                    "date": datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+                    "table_i": [], "settings": {}, "missing": {}}
+    for track, obstacles in cfg.settings:
+        name = setting_name(track, obstacles)
+        schemes = shipped(track, obstacles)
+        report["missing"][name] = [s for s in SCHEMES if s not in schemes]
+        say(f"{name}: Table I ({', '.join(schemes) or 'no policies'})")
+        report["table_i"] += table_i(cfg, track, obstacles, schemes)
+        say(f"{name}: head-to-head matrix")
+        sec = {"schemes": schemes, "matrix": matrix(cfg, track, obstacles, schemes)}
+        say(f"{name}: ours vs DS on fresh seeds")
+        sec["ours_vs_ds"] = ours_vs_ds(cfg, track, obstacles, schemes)
+        report["settings"][name] = sec
+    say("competition behaviour (complex, self-play)")
+    report["competition"] = competition(cfg)
+    say("training curves")
+    report["curves"] = curves(cfg)
+    report["claims"] = claims(report)
+    report["wall_s"] = round(time.perf_counter() - t0, 1)
+    (cfg.out / "report.json").write_text(json.dumps(report, indent=2, default=str) + "\n")
+    (cfg.out / "report.md").write_text(markdown(report))
+    return report
+
+
+def _f(v, spec=".2f", none="–") -> str:
+    return none if v is None else format(v, spec)
+
+
+def _yes(v) -> str:
+    return "–" if v is None else ("yes" if v else "**no**")
+
+
+def markdown(report: dict) -> str:
+    """The report as markdown (tables beside the paper's figures, images by relative path)."""
+    c = report["config"]
+    size = "quick (a few runs per cell: figures are indicative only)" if c["quick"] else "full"
+    lines = [f"# cfrace reproduction report", "",
+             f"`cfrace reproduce{' --quick' if c['quick'] else ''}`, commit {report['commit']}, {report['date']}, "
+             f"{size}: {c['runs']} runs x {c['laps']} laps per policy, {c['races']} races per pair, seed {c['seed']}, "
+             f"fresh seeds {list(c['test_seeds'])}; {report['wall_s']} s. Paper figures: the paper (Table I, "
+             "Sec. IV-B and IV-E). A trend holds when the measured figure lands on the same side as the paper's.", ""]
+    lines += ["## Claims", "", "| the paper's claim | measured here | paper | trend holds |", "|---|---|---|---|"]
+    lines += [f"| {x['claim']} | {x['measured']} | {x['paper']} | {_yes(x['holds'])} |" for x in report["claims"]]
+    lines += ["", "## Table I: single-agent benchmark", "",
+              "| setting | scheme | Avg. TTC [s] | Avg. speed [m/s] | Collisions | Success | paper: TTC, speed, "
+              "collisions, success | succeeds/fails as in the paper |", "|---|---|---|---|---|---|---|---|"]
+    for r in report["table_i"]:
+        p = r["paper"]
+        ref = "not in the paper" if p is None else (f"{_f(p['ttc_s'])}, {_f(p['speed_mps'])}, {p['collisions']}, "
+                                                    f"{p['success_pct']} %")
+        if r["success"] is None:
+            lines.append(f"| {r['setting']} | {r['scheme']} | no shipped policy | | | | {ref} | – |")
+            continue
+        lines.append(f"| {r['setting']} | {r['scheme']} | {_f(r['ttc_s'])} | {_f(r['speed_mps'])} | {r['collisions']} | "
+                     f"{r['success']:.0%} | {ref} | {_yes(r['trend_holds'])} |")
+    missing = {k: v for k, v in report["missing"].items() if v}
+    if missing:
+        lines += ["", "No shipped policy (not measured): " +
+                  "; ".join(f"{k}: {', '.join(v)}" for k, v in missing.items()) + "."]
+    lines += ["", "## Head-to-head matrices", "", "Win rate of the row policy against the column policy "
+              "(draws in the heatmaps); paper cells from its text."]
+    for name, sec in report["settings"].items():
+        mat = sec["matrix"]
+        if mat is None:
+            continue
+        pols = mat["policies"]
+        lines += ["", f"### {name}", "", f"![{name}]({mat['heatmap']})", "",
+                  "| | " + " | ".join(pols) + " | average |", "|---" * (len(pols) + 2) + "|"]
+        for i, p in enumerate(pols):
+            cells = ["–" if v is None else f"{v:.0%}" for v in mat["win_rate"][i]]
+            lines.append(f"| {p} | " + " | ".join(cells) + f" | {_f(mat['average_win_rate'][p], '.0%')} |")
+        ovd = sec.get("ours_vs_ds")
+        if ovd is not None:
+            by = ", ".join(f"seed {s}: {w:.0%}" for s, w in ovd["by_seed"].items())
+            lines += ["", f"ours vs DS, {c['races']} races each: {by}."]
+    comp = report.get("competition")
+    lines += ["", "## Competition behaviour (complex track, ours in self-play)", ""]
+    if comp is None:
+        lines.append("No shipped ours policy for the complex track.")
+    else:
+        m = comp["measured"]
+        lines += ["| opponent | max speed [m/s] | mean speed [m/s] | final-gate speed [m/s] | races | paper (max / mean "
+                  "/ final gate) |", "|---|---|---|---|---|---|"]
+        for key, label in (("vs_live_opponent", "live"), ("vs_crashed_opponent", "crashed")):
+            d, p = m[key], comp["paper"][key]
+            lines.append(f"| {label} | {_f(d.get('max_mps'))} | {_f(d.get('mean_mps'))} | "
+                         f"{_f(d.get('finish_speed_mps'))} | {d.get('races')} | {p['max']} / {p['mean']} / "
+                         f"{p['final_gate']} |")
+        lines += [""] + [f"![speed]({p})" for p in comp["plots"]]
+    lines += ["", "## Training curves", ""]
+    if not report["curves"]:
+        lines.append("No training curves in policies/curves/.")
+    for cur in report["curves"]:
+        runs = "; ".join(f"{k}: {len(v)} run(s)" for k, v in cur["runs"].items())
+        lines += [f"![{cur['setting']} {cur['y']}]({cur['png']})", "", f"{cur['setting']}, {cur['y']} ({runs})", ""]
+    return "\n".join(lines) + "\n"

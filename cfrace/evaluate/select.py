@@ -1,0 +1,89 @@
+"""Score a run's kept checkpoints (``cfrace train --keep-checkpoints``) and choose one.
+
+Every ``RUN/checkpoints/itNNNNN.pt`` is exported to ONNX next to it (the parity check included) and
+flown: alone (the single-agent benchmark: success, TTC) or, with an opponent, in head-to-head
+races (win rate). The scores go to ``RUN/checkpoints/scores.csv``; the rule picks one:
+
+- alone: the highest success rate, then the lowest average time to complete a lap;
+- against an opponent: the highest win rate, then the highest success when alone is not flown;
+  ties go to the earliest checkpoint.
+
+Choose on validation seeds and report on others: the seed given here is the validation seed, and
+`cfrace eval` / `cfrace race` with other seeds give the figures that are reported.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from cfrace.errors import ConfigError
+
+FIELDS = ("iteration", "env_steps", "wall_min", "onnx", "success", "lap_time_s", "avg_speed_mps", "collisions",
+          "win_rate", "loss_rate")
+
+
+@dataclass(frozen=True)
+class Scored:
+    rows: list[dict]        #: one per checkpoint, FIELDS
+    chosen: dict            #: the row the rule picks
+    csv: Path
+
+
+def kept_checkpoints(run: Path) -> list[Path]:
+    """RUN/checkpoints/it*.pt in iteration order."""
+    folder = Path(run) / "checkpoints"
+    found = sorted(folder.glob("it*.pt"), key=lambda p: int(re.sub(r"\D", "", p.stem) or 0))
+    if not found:
+        raise ConfigError(f"{run}: no kept checkpoints (train with --keep-checkpoints)")
+    return found
+
+
+def score_checkpoint(ckpt: Path, track: str, obstacles: bool, opp: str | None, runs: int, laps: int, seed: int,
+                     agent: str = "best") -> dict:
+    """Export one checkpoint (cached next to it) and fly it; one row of FIELDS."""
+    from cfrace.evaluate.race import race
+    from cfrace.evaluate.single import evaluate
+    from cfrace.export import export_checkpoint
+    from cfrace.rl.train import load_checkpoint
+
+    onnx = ckpt.with_suffix(f".{agent}.onnx")
+    _, meta, _ = export_checkpoint(ckpt, onnx, agent)
+    row = {"iteration": int(re.sub(r"\D", "", ckpt.stem) or 0), "env_steps": int(meta.get("train_steps", 0)),
+           "wall_min": round(float(load_checkpoint(ckpt).get("wall_s", 0.0)) / 60.0, 2), "onnx": str(onnx)}
+    if opp is None:
+        r = evaluate([str(onnx)], track, obstacles, runs, laps, seed).rows[0]
+        row.update(success=r["success_rate"], lap_time_s=r["lap_time_s"], avg_speed_mps=r["avg_speed_mps"],
+                   collisions=r["collisions"])
+    else:
+        rates = race(track, str(onnx), opp, obstacles, runs, laps, seed).rates()
+        row.update(win_rate=rates["ego_win_rate"], loss_rate=rates["opp_win_rate"])
+    return row
+
+
+def choose(rows: list[dict]) -> dict:
+    """The selection rule of the module docstring."""
+    def key(r: dict):
+        if r.get("win_rate") is not None:
+            return (-r["win_rate"], r["iteration"])
+        ttc = r.get("lap_time_s")
+        return (-(r.get("success") or 0.0), ttc if ttc is not None else float("inf"), r["iteration"])
+    return min(rows, key=key)
+
+
+def score_run(run: Path, track: str, obstacles: bool = False, opp: str | None = None, runs: int = 50,
+              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None) -> Scored:
+    """Score every kept checkpoint of ``run`` (see the module docstring) and choose one."""
+    rows = []
+    for ckpt in kept_checkpoints(Path(run)):
+        rows.append(score_checkpoint(ckpt, track, obstacles, opp, runs, laps, seed, agent))
+        if on_row is not None:
+            on_row(rows[-1])
+    out = Path(run) / "checkpoints" / "scores.csv"
+    with out.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, FIELDS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    return Scored(rows, choose(rows), out)
