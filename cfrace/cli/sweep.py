@@ -93,8 +93,7 @@ def sweep_cmd(
 def _curves(sweep, out_root: Path, plot: Optional[Path]) -> None:
     from cfrace.sweep.curves import sweep_curves
 
-    path = sweep_curves(sweep, out_root, plot)
-    if path is not None:
+    for path in sweep_curves(sweep, out_root, plot):
         console.print(f"combined training curves {path}")
 
 

@@ -147,7 +147,7 @@ class Run:
         counts across resumes, the minutes budget is reduced by the checkpoint's wall time. Only
         options a resume accepts are passed (the task and hyperparameters come from the checkpoint)."""
         argv = ["train", "--resume", str(self.out_dir(out_root))]
-        keep = {"device", "threads", "checkpoint_min", *PASS_THROUGH_FLAGS}
+        keep = {"device", "threads", "checkpoint_min", "precision", *PASS_THROUGH_FLAGS}
         opts = {k: v for k, v in self.options.items() if k in keep}
         argv += Run(self.name, opts)._option_args(out_root)
         if self.minutes is not None:
