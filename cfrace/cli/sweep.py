@@ -18,6 +18,7 @@ console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS")
 
 
 def _summary(report, out_root: Path) -> None:
+    console.print()
     t = Table(title="sweep summary", title_justify="left")
     for col in ("run", "state", "what", "tries", "time"):
         t.add_column(col)
@@ -30,7 +31,7 @@ def _summary(report, out_root: Path) -> None:
             console.print(f"[red]{s.run.name}: {s.error}[/red] (log: {s.run.out_dir(out_root) / 'train.log'})")
     ran = [s for s in report.states if s.wall_s > 0]
     if ran:
-        console.print(f"sweep wall time {report.wall_s:.0f} s (with Ray's start-up); the {len(ran)} run(s) took "
+        console.print(f"sweep wall time {report.wall_s:.0f} s (after Ray was up); the {len(ran)} run(s) took "
                       f"{report.run_wall_s:.0f} s added up, the time one after another would take at the same speed: "
                       f"{report.run_wall_s / max(report.wall_s, 1e-9):.2f}x", highlight=False)
 
@@ -103,11 +104,13 @@ def bench_sweep_cmd(
     envs: Optional[int] = typer.Option(None, "--envs", min=1, help="worlds per run (default: the cpu preset's)"),
     iterations: int = typer.Option(3, "--iterations", min=1, help="timed iterations per run (after one warm-up)"),
     address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: a local instance)"),
+    spec: Optional[Path] = typer.Option(None, "--spec", help="also time this sweep file one run after another "
+                                                             "and on Ray (fresh temporary folders)"),
     json_out: Optional[Path] = typer.Option(None, "--json", help="write the figures to this JSON file"),
 ) -> None:
     """Env-steps/s of one single-thread training run alone vs two at once, as Ray tasks; with load."""
     from cfrace.cli.evaluate import _write_json
-    from cfrace.sweep.bench import bench_parallel
+    from cfrace.sweep.bench import bench_parallel, bench_sweep_wall
 
     r = bench_parallel(method, track, envs, iterations, address)
     t = Table(title=f"training runs under Ray: {method} on {track}, {r['num_envs']} worlds, 1 thread each")
@@ -121,6 +124,12 @@ def bench_sweep_cmd(
     console.print(t)
     console.print(f"load before: {r['load_before']}\nload after: {r['load_after']}", highlight=False)
     console.print("other busy processes during the benchmark:\n" + "\n".join(r["busy_processes"]), highlight=False)
+    if spec is not None:
+        w = bench_sweep_wall(spec, address)
+        r["sweep_wall"] = w
+        console.print(f"sweep {spec} ({w['runs']} runs): one after another {w['sequential_wall_s']:.0f} s, on Ray "
+                      f"{w['ray_wall_s']:.0f} s (+ {r['ray_start_s']:.0f} s to start Ray): [bold]{w['speedup']:.2f}x[/bold]; "
+                      f"{w['load_before']} before, {w['load_after']} after", highlight=False)
     _write_json(json_out, r)
 
 

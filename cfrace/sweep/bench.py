@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import os
 import subprocess
+import tempfile
 import time
+from pathlib import Path
 
 
 def _bench_task(method: str, track: str, envs: int | None, iterations: int) -> dict:
@@ -40,7 +42,9 @@ def bench_parallel(method: str = "ds", track: str = "lemniscate", envs: int | No
     """Env steps/s of one run alone and of two runs at once, each a one-CPU Ray task."""
     from cfrace.sweep.ray_exec import init_ray
 
+    t_init = time.perf_counter()
     ray = init_ray(address, None if address else 2)
+    ray_start_s = time.perf_counter() - t_init
     task = ray.remote(num_cpus=1, max_retries=0)(_bench_task)
     ray.get([task.remote(method, track, 8, 1), task.remote(method, track, 8, 1)])  # warm both workers
     load_before = machine_load()
@@ -57,4 +61,29 @@ def bench_parallel(method: str = "ds", track: str = "lemniscate", envs: int | No
             "speedup": sum(rates) / alone["env_steps_per_s"], "alone_wall_s": t1 - t0, "pair_wall_s": t2 - t1,
             "alone_shares": {k: alone[k] for k in alone if k.startswith("share_")},
             "load_before": load_before, "load_after": machine_load(), "busy_processes": busy,
-            "cpu_count": os.cpu_count(), "ray": "cluster " + address if address else "local instance, 2 CPUs"}
+            "cpu_count": os.cpu_count(), "ray_start_s": ray_start_s,
+            "ray": "cluster " + address if address else "local instance, 2 CPUs"}
+
+
+def bench_sweep_wall(spec: str | Path, address: str | None = None) -> dict:
+    """Wall time of a whole sweep file run one run after another (run_local) and on Ray (run_ray),
+    each into a fresh temporary output root, the same call; with the machine's load. The Ray time
+    does not include starting Ray (bench_parallel reports that as ray_start_s)."""
+    from cfrace.sweep.local import run_local
+    from cfrace.sweep.ray_exec import run_ray
+    from cfrace.sweep.spec import load_spec
+
+    sweep = load_spec(spec)
+    with tempfile.TemporaryDirectory(prefix="cfrace-bench-sweep-") as tmp:
+        load_before = machine_load()
+        t0 = time.perf_counter()
+        run_local(sweep, Path(tmp) / "sequential", echo=lambda s: None, log_dir=True)
+        sequential = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        report = run_ray(sweep, Path(tmp) / "ray", address, None if address else os.cpu_count())
+        on_ray = time.perf_counter() - t1
+        if not report.ok:
+            raise RuntimeError(f"sweep failed on Ray: {report.failed + report.blocked}")
+    return {"spec": str(spec), "runs": len(sweep.runs), "sequential_wall_s": sequential, "ray_wall_s": on_ray,
+            "ray_run_wall_s_sum": report.run_wall_s, "speedup": sequential / on_ray, "load_before": load_before,
+            "load_after": machine_load(), "busy_processes": busy_processes()}

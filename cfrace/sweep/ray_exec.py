@@ -48,7 +48,8 @@ def init_ray(address: str | None = None, cpus: int | None = None):
         else:
             ray.init(num_cpus=cpus or os.cpu_count() or 1, **kw)
     except ConnectionError as exc:
-        raise ConfigError(f"--address {address}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]})") \
+        raise ConfigError(f"--address {address}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]}; a "
+                          f"cluster started with `ray start` wants RAY_AUTH_MODE=token and its ~/.ray/auth_token)") \
             from None
     return ray
 
