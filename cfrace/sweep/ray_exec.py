@@ -83,6 +83,11 @@ def run_ray(sweep: Sweep, out_root: str | Path | None = None, address: str | Non
     """Run the sweep on Ray; returns when every run is done, failed or blocked by a failed one."""
     ray = init_ray(address, cpus)
     out_root = str(out_root if out_root is not None else sweep.out)
+    total = int(ray.cluster_resources().get("CPU", 0))
+    for r in sweep.runs:
+        if run_threads(r) > total:
+            raise ConfigError(f"{sweep.path}: {r.name} ({r.source}) asks for {run_threads(r)} threads, the Ray "
+                              f"instance has {total} CPUs")
     task = ray.remote(max_retries=0)(_task_body)
     t0 = time.perf_counter()
     states = {r.name: RunState(r) for r in sweep.runs}
