@@ -1,7 +1,8 @@
 """`cfrace sweep` end to end on a real local Ray instance: a 2 methods x 2 seeds sweep on the
 lemniscate (tiny budgets) is killed (SIGKILL to the whole sweep, Ray included), then the same
 command resumes it: finished runs are skipped, interrupted ones continue from their checkpoints,
-and the combined curves are drawn."""
+and the combined curves are drawn. A run that fails is tried twice, reported, and the run that
+needs it is blocked while the others finish."""
 
 from __future__ import annotations
 
@@ -28,6 +29,9 @@ grid:
   name: "{{method}}_s{{seed}}"
   method: [ds, ss]
   seed: [0, 1]
+runs:   # a run that cannot train (no such track) and one that needs it
+  - {{name: broken, method: ds, track: no_such_track}}
+  - {{name: needs_broken, method: ds, init_from: broken}}
 """
 
 
@@ -68,13 +72,14 @@ def test_sweep_killed_and_resumed(tmp_path):
     while _ours(out) and time.time() < deadline:   # trainings get SIGTERM when their worker dies
         time.sleep(0.5)
     assert not _ours(out), "trainings left running after the sweep was killed"
-    before = {r.name: (r.started(out), r.trained(out)) for r in sweep.runs}
+    grid = [r for r in sweep.runs if "broken" not in r.name]
+    before = {r.name: (r.started(out), r.trained(out)) for r in grid}
     assert any(s and not t for s, t in before.values()), before   # at least one run was interrupted
     assert not all(t for _, t in before.values())
 
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    for r in sweep.runs:
+    assert res.returncode == 1, res.stdout[-3000:] + res.stderr[-3000:]   # broken failed
+    for r in grid:
         assert r.done(out), r.name
         rows = list(csv.DictReader(open(r.out_dir(out) / "metrics.csv")))
         assert [int(x["iteration"]) for x in rows] == list(range(1, len(rows) + 1))   # no gap, no repeat
@@ -86,6 +91,12 @@ def test_sweep_killed_and_resumed(tmp_path):
         what = "skip" if trained else ("resume" if started else "start")
         assert any(line.split("│")[1:4] and name in line and what in line for line in summary.splitlines()), \
             (name, what, summary)
+    rows = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:5]]
+            for line in summary.splitlines() if line.count("│") >= 5}
+    assert rows["broken"] == ["failed", "start", "2"] and rows["needs_broken"][0] == "blocked"
+    assert "broken: cfrace train exited with code 2" in res.stdout and "needs broken" in res.stdout
+    assert "no_such_track" in (out / "broken" / "train.log").read_text()
+    assert not (out / "needs_broken").exists()
     assert (out / "curves.png").stat().st_size > 10_000
     assert "combined training curves" in res.stdout and "the time one after another" in res.stdout
 

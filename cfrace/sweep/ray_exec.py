@@ -46,7 +46,8 @@ def init_ray(address: str | None = None, cpus: int | None = None):
         if address:
             ray.init(address=address, **kw)
         else:
-            ray.init(num_cpus=cpus or os.cpu_count() or 1, **kw)
+            # "local": always a new instance of our own, never a cluster left running on this machine
+            ray.init(address="local", num_cpus=cpus or os.cpu_count() or 1, **kw)
     except ConnectionError as exc:
         raise ConfigError(f"--address {address}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]}; a "
                           f"cluster started with `ray start` wants RAY_AUTH_MODE=token and its ~/.ray/auth_token)") \
