@@ -16,8 +16,20 @@ from __future__ import annotations
 import argparse
 import time
 
+import gymnasium
 import torch
 from torch import nn
+
+
+class EpisodeStatsForSkrl(gymnasium.vector.VectorWrapper):
+    """Hands RaceEnv's episode statistics to skrl's trainer the way it logs them: one-element
+    tensors under infos["episode"] (TensorBoard tags "Race / gates_per_s", ...)."""
+
+    def step(self, actions):
+        obs, rew, term, trunc, infos = self.env.step(actions)
+        if "episode" in infos:
+            infos["episode"] = {f"Race / {k}": torch.tensor(v) for k, v in infos["episode"].items()}
+        return obs, rew, term, trunc, infos
 
 
 def build(worlds: int, seed: int, rollouts: int, out: str):
@@ -52,7 +64,7 @@ def build(worlds: int, seed: int, rollouts: int, out: str):
             return self.net(inputs["observations"]), {}
 
     venv = RaceVectorEnv(worlds, "ds", "lemniscate", seed=seed)
-    env = wrap_env(venv, wrapper="gymnasium")
+    env = wrap_env(EpisodeStatsForSkrl(venv), wrapper="gymnasium")
     device = env.device
     models = {"policy": Policy(env.observation_space, env.action_space, device),
               "value": Value(env.observation_space, env.action_space, device)}
