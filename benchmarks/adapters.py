@@ -7,9 +7,10 @@ For each world count N, world-steps per second (one 50 Hz step of one world, all
   vector ds     RaceVectorEnv(N) (gymnasium.vector.VectorEnv over the same RaceEnv), NumPy actions
   N x gym ds    N RaceGymEnv (one world each), stepped one after another (what SyncVectorEnv does)
   native ours   RaceEnv(N worlds, ours: 2 drones)
+  vector ours   RaceParallelVectorEnv(N) (PettingZoo's dict API, values batched over the worlds)
   N x pz ours   N RaceParallelEnv (one world each, dict API), one after another
 Uniform random actions in [-1, 1] (drones crash and worlds reset often, as early in training).
-One thread; records the machine's load. Prints a table and one JSON document.
+One thread; records the machine's load. Prints a markdown table and one JSON document.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ def _rate(step, seconds: float) -> float:
 def measure(n: int, seconds: float, per_env_max: int) -> dict:
     from cfrace.env.adapters import make_race_env
     from cfrace.env.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv
-    from cfrace.env.adapters.pettingzoo_env import RaceParallelEnv
+    from cfrace.env.adapters.pettingzoo_env import RaceParallelEnv, RaceParallelVectorEnv
 
     rng = np.random.default_rng(0)
     out = {"worlds": n}
@@ -54,6 +55,10 @@ def measure(n: int, seconds: float, per_env_max: int) -> dict:
     native2.reset()
     act2 = torch.as_tensor(rng.uniform(-1, 1, (n, 2, 4)).astype(np.float32))
     out["native_ours"] = n * _rate(lambda: native2.step(act2), seconds)
+    pvec = RaceParallelVectorEnv(n, "ours")
+    pvec.reset(seed=0)
+    act_d = {a: act2.numpy()[:, k] for k, a in enumerate(pvec.agents)}
+    out["vector_pz_ours"] = n * _rate(lambda: pvec.step(act_d), seconds)
     if n <= per_env_max:
         envs = [RaceGymEnv("ds", seed=i) for i in range(n)]
         for e in envs:
@@ -93,14 +98,15 @@ def main() -> None:
     rows = [measure(int(n), args.seconds, args.per_env_max) for n in args.worlds.split(",")]
     doc = {"rows": rows, "load_before": load_before, "load_after": os.getloadavg(), "cpu_count": os.cpu_count(),
            "torch_threads": 1, "unit": "world-steps per second"}
-    cols = ("native_ds", "vector_ds", "per_env_gym_ds", "native_ours", "per_env_pz_ours")
-    print(f"{'worlds':>7} " + " ".join(f"{c:>16}" for c in cols) + f" {'vector/native':>14} {'gym/native':>11}"
-          f" {'pz/native':>10}")
+    cols = ("native_ds", "vector_ds", "per_env_gym_ds", "native_ours", "vector_pz_ours", "per_env_pz_ours")
+    ratios = (("vector_ds", "native_ds"), ("per_env_gym_ds", "native_ds"), ("vector_pz_ours", "native_ours"),
+              ("per_env_pz_ours", "native_ours"))
+    print("| worlds | " + " | ".join(cols) + " | " + " | ".join(f"{a} / {b}" for a, b in ratios) + " |")
+    print("|---" * (1 + len(cols) + len(ratios)) + "|")
     for r in rows:
-        ratio = lambda a, b: f"{r[a] / r[b]:.2f}" if a in r else "-"
-        print(f"{r['worlds']:>7} " + " ".join(f"{r[c]:>16,.0f}" if c in r else f"{'-':>16}" for c in cols)
-              + f" {ratio('vector_ds', 'native_ds'):>14} {ratio('per_env_gym_ds', 'native_ds'):>11}"
-              f" {ratio('per_env_pz_ours', 'native_ours'):>10}")
+        cells = [f"{r[c]:,.0f}" if c in r else "-" for c in cols]
+        cells += [f"{r[a] / r[b]:.2f}" if a in r else "-" for a, b in ratios]
+        print(f"| {r['worlds']} | " + " | ".join(cells) + " |")
     print(f"load average before {load_before}, after {doc['load_after']}", file=sys.stderr)
     text = json.dumps(doc, indent=2)
     if args.json:

@@ -117,18 +117,20 @@ def main() -> None:
     from skrl.trainers.torch import SequentialTrainer
 
     venv, env, agent = build(args.worlds, args.seed, args.rollouts, args.out)
-    # measure one update's time, then size the run to the budget
+    # time a few updates, then size the run to the budget (skrl's trainer counts timesteps, not time)
     trainer_cfg = {"disable_progressbar": True, "headless": True, "close_environment_at_exit": False}
+    first = 3
     t0 = time.perf_counter()
-    SequentialTrainer(env=env, agents=agent, cfg={"timesteps": args.rollouts, **trainer_cfg}).train()
-    per_update = time.perf_counter() - t0
-    updates = max(1, int(args.minutes * 60 / per_update))
-    print(f"one update of {args.worlds} worlds x {args.rollouts} steps took {per_update:.1f} s: "
-          f"{updates} more updates for {args.minutes:g} min", flush=True)
     before = evaluate(agent)
+    t1 = time.perf_counter()
+    SequentialTrainer(env=env, agents=agent, cfg={"timesteps": first * args.rollouts, **trainer_cfg}).train()
+    per_update = (time.perf_counter() - t1) / first
+    updates = max(1, int(args.minutes * 60 / per_update) - first)
+    print(f"an update of {args.worlds} worlds x {args.rollouts} steps takes {per_update:.1f} s: "
+          f"{updates} more updates for {args.minutes:g} min", flush=True)
     SequentialTrainer(env=env, agents=agent, cfg={"timesteps": updates * args.rollouts, **trainer_cfg}).train()
     after = evaluate(agent)
-    steps = (updates + 1) * args.rollouts * args.worlds
+    steps = (updates + first) * args.rollouts * args.worlds
     wall = time.perf_counter() - t0
     print(f"trained {steps:,} env steps in {wall / 60:.1f} min ({steps / wall:,.0f} env steps/s); "
           f"TensorBoard logs in {agent.experiment_dir}")

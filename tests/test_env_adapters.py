@@ -106,3 +106,37 @@ def test_gymnasium_vector_env():
     assert finals > 0       # random actions crash: the autoreset path ran
     with pytest.raises(ConfigError):
         RaceVectorEnv(4, "dm")
+
+
+def test_parallel_vector_env_matches_raceenv():
+    """The vectorized multi-agent form: dicts of batches equal to RaceEnv's step for step; the
+    reset mask is exactly the worlds RaceEnv restarted (their step counter back to 0)."""
+    from cfrace.env.adapters.pettingzoo_env import RaceParallelVectorEnv
+
+    n = 32
+    venv = RaceParallelVectorEnv(n, "ours", seed=4)
+    native, _ = make_race_env("ours", num_envs=n, seed=4)
+    obs, _ = venv.reset(seed=9)
+    native.gen.manual_seed(9), native.sim.generator.manual_seed(9)
+    nobs, _ = native.reset()
+    assert venv.agents == ["drone_0", "drone_1"]
+    assert all(np.array_equal(obs[a], nobs[:, i].numpy()) for i, a in enumerate(venv.agents))
+    rng = np.random.default_rng(0)
+    resets = dead = 0
+    for _ in range(150):
+        act = rng.uniform(-1, 1, (n, 2, 4)).astype(np.float32)
+        obs, rew, term, trunc, info = venv.step({a: act[:, i] for i, a in enumerate(venv.agents)})
+        r = native.step(torch.as_tensor(act))
+        restarted = (native.steps == 0).numpy()
+        for i, a in enumerate(venv.agents):
+            assert obs[a].shape == (n, native.obs_dim) and obs[a].dtype == np.float32
+            assert np.array_equal(obs[a], r.obs[:, i].numpy()) and np.array_equal(rew[a], r.reward[:, i].numpy())
+            assert np.array_equal(term[a], r.terminated[:, i].numpy())
+            assert np.array_equal(trunc[a], r.truncated[:, i].numpy())
+            assert np.array_equal(info[a]["alive"], r.alive[:, i].numpy())
+            assert np.array_equal(info[a]["_final_obs"], restarted)
+            m = restarted
+            assert np.array_equal(info[a]["final_obs"][m], r.final_critic[m, i, :native.obs_dim].numpy())
+        resets += int(restarted.sum())
+        dead += int((~info["drone_0"]["alive"]).sum())
+    assert resets > 0 and dead > 0   # both paths ran: worlds restarted, drones sat out crashed

@@ -3,6 +3,7 @@
     RaceGymEnv        gymnasium.Env, one world, single-agent methods (ds, ss)
     RaceVectorEnv     gymnasium.vector.VectorEnv, N worlds in one RaceEnv (same-step autoreset)
     RaceParallelEnv   pettingzoo ParallelEnv, one world, every drone of the method an agent
+    RaceParallelVectorEnv   the same dict API over N worlds, every value batched (the vectorized form)
 
 They only convert: tensors to NumPy, agents to dicts, RaceEnv's auto-reset to each API's episode
 rules. Physics, observations, rewards, dones and resets are RaceEnv's (cfrace/env/race_env.py),

@@ -8,7 +8,6 @@ the episode is over: call reset() (passes pettingzoo.test.parallel_api_test).
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
@@ -18,24 +17,30 @@ from pettingzoo import ParallelEnv
 from cfrace.env.adapters import AGENT_PREFIX, final_observations, make_race_env, reseed, spaces
 
 
-class RaceParallelEnv(ParallelEnv):
+class _RaceAgents:
+    """A RaceEnv of ``num_envs`` worlds whose drones are agents drone_0, drone_1 (same spaces,
+    the same objects on every call)."""
+
+    def _build(self, method: str, track: str, num_envs: int, obstacles: bool, seed: int, kw: dict) -> None:
+        self.race, self.meta = make_race_env(method, track, num_envs, obstacles, seed, **kw)
+        self.possible_agents = [f"{AGENT_PREFIX}{i}" for i in range(self.race.num_agents)]
+        self._index = {a: i for i, a in enumerate(self.possible_agents)}
+        self._spaces = spaces(self.race)
+
+    def observation_space(self, agent: str):
+        return self._spaces[0]
+
+    def action_space(self, agent: str):
+        return self._spaces[1]
+
+
+class RaceParallelEnv(_RaceAgents, ParallelEnv):
     metadata = {"name": "cfrace_race_v0", "render_modes": [], "is_parallelizable": True}
 
     def __init__(self, method: str = "ours", track: str = "lemniscate", obstacles: bool = False, seed: int = 0,
                  **kw: Any):
-        self.race, self.meta = make_race_env(method, track, 1, obstacles, seed, **kw)
-        self.possible_agents = [f"{AGENT_PREFIX}{i}" for i in range(self.race.num_agents)]
+        self._build(method, track, 1, obstacles, seed, kw)
         self.agents: list[str] = []
-        self._index = {a: i for i, a in enumerate(self.possible_agents)}
-        self._spaces = spaces(self.race)
-
-    @functools.lru_cache(maxsize=None)
-    def observation_space(self, agent: str):
-        return self._spaces[0]
-
-    @functools.lru_cache(maxsize=None)
-    def action_space(self, agent: str):
-        return self._spaces[1]
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -68,3 +73,50 @@ class RaceParallelEnv(ParallelEnv):
         """The world's joint observation: every drone's observation, concatenated (the critics' input)."""
         obs, _ = self.race.observe()
         return obs[0].reshape(-1).numpy().copy()
+
+
+class RaceParallelVectorEnv(_RaceAgents):
+    """N worlds of one RaceEnv behind PettingZoo's parallel dict API, every value batched over the
+    worlds: the vectorized form of RaceParallelEnv (one world per environment costs a whole RaceEnv
+    step per world; docs/envs.md). Same-step autoreset, as RaceVectorEnv.
+
+    reset(seed) -> obs {agent: (N, D)}, infos {agent: {}}
+    step({agent: (N, 4)}) -> obs {agent: (N, D)}, rewards {agent: (N,)}, terminations {agent: (N,)},
+        truncations {agent: (N,)}, infos {agent: {"alive": (N,) the drone raced in this step,
+        "final_obs": (N, D) the state reached before a world's reset, "_final_obs": (N,) the world
+        reset (its race ended: time-out or every drone down)}}
+    A drone that crashed stays down (alive False, reward 0, actions ignored) until its world resets.
+    """
+
+    metadata = {"name": "cfrace_race_vector_v0", "render_modes": [], "autoreset_mode": "SameStep"}
+
+    def __init__(self, num_envs: int = 64, method: str = "ours", track: str = "lemniscate", obstacles: bool = False,
+                 seed: int = 0, **kw: Any):
+        self._build(method, track, num_envs, obstacles, seed, kw)
+        self.num_envs = num_envs
+        self.agents = self.possible_agents[:]
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            reseed(self.race, seed)
+        obs, _ = self.race.reset()
+        return {a: obs[:, i].numpy().copy() for i, a in enumerate(self.agents)}, {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, Any]):
+        act = torch.zeros(self.num_envs, self.race.num_agents, 4)
+        for a, v in actions.items():
+            act[:, self._index[a]] = torch.as_tensor(np.asarray(v, np.float32)).reshape(-1, 4)
+        r = self.race.step(act)
+        # a world reset when every drone is down or done in this step (RaceEnv's own rule, seen from outside)
+        reset = (r.terminated | r.truncated | ~r.alive).all(-1).numpy()
+        final = final_observations(self.race, r)
+        out = {}
+        for i, a in enumerate(self.agents):
+            out[a] = (r.obs[:, i].numpy().copy(), r.reward[:, i].numpy().copy(), r.terminated[:, i].numpy().copy(),
+                      r.truncated[:, i].numpy().copy(),
+                      {"alive": r.alive[:, i].numpy().copy(), "final_obs": final[:, i].numpy().copy(),
+                       "_final_obs": reset.copy()})
+        if r.stats:
+            for a in self.agents:
+                out[a][4]["episode"] = dict(r.stats)
+        return tuple({a: out[a][k] for a in self.agents} for k in range(5))
