@@ -70,7 +70,8 @@ def build(worlds: int, seed: int, rollouts: int, out: str):
               "value": Value(env.observation_space, env.action_space, device)}
     cfg = PPO_CFG(rollouts=rollouts, learning_epochs=5, mini_batches=4, discount_factor=0.99, gae_lambda=0.95,
                   learning_rate=5e-4, learning_rate_scheduler=KLAdaptiveLR,
-                  learning_rate_scheduler_kwargs={"kl_threshold": 0.01}, grad_norm_clip=1.0, ratio_clip=0.2, value_clip=0.0, value_loss_scale=1.0,
+                  learning_rate_scheduler_kwargs={"kl_threshold": 0.01}, grad_norm_clip=1.0, ratio_clip=0.2,
+                  value_clip=0.0, value_loss_scale=1.0,
                   entropy_loss_scale=0.0, time_limit_bootstrap=True,
                   observation_preprocessor=RunningStandardScaler,
                   observation_preprocessor_kwargs={"size": env.observation_space, "device": device},

@@ -108,5 +108,6 @@ def test_without_ray_says_how_to_get_it(tmp_path):
             f"sys.argv = ['cfrace', 'sweep', {str(spec)!r}]; main()")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
-    assert res.stderr.strip().splitlines()[-1] == 'error: this needs Ray: pip install "cfrace[cluster]" (or pip install ray)'
+    last = res.stderr.strip().splitlines()[-1]
+    assert last == 'error: this needs Ray: pip install "cfrace[cluster]" (or pip install ray)'
     assert "Traceback" not in res.stderr and not (tmp_path / "out").exists()

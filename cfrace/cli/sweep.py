@@ -123,12 +123,14 @@ def bench_sweep_cmd(
     t.add_row("[bold]speed-up (two together / one alone)[/bold]", f"[bold]{r['speedup']:.2f}x[/bold]")
     console.print(t)
     console.print(f"load before: {r['load_before']}\nload after: {r['load_after']}", highlight=False)
-    console.print("other busy processes during the benchmark:\n" + "\n".join(r["busy_processes"]), highlight=False)
+    console.print("CPU use while the two ran (share of one core; ours are the ray:: workers):\n"
+                  + "\n".join(r["busy_processes"]), highlight=False)
     if spec is not None:
         w = bench_sweep_wall(spec, address)
         r["sweep_wall"] = w
         console.print(f"sweep {spec} ({w['runs']} runs): one after another {w['sequential_wall_s']:.0f} s, on Ray "
-                      f"{w['ray_wall_s']:.0f} s (+ {r['ray_start_s']:.0f} s to start Ray): [bold]{w['speedup']:.2f}x[/bold]; "
+                      f"{w['ray_wall_s']:.0f} s (+ {r['ray_start_s']:.0f} s to start Ray): "
+                      f"[bold]{w['speedup']:.2f}x[/bold]; "
                       f"{w['load_before']} before, {w['load_after']} after", highlight=False)
     _write_json(json_out, r)
 

@@ -2,14 +2,13 @@
 
 Each run is `cfrace.rl.train.bench_train` (whole training iterations: simulation, inference,
 update, one torch thread) in a Ray task of one CPU; the figure is the two runs' env steps/s added
-up over the one run's, measured one after the other in the same call. The machine's load and its
-busiest processes are recorded with it (the development machine is shared).
+up over the one run's, measured one after the other in the same call. The machine's load and the
+processes that used the most CPU meanwhile are recorded with it (the development machine is shared).
 """
 
 from __future__ import annotations
 
 import os
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -27,14 +26,30 @@ def machine_load() -> str:
     return f"load average {one:.2f} {five:.2f} {fifteen:.2f} on {os.cpu_count()} cores"
 
 
-def busy_processes(n: int = 8) -> list[str]:
-    """The n processes with the most CPU (ps: pid, %cpu since start, elapsed, command)."""
-    try:
-        out = subprocess.run(["ps", "-eo", "pid,pcpu,etime,args", "--sort=-pcpu"], capture_output=True, text=True,
-                             timeout=10).stdout.splitlines()
-    except (OSError, subprocess.SubprocessError):
-        return []
-    return [line[:140] for line in out[: n + 1]]
+def cpu_times() -> dict[int, tuple[float, str]]:
+    """pid -> (CPU seconds used so far, command line) of every process (Linux /proc)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+            with open(f"/proc/{d}/cmdline", "rb") as fh:
+                cmd = fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
+        except OSError:
+            continue
+        out[int(d)] = ((int(fields[11]) + int(fields[12])) / tick, cmd)
+    return out
+
+
+def busy_processes(before: dict, after: dict, wall_s: float, n: int = 8) -> list[str]:
+    """The n processes that used the most CPU between two cpu_times() snapshots ``wall_s`` apart:
+    "pid  %CPU of one core over the interval  command"."""
+    used = [(after[p][0] - before.get(p, (0.0, ""))[0], p, after[p][1]) for p in after]
+    used.sort(reverse=True)
+    return [f"{p:>7} {100 * cpu / max(wall_s, 1e-9):5.0f}%  {cmd[:120]}" for cpu, p, cmd in used[:n] if cpu > 0]
 
 
 def bench_parallel(method: str = "ds", track: str = "lemniscate", envs: int | None = None, iterations: int = 3,
@@ -51,9 +66,10 @@ def bench_parallel(method: str = "ds", track: str = "lemniscate", envs: int | No
     t0 = time.perf_counter()
     alone = ray.get(task.remote(method, track, envs, iterations))
     t1 = time.perf_counter()
-    busy = busy_processes()
+    snap = cpu_times()
     pair = ray.get([task.remote(method, track, envs, iterations) for _ in range(2)])
     t2 = time.perf_counter()
+    busy = busy_processes(snap, cpu_times(), t2 - t1)
     rates = [p["env_steps_per_s"] for p in pair]
     return {"method": method, "track": track, "num_envs": alone["num_envs"], "iterations": iterations,
             "threads_per_run": 1, "alone_env_steps_per_s": alone["env_steps_per_s"],
@@ -76,14 +92,16 @@ def bench_sweep_wall(spec: str | Path, address: str | None = None) -> dict:
     sweep = load_spec(spec)
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-sweep-") as tmp:
         load_before = machine_load()
+        snap = cpu_times()
         t0 = time.perf_counter()
         run_local(sweep, Path(tmp) / "sequential", echo=lambda s: None, log_dir=True)
         sequential = time.perf_counter() - t0
         t1 = time.perf_counter()
         report = run_ray(sweep, Path(tmp) / "ray", address, None if address else os.cpu_count())
         on_ray = time.perf_counter() - t1
+        busy = busy_processes(snap, cpu_times(), on_ray + sequential)
         if not report.ok:
             raise RuntimeError(f"sweep failed on Ray: {report.failed + report.blocked}")
     return {"spec": str(spec), "runs": len(sweep.runs), "sequential_wall_s": sequential, "ray_wall_s": on_ray,
             "ray_run_wall_s_sum": report.run_wall_s, "speedup": sequential / on_ray, "load_before": load_before,
-            "load_after": machine_load(), "busy_processes": busy_processes()}
+            "load_after": machine_load(), "busy_processes": busy}
