@@ -83,6 +83,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=4_000_000)
     ap.add_argument("--checkpoint-min", type=float, default=0.5)
     ap.add_argument("--runs", type=int, default=20, help="benchmark runs per checkpoint")
+    ap.add_argument("--points", type=int, default=24, help="checkpoints scored per run (evenly spaced)")
     ap.add_argument("--precisions", nargs="+", default=["fp32", "bf16"])
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -90,7 +91,7 @@ def main() -> None:
     for seed in args.seeds:
         for prec in args.precisions:  # alternate, so that slow phases of the machine hit both
             run = train(args.out, prec, seed, args.steps, args.checkpoint_min)
-            scored = score_run(run, "lemniscate", runs=args.runs, laps=3, seed=0)
+            scored = score_run(run, "lemniscate", runs=args.runs, laps=3, seed=0, max_points=args.points)
             rows += [{"precision": prec, "seed": seed, **r} for r in scored.rows]
             print(f"{prec} seed {seed}: first 100 % at {first_full(scored.rows)} env steps", flush=True)
     with (args.out / "scores.csv").open("w", newline="") as fh:

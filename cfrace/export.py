@@ -270,6 +270,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
     if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)
         meta["flight_obs"] = True
+    if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
+        meta["ground_start_prob"] = float(meta0["ground_start_prob"])
     out = export_actor(model.actor, model.obs_norm, meta, path)
     err = parity_check(out, model.actor, model.obs_norm, n=1000)
     if not err < 1e-4:

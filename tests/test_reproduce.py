@@ -44,6 +44,10 @@ def test_reproduce_quick_on_the_shipped_policies(tmp_path):
             assert f"### {name}" in md
     assert any(c["claim"].startswith("ours beats DS on the lemniscate") for c in rep["claims"])
     assert "ours beats DS on the lemniscate" in r.output
+    # the transfer comparison ran lockstep dry-runs through the flight stack on the other profile
+    lem = [t for t in rep["transfer"] if t["track"] == "lemniscate"]
+    assert {t["policy"] for t in lem} == {"ours", "ds"} and all(t["profile_flown"] == "cf21bl" for t in lem)
+    assert all(t["stack_speed_mps"] and t["sim_speed_mps"] for t in lem) and "## Transfer through the flight stack" in md
 
 
 def test_claims_say_when_a_trend_does_not_hold():

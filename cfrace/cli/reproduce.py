@@ -20,11 +20,23 @@ def reproduce_cmd(
                                              help="fresh seeds of the ours-vs-DS races (default 1,2,3; --quick: 1)"),
     runs: Optional[int] = typer.Option(None, "--runs", min=1, help="Table I runs per policy (default 50)"),
     races: Optional[int] = typer.Option(None, "--races", min=1, help="races per pair (default 50)"),
+    train: bool = typer.Option(False, "--train", help="print the training pipeline (policies/pipeline.yaml)"),
+    run: bool = typer.Option(False, "--run", help="with --train: run its stages in order (resumes)"),
+    only: Optional[str] = typer.Option(None, "--only", help="with --train: these stages (globs, comma-separated) "
+                                                            "and what they depend on"),
+    runs_dir: Optional[Path] = typer.Option(None, "--runs-dir", help="with --train: folder of the stages' runs "
+                                                                     "(default: the file's out, runs/pipeline)"),
 ) -> None:
     """Write the reproduction report: Table I, the four head-to-head matrices, competition behaviour,
     training curves, each of the paper's claims beside the measured figure."""
     from cfrace.errors import ConfigError
     from cfrace.evaluate.reproduce import ReproduceConfig, reproduce
+
+    if run and not train:
+        raise ConfigError("--run runs the training pipeline: give --train --run")
+    if train:
+        _pipeline(run, only, runs_dir)
+        return
 
     kw = {k: v for k, v in (("runs", runs), ("races", races)) if v is not None}
     if test_seeds is not None:
@@ -38,6 +50,18 @@ def reproduce_cmd(
         mark = {True: "[green]holds[/green]", False: "[red]does not hold[/red]", None: "–"}[claim["holds"]]
         console.print(f"{claim['claim']}: {claim['measured']} (paper {claim['paper']}): {mark}")
     console.print(f"report: {cfg.out / 'report.md'} ({report['wall_s']} s)")
+
+
+def _pipeline(run: bool, only: str | None, runs_dir: Path | None) -> None:
+    """`reproduce --train [--run]`: the stages of policies/pipeline.yaml, printed or run."""
+    from cfrace.evaluate.pipeline import describe, load_pipeline, run_pipeline
+
+    sweep = load_pipeline(only=only)
+    out_root = runs_dir or Path(sweep.out)
+    for line in describe(sweep, out_root):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+    if run:
+        run_pipeline(sweep, out_root, echo=lambda text: console.print(text, markup=False, highlight=False))
 
 
 def register(app: typer.Typer) -> None:

@@ -100,6 +100,9 @@ def train_cmd(
                                            help="learning rate of the critic warm-up iterations"),
     precision: Optional[str] = typer.Option(None, "--precision",
                                             help="PPO update in auto (measured at start, default) | fp32 | bf16"),
+    ground_start_prob: Optional[float] = typer.Option(None, "--ground-start-prob",
+                                                      help="share of training races started on the floor "
+                                                           "(default: the track's spawn.ground_start_prob)"),
     keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
                                           help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
@@ -134,7 +137,8 @@ def train_cmd(
                           init_critic=init_critic, random_phase=random_phase,
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
                           fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
-                          keep_checkpoints=keep_checkpoints, precision=precision or "auto")
+                          keep_checkpoints=keep_checkpoints, precision=precision or "auto",
+                          ground_start_prob=ground_start_prob)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
@@ -227,6 +231,7 @@ def bench_train_cmd(
     table.add_column("value", justify="right")
     table.add_row("worlds x drones", f"{r['num_envs']} x {r['num_agents']}")
     table.add_row("env steps / s (whole iterations)", f"{r['env_steps_per_s']:,.0f}")
+    table.add_row("env steps / CPU s of this process", f"{r['env_steps_per_cpu_s']:,.0f}")
     table.add_row("drone steps / s", f"{r['drone_steps_per_s']:,.0f}")
     table.add_row("simulation only, env steps / s", f"{r['sim_env_steps_per_s']:,.0f}")
     table.add_row("seconds per iteration", f"{r['iteration_s']:.2f}")
@@ -260,10 +265,13 @@ def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str
         p = res[key]["precision"]
         table.add_column(f"{key.upper()}: {cfg.label}" + (f" ({p['dtype']})" if p else ""), justify="right")
     table.add_column("A / B", justify="right")
-    for f, spec in (("env_steps_per_s", "{:,.0f}"), ("iteration_s", "{:.2f}"), ("share_update", "{:.0%}"),
-                    ("share_sim", "{:.0%}"), ("share_inference", "{:.0%}")):
-        table.add_row(f.replace("_", " "), spec.format(res["a"]["median"][f]), spec.format(res["b"]["median"][f]),
-                      f"{res['ratio_a_over_b'][f]:.2f}x")
+    fmt = lambda spec, v: "–" if v is None else spec.format(v)
+    for f, label, spec in (("env_steps_per_s", "env steps / s (wall clock)", "{:,.0f}"),
+                           ("env_steps_per_cpu_s", "env steps / CPU s", "{:,.0f}"),
+                           ("iteration_s", "s per iteration", "{:.2f}"), ("share_update", "share update", "{:.0%}"),
+                           ("share_sim", "share sim", "{:.0%}"), ("share_inference", "share inference", "{:.0%}")):
+        table.add_row(label, fmt(spec, res["a"]["median"][f]), fmt(spec, res["b"]["median"][f]),
+                      fmt("{:.2f}x", res["ratio_a_over_b"][f]))
     console.print(table)
     if json_out is not None:
         json_out.parent.mkdir(parents=True, exist_ok=True)

@@ -136,6 +136,66 @@ def competition(cfg: ReproduceConfig) -> dict | None:
             "plots": [str(p.relative_to(cfg.out)) for p in res.plots]}
 
 
+TRANSFER_PROFILE = "cf21bl"      #: the flown drone in the transfer test (the shipped policies trained on cf2x_paper)
+TRANSFER_NOISE_M = 0.0005        #: m, mocap noise of the transfer dry-runs
+TRANSFER_LATENCY_S = 0.010       #: s, mocap latency of the transfer dry-runs (compensated as `fly` does)
+RACE_END_KINDS = ("finished", "timeout", "all_stopped", "operator_kill")  #: stops that are the race's end, not a failure
+
+
+def _attempted(laps: int, finished: bool) -> int:
+    """Laps attempted by a drone that completed ``laps``: one more if it did not finish."""
+    return laps + (0 if finished else 1)
+
+
+def transfer(cfg: ReproduceConfig) -> list[dict]:
+    """The paper's sim-to-real comparison, sim-to-sim: DS and ours race each other through the whole
+    flight stack (lockstep dry-run: the simulated firmware and link, mocap noise and latency) on a drone
+    profile they were not trained on, against the same races (ground starts) in the training simulator
+    on their own profile: average-speed gap, failures (terminal crashes or safety stops) and collisions
+    per attempted lap."""
+    from dataclasses import replace as dc_replace
+
+    from cfrace.evaluate.race import race
+    from cfrace.flight.config import FlightConfig
+    from cfrace.flight.dryrun import dry_run
+
+    races = 2 if cfg.quick else 10
+    out = []
+    for track in ("lemniscate", "complex"):
+        if not {"ours", "ds"} <= set(shipped(track, False)):
+            continue
+        sim = race(track, "ours", "ds", False, races, cfg.laps, cfg.seed, start="ground")
+        stack = {"ours": [], "ds": []}
+        for k in range(races):  # swap the slots every other race, as the simulator's races do
+            ego, opp = ("ours", "ds") if k % 2 == 0 else ("ds", "ours")
+            fc = FlightConfig(track=track, ego=ego, opp=opp, laps=cfg.laps, profile=TRANSFER_PROFILE, quiet=True,
+                              rt_priority=0, loop_cpu="off")
+            res = dry_run(fc, lockstep=True, seed=cfg.seed + k, mocap_noise_m=TRANSFER_NOISE_M,
+                          mocap_latency_s=TRANSFER_LATENCY_S)
+            for d, name in zip(res["drones"], (ego, opp)):
+                stack[name].append(d)
+        for name, stats in (("ours", sim.ego_stats), ("ds", sim.opp_stats)):
+            ds_ = stack[name]
+            fin = [d["laps"] >= cfg.laps for d in ds_]
+            failed = [not f and d["stopped"] and d["stop_kind"] not in RACE_END_KINDS for d, f in zip(ds_, fin)]
+            att = sum(_attempted(d["laps"], f) for d, f in zip(ds_, fin))
+            speeds = [d["speed_mean"] for d in ds_ if d["speed_mean"] is not None]
+            sim_att = stats["laps_completed"] + (stats["runs"] - round(stats["finish_rate"] * stats["runs"]))
+            row = {"track": track, "policy": name, "races": races, "profile_flown": TRANSFER_PROFILE,
+                   "sim_speed_mps": stats["avg_speed_mps"],
+                   "stack_speed_mps": sum(speeds) / len(speeds) if speeds else None,
+                   "sim_failure_rate": stats["crashes"] / max(sim_att, 1),
+                   "stack_failure_rate": sum(failed) / max(att, 1),
+                   "sim_collision_rate": stats["collisions"] / max(sim_att, 1),
+                   "stack_stops": {k: sum(1 for d, x in zip(ds_, failed) if x and d["stop_kind"] == k)
+                                   for k in sorted({d["stop_kind"] for d, x in zip(ds_, failed) if x})}}
+            row["speed_gap_mps"] = (None if row["stack_speed_mps"] is None or row["sim_speed_mps"] is None
+                                    else row["sim_speed_mps"] - row["stack_speed_mps"])
+            row["paper_speed_gap_mps"] = paper.TRANSFER_SPEED_GAP[name]
+            out.append(row)
+    return out
+
+
 def curve_files() -> dict[tuple[str, str], list[Path]]:
     """policies/curves/{scheme}_{track}[_obstacles]_s{seed}.csv grouped by (scheme, setting slug)."""
     groups: dict[tuple[str, str], list[Path]] = {}
@@ -207,6 +267,16 @@ def claims(report: dict) -> list[dict]:
         if ds and ss and ds["ttc_s"] and ss["ttc_s"]:
             add(f"SS laps slower than DS on the {track}", f"{ss['ttc_s']:.2f} vs {ds['ttc_s']:.2f} s",
                 {"lemniscate": "5.29 vs 4.76 s", "complex": "6.42 vs 5.68 s"}[track], ss["ttc_s"] > ds["ttc_s"])
+    gaps = {(r["track"], r["policy"]): r for r in report.get("transfer", [])}
+    for track in ("lemniscate", "complex"):
+        o, d = gaps.get((track, "ours")), gaps.get((track, "ds"))
+        if o and d and o["speed_gap_mps"] is not None and d["speed_gap_mps"] is not None:
+            add(f"ours keeps more of its simulated speed than DS through the flight stack ({track}, speed gap)",
+                f"{o['speed_gap_mps']:.2f} vs {d['speed_gap_mps']:.2f} m/s", "0.43 vs 0.76 m/s (real drones)",
+                o["speed_gap_mps"] < d["speed_gap_mps"])
+            add(f"ours fails less often than DS through the flight stack ({track}, failures per attempted lap)",
+                f"{o['stack_failure_rate']:.2f} vs {d['stack_failure_rate']:.2f}", "lower for ours (real drones)",
+                o["stack_failure_rate"] <= d["stack_failure_rate"])
     comp = report.get("competition")
     if comp is not None:
         live, dead = comp["measured"]["vs_live_opponent"], comp["measured"]["vs_crashed_opponent"]
@@ -248,6 +318,8 @@ def reproduce(cfg: ReproduceConfig, on_progress=None) -> dict:
         report["settings"][name] = sec
     say("competition behaviour (complex, self-play)")
     report["competition"] = competition(cfg)
+    say("transfer through the flight stack (lockstep dry-runs on another drone profile)")
+    report["transfer"] = transfer(cfg)
     say("training curves")
     report["curves"] = curves(cfg)
     report["claims"] = claims(report)
@@ -322,6 +394,21 @@ def markdown(report: dict) -> str:
                          f"{_f(d.get('finish_speed_mps'))} | {d.get('races')} | {p['max']} / {p['mean']} / "
                          f"{p['final_gate']} |")
         lines += [""] + [f"![speed]({p})" for p in comp["plots"]]
+    lines += ["", "## Transfer through the flight stack (sim-to-sim)", "",
+              f"DS and ours race each other through the whole flight stack (lockstep dry-run: simulated firmware and "
+              f"link, mocap noise {TRANSFER_NOISE_M * 1e3:.1f} mm, latency {TRANSFER_LATENCY_S * 1e3:.0f} ms compensated) "
+              f"on the {TRANSFER_PROFILE} profile, against the same number of races from ground starts in the training "
+              "simulator on the profile they trained on. Paper (real drones): speed gap DS 0.76, ours 0.43 m/s.", ""]
+    if not report.get("transfer"):
+        lines.append("No track with both a shipped DS and ours policy.")
+    else:
+        lines += ["| track | policy | races | speed sim [m/s] | speed flight stack [m/s] | gap [m/s] | failures / lap, sim "
+                  "| failures / lap, stack | collisions / lap, sim | stops in the stack |", "|---" * 10 + "|"]
+        for r in report["transfer"]:
+            stops = ", ".join(f"{k or 'none'} {v}" for k, v in r["stack_stops"].items()) or "none"
+            lines.append(f"| {r['track']} | {r['policy']} | {r['races']} | {_f(r['sim_speed_mps'])} | "
+                         f"{_f(r['stack_speed_mps'])} | {_f(r['speed_gap_mps'])} | {r['sim_failure_rate']:.2f} | "
+                         f"{r['stack_failure_rate']:.2f} | {r['sim_collision_rate']:.2f} | {stops} |")
     lines += ["", "## Training curves", ""]
     if not report["curves"]:
         lines.append("No training curves in policies/curves/.")

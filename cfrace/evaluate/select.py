@@ -74,10 +74,16 @@ def choose(rows: list[dict]) -> dict:
 
 
 def score_run(run: Path, track: str, obstacles: bool = False, opp: str | None = None, runs: int = 50,
-              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None) -> Scored:
-    """Score every kept checkpoint of ``run`` (see the module docstring) and choose one."""
+              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None, max_points: int | None = None) -> Scored:
+    """Score every kept checkpoint of ``run`` (see the module docstring) and choose one; with
+    ``max_points`` only that many, evenly spaced, the last one included."""
+    ckpts = kept_checkpoints(Path(run))
+    if max_points is not None and len(ckpts) > max_points:
+        import numpy as np
+
+        ckpts = [ckpts[i] for i in np.unique(np.linspace(0, len(ckpts) - 1, max_points).round().astype(int))]
     rows = []
-    for ckpt in kept_checkpoints(Path(run)):
+    for ckpt in ckpts:
         rows.append(score_checkpoint(ckpt, track, obstacles, opp, runs, laps, seed, agent))
         if on_row is not None:
             on_row(rows[-1])

@@ -25,8 +25,9 @@ from cfrace.errors import ConfigError
 #: `bench train` options a comparison may change, with their command-line flag
 OPTIONS = {"precision": "--precision", "threads": "--threads", "envs": "--envs", "preset": "--preset",
            "method": "--method", "track": "--track", "iterations": "--iterations", "device": "--device"}
-#: figures compared (higher is better for the first, lower for the shares' seconds)
-FIGURES = ("env_steps_per_s", "iteration_s", "share_update", "share_sim", "share_inference")
+#: figures compared; env_steps_per_cpu_s (steps per CPU second of the process) is the one that other
+#: processes on a shared machine hardly change
+FIGURES = ("env_steps_per_s", "env_steps_per_cpu_s", "iteration_s", "share_update", "share_sim", "share_inference")
 
 
 @dataclass(frozen=True)
@@ -115,8 +116,10 @@ def compare(a: Config, b: Config, overrides: list[str] = (), rounds: int = 2, on
                 runs[key].append(res)
                 if on_result is not None:
                     on_result(r, cfg, res)
-    med = {k: {f: statistics.median(x[f] for x in v) for f in FIGURES} for k, v in runs.items()}
-    ratio = {f: (med["a"][f] / med["b"][f]) if med["b"][f] else float("nan") for f in FIGURES}
+    # an older revision may lack a figure (env_steps_per_cpu_s): None there
+    med = {k: {f: statistics.median(x[f] for x in v) if all(f in x for x in v) else None for f in FIGURES}
+           for k, v in runs.items()}
+    ratio = {f: (med["a"][f] / med["b"][f]) if med["a"][f] is not None and med["b"][f] else None for f in FIGURES}
     return {"a": {"label": a.label, "options": a.options, "rev": a.rev, "median": med["a"], "runs": runs["a"],
                   "precision": runs["a"][-1].get("precision")},
             "b": {"label": b.label, "options": b.options, "rev": b.rev, "median": med["b"], "runs": runs["b"],

@@ -9,8 +9,9 @@ observation normalisers, the rollout's inference (so the old log-probabilities a
 policy's) and the exported ONNX graph.
 
 ``auto`` (the default) measures: one forward + backward pass of the run's actor and critic at the
-update's minibatch size, float32 against bf16, a few repetitions each, and takes bf16 when it is at
-least MIN_GAIN times faster. The choice, the measured times and the reason are returned as a
+update's minibatch size, float32 against bf16, a few repetitions each (CPU time of the thread on a
+CPU, so a busy machine does not tip the choice), and takes bf16 when it is at least MIN_GAIN times
+faster. The choice, the measured times and the reason are returned as a
 :class:`Precision` and recorded in the run (checkpoint, metrics, console).
 """
 
@@ -63,17 +64,20 @@ def cpu_has_bf16() -> bool:
 
 def _step_ms(actor: torch.nn.Module, critic: torch.nn.Module, x_a: torch.Tensor, x_c: torch.Tensor,
              ctx, reps: int) -> float:
-    """Median wall time (ms) of one forward + backward of both networks under ``ctx``."""
+    """Median time (ms) of one forward + backward of both networks under ``ctx``. On a CPU it is the
+    thread's CPU time, so that other processes on a shared machine do not decide the choice."""
+    cuda = x_a.device.type == "cuda"
+    clock = time.perf_counter if cuda else time.thread_time
     times = []
     for i in range(reps + 2):
-        t0 = time.perf_counter()
+        t0 = clock()
         with ctx():
             loss = actor(x_a).float().square().mean() + critic(x_c).float().square().mean()
         loss.backward()
-        if x_a.device.type == "cuda":
+        if cuda:
             torch.cuda.synchronize(x_a.device)
         if i >= 2:  # two warm-up passes (oneDNN builds its kernels on first use)
-            times.append(time.perf_counter() - t0)
+            times.append(clock() - t0)
     times.sort()
     return 1e3 * times[len(times) // 2]
 

@@ -8,6 +8,7 @@ out/training_curve.png   episode return per drone against env steps
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -60,6 +61,7 @@ class TrainConfig:
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
+    ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
 
     def ippo(self) -> IPPOConfig:
@@ -106,6 +108,11 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     from cfrace.env.race_env import RaceEnv
 
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
+        if not 0.0 <= cfg.ground_start_prob <= 1.0:
+            raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
+        track = dataclasses.replace(track, spawn=dataclasses.replace(track.spawn,
+                                                                     ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs)
@@ -119,7 +126,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "obs_layout": layout.name if layout is not None else None, "obs_dim": int(env.obs_dim),
             **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
-            "flight_obs": bool(getattr(env, "flight_obs", False))}
+            "flight_obs": bool(getattr(env, "flight_obs", False)),
+            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -332,10 +340,12 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     setup_s = time.perf_counter() - t0
     runner.iterate()
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
+    cpu0 = time.process_time()
     for _ in range(iterations):
         m = runner.iterate()
         for k in sums:
             sums[k] += m[k]
+    cpu_s = time.process_time() - cpu0  # the process's CPU time: what other processes on the machine don't change
     steps = iterations * ippo.rollout * ippo.num_envs
     drones = steps * runner.num_agents
     return {"method": method, "track": meta["track"], "obstacles": obstacles, "preset": ippo.preset,
@@ -344,6 +354,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
             "iterations": iterations, "setup_s": setup_s,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],
+            "env_steps_per_cpu_s": steps / cpu_s if cpu_s > 0 else math.inf,
             "sim_env_steps_per_s": steps / sums["sim_s"] if sums["sim_s"] > 0 else math.inf,
             "iteration_s": sums["iter_s"] / iterations,
             "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],

@@ -1,0 +1,80 @@
+"""The training pipeline file (policies/pipeline.yaml), `cfrace reproduce --train`, and choosing a
+stage's checkpoint on validation runs (cfrace.evaluate.select / pipeline.post_stage)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from cfrace.cli.main import app
+from cfrace.errors import ConfigError
+from cfrace.evaluate.pipeline import load_pipeline, post_stage
+from cfrace.evaluate.select import choose
+from cfrace.paths import POLICIES_DIR
+from cfrace.rl.train import TrainConfig, train
+from cfrace.sweep.spec import parse_spec
+
+
+def test_every_shipped_policy_has_a_stage():
+    sweep = load_pipeline()
+    made = set()
+    for run in sweep.runs:
+        if run.export is not None:
+            made.add(Path(run.export["file"]).name)
+        if run.select is not None:
+            made.add(Path(run.select["export"]).name)
+    shipped = {p.name for p in POLICIES_DIR.glob("*.onnx")}
+    assert shipped <= made, shipped - made
+    assert len(made) == 16  # four schemes x four settings
+
+
+def test_only_takes_the_dependencies_along():
+    names = [r.name for r in load_pipeline(only="ours_complex").runs]
+    assert names == ["ds_complex", "dm_complex", "ours_complex"]
+    with pytest.raises(ConfigError, match="no stage matches"):
+        load_pipeline(only="nothing*")
+
+
+def test_reproduce_train_prints_the_commands(tmp_path):
+    r = CliRunner().invoke(app, ["reproduce", "--train", "--only", "ss_lemniscate", "--runs-dir", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert "# 1. ds_lemniscate: to do" in r.output and "# 2. ss_lemniscate (after ds_lemniscate): to do" in r.output
+    assert f"--init-from {tmp_path}/ds_lemniscate/checkpoint.pt --init-critic" in r.output.replace("\n", "")
+    bad = CliRunner().invoke(app, ["reproduce", "--run"])
+    assert bad.exit_code != 0 and "--train --run" in str(bad.exception)
+
+
+def test_choose_rule():
+    rows = [{"iteration": 1, "success": 0.9, "lap_time_s": 5.0}, {"iteration": 2, "success": 1.0, "lap_time_s": 6.0},
+            {"iteration": 3, "success": 1.0, "lap_time_s": 5.5}, {"iteration": 4, "success": 1.0, "lap_time_s": 5.5}]
+    assert choose(rows)["iteration"] == 3  # full success first, then the fastest lap, then the earliest
+    races = [{"iteration": 1, "win_rate": 0.5}, {"iteration": 2, "win_rate": 0.8}, {"iteration": 3, "win_rate": 0.8}]
+    assert choose(races)["iteration"] == 2
+
+
+def test_post_stage_scores_kept_checkpoints_and_exports_the_choice(tmp_path):
+    """A one-iteration DS run with kept checkpoints; the stage flies each one and exports the chosen."""
+    out_root = tmp_path / "runs"
+    cfg = TrainConfig("ds", "lemniscate", False, num_envs=16, steps=1, out=str(out_root / "tiny"), device="cpu",
+                      threads=1, seed=3, keep_checkpoints=True, precision="fp32",
+                      overrides=(("actor_hidden", (16,)), ("critic_hidden", (16,)), ("epochs", 1)))
+    train(cfg)
+    assert (out_root / "tiny" / "checkpoints" / "it00001.pt").exists()
+    spec = parse_spec({"version": 1, "out": str(out_root), "runs": [
+        {"name": "tiny", "method": "ds", "track": "lemniscate", "seed": 3, "steps": 1,
+         "select": {"runs": 2, "laps": 1, "seed": 0, "export": str(tmp_path / "chosen.onnx")}}]})
+    run = spec.runs[0]
+    said = []
+    post_stage(run, out_root / "tiny", echo=said.append, curves_dir=tmp_path / "curves")
+    assert (tmp_path / "chosen.onnx").stat().st_size > 1000
+    sel = json.loads((out_root / "tiny" / "selected.json").read_text())
+    assert sel["chosen"]["iteration"] == 1 and 0.0 <= sel["chosen"]["success"] <= 1.0
+    with (out_root / "tiny" / "checkpoints" / "scores.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 1
+    curve = tmp_path / "curves" / "ds_lemniscate_s3.csv"
+    assert curve.exists() and "env_steps" in curve.read_text().splitlines()[0]
+    assert any("chose iteration 1" in s for s in said)
