@@ -2,7 +2,7 @@
 
 Run with the peer venv's python, never the project's (crazyflow pulls JAX, MuJoCo/MJX, flax):
 
-    /work/peers/venv/bin/python benchmarks/crazyflow_peer.py --drones 2,128,2048,4096,8192 --per-world 2
+    PEER/bin/python benchmarks/crazyflow_peer.py --drones 2,128,2048,4096,8192 --per-world 2
 
 Configuration: first-principles dynamics (rotor speeds with first-order motor model), attitude
 control (its Mellinger attitude controller at 500 Hz), physics at 500 Hz, 1000 physics steps per

@@ -4,7 +4,7 @@
 
 The flight loop sleeps most of each 10 ms period; this measures what that costs the next inference
 (docs/benchmarks.md, "Cache warm-up before each tick"). Actor: the hold controller inside an MLP of
-the paper's size [512, 512, 256, 128] (cfrace.flight.testpolicy), run through cfrace.policy.OnnxPolicy
+the paper's size [512, 512, 256, 128] (cfrace.flight.holdpolicy), run through cfrace.policy.OnnxPolicy
 as the loop runs it. Prints p50 / p90 / p99 in microseconds per sleep length, and the same with a
 warm-up call 1 ms before each timed call (the loop's previous warm-up), with a busy loop instead of
 the sleep, and with the loop's current warm-up window (calls over and over from 3 ms before the
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.flight.testpolicy import make_sized_hold_policy
+from cfrace.flight.holdpolicy import make_sized_hold_policy
 from cfrace.policy import OnnxPolicy
 
 

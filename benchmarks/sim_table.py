@@ -1,6 +1,6 @@
 """Print the markdown table of docs/benchmarks.md from `cfrace bench sim --json` files.
 
-    /work/venv/bin/python benchmarks/sim_table.py benchmarks/results/sim_threads1.json [more.json ...]
+    python benchmarks/sim_table.py benchmarks/results/sim_threads1.json [more.json ...]
 
 Rates are drone-steps per second (one drone, one 2 ms physics step), the fastest of the repeats;
 the median is in brackets when it differs by more than 10 %. On a shared machine the last columns

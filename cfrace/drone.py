@@ -13,9 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.errors import ConfigError
-from cfrace.paths import CALIBRATION_DIR, resolve_named
-from cfrace.yamlcfg import Reader, load_yaml
+from cfrace.paths import CALIBRATION_DIR
+from cfrace.yamlcfg import Reader, open_named
 
 GRAVITY = 9.81  #: m/s^2
 
@@ -110,11 +109,7 @@ def _pid(r: Reader, key: str) -> PID:
 
 def load_profile(name_or_path: str | Path = DEFAULT_PROFILE) -> DroneProfile:
     """Load a drone profile by name (calibration/NAME.yaml) or path; strict."""
-    path = resolve_named(name_or_path, CALIBRATION_DIR, ".yaml")
-    if not path.exists():
-        known = ", ".join(sorted(p.stem for p in CALIBRATION_DIR.glob("*.yaml")))
-        raise ConfigError(f"{path}: no such drone profile (known profiles: {known})")
-    r = Reader(path, load_yaml(path))
+    r = open_named(name_or_path, CALIBRATION_DIR, "drone profile")
     name = r.string("name")
     description = r.string("description", "")
     mass = r.number("mass", positive=True)
@@ -152,7 +147,7 @@ def load_profile(name_or_path: str | Path = DEFAULT_PROFILE) -> DroneProfile:
         raise r.fail(f"sources.{extra[0]}", "unknown key")
     r.done()
     return DroneProfile(name, description, mass, inertia, arm, dirs, k_eta, k_m, tau_m, speed, t_max, rates,
-                        pid_rp, pid_yaw, k_aero, box, ThrustCurve(counts, newtons), dict(sources), str(path))
+                        pid_rp, pid_yaw, k_aero, box, ThrustCurve(counts, newtons), dict(sources), r.path)
 
 
 def list_profiles() -> list[Path]:

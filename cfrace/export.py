@@ -8,131 +8,26 @@ The graph is written by hand with ``onnx.helper`` (no tracing, no exporter depen
       -> clip(-1, 1)                                         (evaluation uses the mean action)
     action [batch, 4] float32
 
-Metadata (common.md contract) is stored as ONNX metadata_props: strings as they are, every other
-value as JSON. ``cfrace.policy.OnnxPolicy`` reads it back and validates it.
+Metadata (the policy contract, cfrace.contract) is stored as ONNX metadata_props: strings as they
+are, every other value as JSON. ``cfrace.policy.OnnxPolicy`` reads it back and validates it.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import onnx
 import torch
-from onnx import TensorProto, helper, numpy_helper
 
-from cfrace.env.observations import LAYOUTS
+from cfrace import __version__
+from cfrace.contract import ACTION_DIM, META_SCHEMA, NORM_CLIP, NORM_EPS, validate_meta
 from cfrace.errors import PolicyError
-
-OPSET = 17
-NORM_EPS = 1e-4   #: added to the running variance before the square root (std floor 0.01)
-NORM_CLIP = 10.0  #: normalised observations are clipped to +-NORM_CLIP
-ACTION_DIM = 4
-
-#: metadata key -> expected Python type after parsing (the common.md contract)
-META_SCHEMA: dict[str, type | tuple] = {
-    "method": str, "track": str, "obstacles": bool, "obs_layout": str, "obs_dim": int,
-    "max_thrust_weights": float, "max_rates_deg": list, "policy_hz": float, "drone_profile": str,
-    "train_steps": int, "seed": int, "cfrace_version": str,
-}
-METHODS = ("ours", "ds", "ss", "dm")
-MULTI_AGENT_METHODS = ("ours", "dm")
-
-# A layer of the mean network: ("linear", W (out, in), b (out,)) or ("elu"|"relu"|"tanh", None, None)
-Layer = tuple[str, "np.ndarray | None", "np.ndarray | None"]
-
-
-def encode_meta(meta: dict) -> dict[str, str]:
-    """Metadata values -> strings (str unchanged, everything else JSON)."""
-    return {str(k): v if isinstance(v, str) else json.dumps(v) for k, v in meta.items()}
-
-
-def validate_meta(meta: dict, where: str) -> dict:
-    """Check a parsed metadata dict against the contract; returns it normalised (float/int types).
-    Raises PolicyError naming ``where`` and the first problem."""
-    missing = [k for k in META_SCHEMA if k not in meta]
-    if missing:
-        raise PolicyError(f"{where}: metadata is missing key(s) {', '.join(missing)}")
-    out = dict(meta)
-    for key, kind in META_SCHEMA.items():
-        value = meta[key]
-        if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-            out[key] = float(value)
-        elif kind is int and isinstance(value, int) and not isinstance(value, bool):
-            out[key] = int(value)
-        elif not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
-            raise PolicyError(f"{where}: metadata {key}={value!r} should be {kind.__name__}")
-    if out["method"] not in METHODS:
-        raise PolicyError(f"{where}: metadata method={out['method']!r} is not one of {', '.join(METHODS)}")
-    layout = LAYOUTS.get(out["obs_layout"])
-    if layout is None:
-        raise PolicyError(f"{where}: metadata obs_layout={out['obs_layout']!r} is unknown "
-                          f"(known: {', '.join(LAYOUTS)})")
-    if out["obs_dim"] != layout.dim:
-        raise PolicyError(f"{where}: metadata obs_dim={out['obs_dim']} does not match obs_layout "
-                          f"{layout.name} ({layout.dim})")
-    if layout.opponent != (out["method"] in MULTI_AGENT_METHODS):
-        raise PolicyError(f"{where}: obs_layout {layout.name} does not fit method {out['method']}")
-    if layout.world_position != out["obstacles"]:
-        raise PolicyError(f"{where}: obs_layout {layout.name} does not fit obstacles={out['obstacles']}")
-    rates = out["max_rates_deg"]
-    if len(rates) != 3 or not all(isinstance(v, (int, float)) and v > 0 for v in rates):
-        raise PolicyError(f"{where}: metadata max_rates_deg={rates!r} should be 3 positive numbers")
-    out["max_rates_deg"] = [float(v) for v in rates]
-    if out["max_thrust_weights"] <= 0 or out["policy_hz"] <= 0:
-        raise PolicyError(f"{where}: metadata max_thrust_weights and policy_hz must be > 0")
-    return out
-
-
-def build_model(layers: Sequence[Layer], mean: np.ndarray | None, std: np.ndarray | None, meta: dict,
-                obs_dim: int, nan_output: bool = False) -> onnx.ModelProto:
-    """The ONNX model of a normalised MLP actor. ``std`` = sqrt(var + eps), precomputed in float32.
-    ``nan_output`` adds NaN after the final clip (test policies only)."""
-    inits: list[TensorProto] = []
-    nodes: list[onnx.NodeProto] = []
-
-    def const(name: str, value) -> str:
-        inits.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
-        return name
-
-    x = "obs"
-    if mean is not None:
-        nodes.append(helper.make_node("Sub", [x, const("norm_mean", mean)], ["obs_centred"]))
-        nodes.append(helper.make_node("Div", ["obs_centred", const("norm_std", std)], ["obs_scaled"]))
-        nodes.append(helper.make_node("Clip", ["obs_scaled", const("norm_lo", -NORM_CLIP),
-                                               const("norm_hi", NORM_CLIP)], ["obs_norm"]))
-        x = "obs_norm"
-    for i, (kind, w, b) in enumerate(layers):
-        y = f"h{i}"
-        if kind == "linear":
-            nodes.append(helper.make_node("Gemm", [x, const(f"W{i}", w), const(f"b{i}", b)], [y], transB=1))
-        elif kind == "elu":
-            nodes.append(helper.make_node("Elu", [x], [y], alpha=1.0))
-        elif kind == "relu":
-            nodes.append(helper.make_node("Relu", [x], [y]))
-        elif kind == "tanh":
-            nodes.append(helper.make_node("Tanh", [x], [y]))
-        else:
-            raise ValueError(f"unsupported layer {kind}")
-        x = y
-    out = "action_nan" if nan_output else "action"
-    nodes.append(helper.make_node("Clip", [x, const("act_lo", -1.0), const("act_hi", 1.0)], [out]))
-    if nan_output:
-        nodes.append(helper.make_node("Add", [out, const("nan", np.full(ACTION_DIM, np.nan))], ["action"]))
-    graph = helper.make_graph(
-        nodes, "cfrace_actor",
-        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", obs_dim])],
-        [helper.make_tensor_value_info("action", TensorProto.FLOAT, ["batch", ACTION_DIM])],
-        initializer=inits)
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              producer_name="cfrace", doc_string="cfrace racing actor: obs -> action in [-1, 1]")
-    model.ir_version = 8  # readable by every onnxruntime >= 1.14
-    helper.set_model_props(model, encode_meta(meta))
-    onnx.checker.check_model(model, full_check=True)
-    return model
-
+from cfrace.policy import OnnxPolicy
+from cfrace.policygraph import Layer, build_model
+from cfrace.rl.checkpoint import load_checkpoint
+from cfrace.rl.config import IPPOConfig
+from cfrace.rl.models import AgentModels
 
 def module_layers(actor: torch.nn.Module) -> list[Layer]:
     """The mean network of an actor as a layer list. Accepts an nn.Sequential of Linear/ELU/ReLU/
@@ -211,8 +106,6 @@ def parity_check(path: str | Path, actor_module: torch.nn.Module, normalizer, n:
                  seed: int = 0, obs: np.ndarray | None = None) -> float:
     """Max |onnxruntime - torch| over ``n`` observations (random around the normaliser's statistics
     unless ``obs`` is given). Used by `cfrace export` and the tests."""
-    from cfrace.policy import OnnxPolicy
-
     policy = OnnxPolicy(path)
     if obs is None:
         gen = np.random.default_rng(seed)
@@ -235,11 +128,6 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     agent: "ego" (agent 0), "adversary" (agent 1), or "best": the agent with the greater total
     training reward (paper Sec. IV). Returns (path, metadata, max |onnx - torch| on 1000 obs).
     """
-    from cfrace import __version__
-    from cfrace.rl.config import IPPOConfig
-    from cfrace.rl.models import AgentModels
-    from cfrace.rl.train import load_checkpoint
-
     if agent not in AGENTS:
         raise PolicyError(f"unknown agent {agent!r} (choose from {', '.join(AGENTS)})")
     ckpt = load_checkpoint(checkpoint)

@@ -1,36 +1,21 @@
 """ONNX racing policies: load, validate, run (onnxruntime, one thread, low latency).
 
-A policy file (written by cfrace.export) has one input "obs" [batch, obs_dim] float32 and one
-output "action" [batch, 4] float32 in [-1, 1]; its observation normaliser is inside the graph and
-its metadata (method, track, obstacles, obs_layout, obs_dim, action map constants, ...) sits in the
-ONNX metadata_props. Every problem is a one-line PolicyError naming the file.
+A policy file (written by cfrace.export; its contract, metadata schema and validation in
+cfrace.contract) has one input "obs" [batch, obs_dim] float32 and one output "action" [batch, 4]
+float32 in [-1, 1]. Every problem is a one-line PolicyError naming the file. No torch here.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from cfrace.contract import ACTION_DIM, METHODS, decode_meta, policy_filename, validate_meta
 from cfrace.errors import PolicyError
-from cfrace.export import ACTION_DIM, META_SCHEMA, METHODS, build_model, validate_meta
 from cfrace.paths import POLICIES_DIR
 
-__all__ = ["OnnxPolicy", "resolve_policy", "make_test_policy", "policy_filename"]
-
-
-def _decode_meta(raw: dict[str, str]) -> dict:
-    meta = {}
-    for key, text in raw.items():
-        if META_SCHEMA.get(key) is str:
-            meta[key] = text
-            continue
-        try:
-            meta[key] = json.loads(text)
-        except ValueError:
-            meta[key] = text
-    return meta
+__all__ = ["OnnxPolicy", "resolve_policy", "policy_filename"]
 
 
 class OnnxPolicy:
@@ -67,7 +52,7 @@ class OnnxPolicy:
             raise PolicyError(f"{where}: output 'action' must be [batch, 4], got {oshape}")
         if inputs[0].type != "tensor(float)" or outputs[0].type != "tensor(float)":
             raise PolicyError(f"{where}: 'obs' and 'action' must be float32 tensors")
-        self.meta: dict = validate_meta(_decode_meta(self.session.get_modelmeta().custom_metadata_map), where)
+        self.meta: dict = validate_meta(decode_meta(self.session.get_modelmeta().custom_metadata_map), where)
         if ishape[1] != self.meta["obs_dim"]:
             raise PolicyError(f"{where}: input 'obs' has {ishape[1]} values, metadata obs_dim is {self.meta['obs_dim']}")
         self.obs_dim: int = self.meta["obs_dim"]
@@ -99,11 +84,6 @@ class OnnxPolicy:
                 f"{' with obstacles' if m['obstacles'] else ''}, {m['obs_layout']})")
 
 
-def policy_filename(method: str, track_name: str, obstacles: bool) -> str:
-    """The shipped file name of a policy: {method}_{track}[_obstacles].onnx."""
-    return f"{method}_{track_name}{'_obstacles' if obstacles else ''}.onnx"
-
-
 def resolve_policy(name_or_path: str | Path, track_name: str, obstacles: bool) -> Path:
     """Short names ours/ds/ss/dm -> policies/{name}_{track}[_obstacles].onnx; anything else is a
     path. Raises PolicyError when the file does not exist."""
@@ -118,55 +98,4 @@ def resolve_policy(name_or_path: str | Path, track_name: str, obstacles: bool) -
     path = Path(text)
     if not path.exists():
         raise PolicyError(f"{path}: no such policy file")
-    return path
-
-
-def make_test_policy(path: str | Path, layout_name: str, track: str, obstacles: bool, kind: str = "hover", *,
-                     method: str | None = None, profile: str | None = None, seed: int = 0) -> Path:
-    """Write a tiny deterministic ONNX policy with valid metadata (for tests).
-
-    kind: "hover" (a0 = the hover value of the profile, zero rates), "zeros", "nan" (emits NaN),
-    "random" (an ELU MLP [32, 32] with fixed random weights from ``seed``, plus a normaliser).
-    method defaults to "ours" for multi-agent layouts and "ds" otherwise.
-    """
-    from cfrace import __version__
-    from cfrace.drone import DEFAULT_PROFILE, load_profile
-    from cfrace.env.actions import action_map_constants
-    from cfrace.env.observations import LAYOUTS
-
-    if layout_name not in LAYOUTS:
-        raise ValueError(f"unknown layout {layout_name}")
-    layout = LAYOUTS[layout_name]
-    prof = load_profile(profile or DEFAULT_PROFILE)
-    d = layout.dim
-    meta = {"method": method or ("ours" if layout.opponent else "ds"), "track": getattr(track, "name", track),
-            "obstacles": bool(obstacles), "obs_layout": layout.name, "obs_dim": d,
-            **action_map_constants(prof), "policy_hz": 50.0, "drone_profile": prof.name,
-            "train_steps": 0, "seed": int(seed), "cfrace_version": __version__, "agent": "ego", "test_kind": kind}
-    zeros_w = np.zeros((ACTION_DIM, d), np.float32)
-    mean = std = None
-    if kind in ("hover", "nan"):
-        hover = 2.0 / prof.max_thrust_weights - 1.0  # (a0 + 1) / 2 * T = 1 weight
-        layers = [("linear", zeros_w, np.array([hover, 0, 0, 0], np.float32))]
-    elif kind == "zeros":
-        layers = [("linear", zeros_w, np.zeros(ACTION_DIM, np.float32))]
-    elif kind == "random":
-        gen = np.random.default_rng(seed)
-        sizes = [d, 32, 32, ACTION_DIM]
-        layers = []
-        for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-            layers.append(("linear", (gen.normal(size=(b, a)) / np.sqrt(a)).astype(np.float32),
-                           (0.1 * gen.normal(size=b)).astype(np.float32)))
-            if i < len(sizes) - 2:
-                layers.append(("elu", None, None))
-        mean = gen.normal(size=d).astype(np.float32)
-        std = (0.5 + gen.random(d)).astype(np.float32)
-    else:
-        raise ValueError(f"unknown test policy kind {kind!r} (hover, zeros, nan, random)")
-    import onnx
-
-    model = build_model(layers, mean, std, meta, d, nan_output=(kind == "nan"))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save_model(model, str(path))
     return path

@@ -1,7 +1,7 @@
 """Race tracks: gates in race order, gate geometry, obstacles, arena and spawn parameters.
 
 Pure geometry on numpy arrays; the simulator and the flight stack convert to torch as needed.
-Conventions (facts.md): a gate pose is [x, y, z, yaw]; the gate normal is
+Conventions (the authors' training code): a gate pose is [x, y, z, yaw]; the gate normal is
 n = (cos yaw, sin yaw, 0); a gate is passed flying from the +n side to the -n side.
 """
 
@@ -13,9 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.errors import ConfigError
-from cfrace.paths import TRACKS_DIR, resolve_named
-from cfrace.yamlcfg import Reader, load_yaml
+from cfrace.paths import TRACKS_DIR
+from cfrace.yamlcfg import Reader, open_named
 
 
 @dataclass(frozen=True)
@@ -157,11 +156,7 @@ def _validate(track: Track, r: Reader) -> None:
 
 def load_track(name_or_path: str | Path) -> Track:
     """Load a track by name (tracks/NAME.yaml) or path; strict, ConfigError on any problem."""
-    path = resolve_named(name_or_path, TRACKS_DIR, ".yaml")
-    if not path.exists():
-        known = ", ".join(sorted(p.stem for p in TRACKS_DIR.glob("*.yaml")))
-        raise ConfigError(f"{path}: no such track file (known tracks: {known})")
-    r = Reader(path, load_yaml(path))
+    r = open_named(name_or_path, TRACKS_DIR, "track")
     name = r.string("name")
     g = r.mapping("gate", {})
     gate = GateGeometry(g.number("opening", 1.0, positive=True), g.number("border", 0.2, positive=True),
@@ -187,7 +182,7 @@ def load_track(name_or_path: str | Path) -> Track:
                   opponent_stagger=sp.number("opponent_stagger", d.opponent_stagger, min=0.0))
     sp.done()
     r.done()
-    track = Track(name, gates, gate, tuple(obstacles), arena, spawn, source=str(path))
+    track = Track(name, gates, gate, tuple(obstacles), arena, spawn, source=r.path)
     _validate(track, r)
     return track
 

@@ -29,6 +29,18 @@ def load_yaml(path: Path) -> dict:
     return data
 
 
+def open_named(name_or_path: str | Path, folder: Path, what: str) -> "Reader":
+    """A Reader of ``folder/NAME.yaml`` (a name) or of the path given; ConfigError naming the known
+    files of ``folder`` when there is no such file. ``what``: "drone profile", "track", ..."""
+    from cfrace.paths import resolve_named
+
+    path = resolve_named(name_or_path, folder, ".yaml")
+    if not path.exists():
+        known = ", ".join(sorted(p.stem for p in folder.glob("*.yaml")))
+        raise ConfigError(f"{path}: no such {what} file (known: {known})")
+    return Reader(path, load_yaml(path))
+
+
 class Reader:
     """Walks a YAML mapping, checking keys and values, raising one-line ConfigErrors."""
 
@@ -114,3 +126,14 @@ class Reader:
         unknown = sorted(str(k) for k in self.data if k not in self.used)
         if unknown:
             raise self.fail(unknown[0], "unknown key")
+
+
+def read_named(name_or_path: str | Path, folder: Path, what: str) -> Reader:
+    """A Reader over ``folder/NAME.yaml`` (or a path); ConfigError listing the known names when missing."""
+    from cfrace.paths import resolve_named
+
+    path = resolve_named(name_or_path, folder, ".yaml")
+    if not path.exists():
+        known = ", ".join(sorted(p.stem for p in folder.glob("*.yaml")))
+        raise ConfigError(f"{path}: no such {what} (known: {known})")
+    return Reader(path, load_yaml(path))

@@ -15,10 +15,10 @@ from typer.testing import CliRunner
 from cfrace.cli.main import app
 from cfrace.errors import PolicyError
 from cfrace.evaluate.entrants import common_profile, load_entrant, load_entrants
-from cfrace.export import build_model
-from cfrace.policy import make_test_policy
+from cfrace.policygraph import build_model
 from cfrace.track import load_track
 
+from policyfiles import make_test_policy
 from test_eval_run import TRACK_YAML, tilt_policy
 
 PNG = b"\x89PNG\r\n\x1a\n"

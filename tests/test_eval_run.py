@@ -20,9 +20,10 @@ from cfrace.evaluate.entrants import load_entrant, load_entrants
 from cfrace.evaluate.metrics import DRAW_CRASH, DRAW_TIE, DRAW_TIMEOUT, EGO_WIN, OPP_WIN, race_outcomes
 from cfrace.evaluate.rollout import Starts, rollout, start_poses
 from cfrace.evaluate.single import evaluate
-from cfrace.policy import make_test_policy
 from cfrace.sim.simulator import ARENA, GATE_FRAME, LONG_CONTACT
 from cfrace.track import load_track
+
+from policyfiles import make_test_policy
 
 PROFILE = load_profile(DEFAULT_PROFILE)
 G = 9.81
@@ -46,7 +47,7 @@ def tilt_policy(path: Path, tilt_deg: float, layout: str = "solo36", track: str 
     """A linear policy that flies along world -x at any heading: body rates turn the body z axis
     toward d = (-sin tilt, 0, cos tilt) (d in body coordinates, R^T d, is linear in the rotation
     matrix of the observation); thrust 1 / cos(current tilt) weights, linearised in R22."""
-    from cfrace.export import build_model
+    from cfrace.policygraph import build_model
     import onnx
 
     lay = LAYOUTS[layout]

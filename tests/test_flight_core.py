@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 import torch
 
+from cfrace.env.actions import thrust_to_counts
 from cfrace.errors import LinkError
 from cfrace.flight.clock import LockstepClock, RealClock
-from cfrace.flight.link import (DirectSimLink, RecordingLink, cflib_setpoint_args, open_link, packet_values,
-                                thrust_to_counts)
+from cfrace.flight.link import DirectSimLink, RecordingLink, cflib_setpoint_args, packet_values
+from cfrace.flight.links import open_link
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.sim.gates import RaceProgress
 from cfrace.track import load_track
@@ -326,7 +327,7 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     from cfrace.flight.estimator import Estimate, PoseEstimator
     from cfrace.flight.loop import ObservationBuilder
     from cfrace.flight.mocap import MocapFrame, Pose
-    from cfrace.flight.testpolicy import hold_policy_layers
+    from cfrace.flight.holdpolicy import hold_policy_layers
     from cfrace.sim.simulator import Simulator
 
     profile = load_profile(PROFILE)
@@ -605,9 +606,7 @@ def test_live_view_renders_every_drone(track):
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibration_curve(profile):
     from cfrace.drone import load_profile
-    from cfrace.env.actions import action_to_command
-    from cfrace.flight.link import thrust_to_counts
-    from cfrace.flight.loop import SetpointMap
+    from cfrace.env.actions import SetpointMap, action_to_command
 
     prof = load_profile(profile)
     m = SetpointMap(prof.mass, prof.max_thrust_weights, prof.max_rates_deg, prof.thrust_curve)

@@ -15,7 +15,7 @@ from cfrace.flight.config import FlightConfig
 from cfrace.flight.dryrun import dry_run
 from cfrace.flight.flightlog import read_log
 from cfrace.flight.replay import replay_log
-from cfrace.flight.testpolicy import make_hold_policy
+from cfrace.flight.holdpolicy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 
@@ -51,7 +51,7 @@ def lockstep_run(pols, tmp_path_factory):
 
     # a non-default velocity filter and latency compensation: the replay must take them from the log
     # to reproduce the observations
-    result = dry_run(replace(cfg(pols, tmp), velocity_alpha=0.7, latency_comp_s=0.008), lockstep=True)
+    result = dry_run(replace(cfg(pols, tmp), velocity_alpha=0.7, latency_comp_s=0.008), lockstep=True).to_json()
     return result, tmp / "flight.mcap"
 
 
@@ -105,7 +105,7 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
 
 
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
-    result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False)
+    result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False).to_json()
     assert result["end"] == "timeout"
     # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own
     from test_flight_realtime import fifo_permitted
@@ -130,13 +130,14 @@ def test_real_time_dry_run_through_cflib(pols, tmp_path):
 # ------------------------------------------------------------------------------- refused before flying
 
 def _fleet_and_race(pols, tmp_path, **kw):
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.dryrun import sim_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
     c = cfg(pols, tmp_path, **kw)
     fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
     try:
-        run_race(c, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"])
+        sim_race(resolve_race(c), fleet).to_json()
     finally:
         for i in range(2):
             assert fleet.status(i)["setpoints_received"] == 0         # nothing was sent
@@ -264,7 +265,8 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     from cfrace.drone import load_profile
     from cfrace.env.actions import action_to_command
     from cfrace.env.observations import LAYOUTS, build_observations
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.dryrun import sim_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.policy import OnnxPolicy
     from cfrace.sim.simulator import Simulator
     from cfrace.simcf.firmware import SimFleet
@@ -277,7 +279,7 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     fleet = SimFleet(track, prof, 2, start_positions=start, obstacles=False)
     c = FlightConfig(track="lemniscate", ego=str(paths[0]), opp=str(paths[1]), profile=PROFILE, quiet=True,
                      timeout_s=2.0, log=tmp_path / "f.mcap")
-    run_race(c, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"])
+    sim_race(resolve_race(c), fleet).to_json()
     flown = {round(t, 4): np.array(m["poses"]["cf1"]["pos"]) for t, m in read_log(tmp_path / "f.mcap").messages("/mocap/pose")}
 
     sim = Simulator(track, prof, worlds=1, drones=2, obstacles=False)
@@ -308,7 +310,7 @@ def test_shipped_policy_races_alone_through_the_flight_stack(policy, tmp_path):
 
     c = FlightConfig(track="lemniscate", ego=policy, opp="ds", profile=PROFILE, quiet=True, laps=2, timeout_s=20.0,
                      log=tmp_path / "alone.mcap")
-    r = dry_run(c, lockstep=True, faults="nan_policy@0.02:opp", mocap_noise_m=0.0005)
+    r = dry_run(c, lockstep=True, faults="nan_policy@0.02:opp", mocap_noise_m=0.0005).to_json()
     ego, opp = r["drones"]
     assert r["winner"] == "ego" and r["end"] == "finished", (ego, opp)
     assert ego["laps"] == 2 and ego["gates_passed"] == 12
@@ -333,7 +335,7 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
 
     log = tmp_path / "ds.mcap"
     c = FlightConfig(track="lemniscate", ego="ds", opp="ds", profile=PROFILE, quiet=True, laps=1, timeout_s=3.0, log=log)
-    dry_run(c, lockstep=True, faults="nan_policy@0.02:opp")
+    dry_run(c, lockstep=True, faults="nan_policy@0.02:opp").to_json()
     data = read_log(log)
     poses = {m["seq"]: m["poses"]["cf1"] for _, m in data.messages("/mocap/pose")}
     setpoints = [(round(t / 0.01), m["cf1"]) for t, m in data.messages("/setpoint")]
@@ -367,7 +369,7 @@ def test_the_warm_up_before_each_tick_changes_nothing_the_loop_computes(tmp_path
         c = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile=PROFILE, quiet=True, laps=1,
                          timeout_s=2.5, log=tmp_path / name)
         r = dry_run(c, lockstep=True, faults="pose_outlier@0.6,mocap_dropout_short@1.2:opp",
-                    mocap_noise_m=0.002, lockstep_warm_calls=warm_calls)
+                    mocap_noise_m=0.002, lockstep_warm_calls=warm_calls).to_json()
         return r, read_log(tmp_path / name)
 
     (plain, plain_log), (warm, warm_log) = race(0, "plain.mcap"), race(3, "warm.mcap")
@@ -395,11 +397,11 @@ def test_mocap_latency_compensation_keeps_a_shipped_policy_flying_at_40_ms(tmp_p
 
     base = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile=PROFILE, quiet=True, laps=2, timeout_s=15.0)
     late = dry_run(replace(base, latency_comp_s=0.0), lockstep=True, faults="nan_policy@0.02:opp",
-                   mocap_latency_s=0.040)
+                   mocap_latency_s=0.040).to_json()
     ego = late["drones"][0]
     assert ego["stopped"] and ego["laps"] == 0 and ego["stop_kind"] != "finished", ego
     comp = dry_run(replace(base, log=tmp_path / "comp.mcap"), lockstep=True, faults="nan_policy@0.02:opp",
-                   mocap_latency_s=0.040)       # latency_comp_s None: the dry-run makes up for its latency
+                   mocap_latency_s=0.040).to_json()       # latency_comp_s None: the dry-run makes up for its latency
     assert comp["winner"] == "ego" and comp["drones"][0]["laps"] == 2, comp["drones"][0]
     assert read_log(tmp_path / "comp.mcap").meta["latency_comp_s"] == 0.040
 

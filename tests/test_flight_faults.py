@@ -16,7 +16,7 @@ from cfrace.flight.config import FlightConfig
 from cfrace.flight.dryrun import dry_run
 from cfrace.flight.faults import parse_faults
 from cfrace.flight.flightlog import read_log
-from cfrace.flight.testpolicy import make_hold_policy
+from cfrace.flight.holdpolicy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 
@@ -31,7 +31,7 @@ def pols(tmp_path_factory):
 def run(pols, tmp_path, faults, *, lockstep=True, timeout_s=3.0):
     cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
                        timeout_s=timeout_s, log=tmp_path / "f.mcap")
-    result = dry_run(cfg, lockstep=lockstep, faults=faults)
+    result = dry_run(cfg, lockstep=lockstep, faults=faults).to_json()
     for d in result["drones_final"]:
         assert d["motors_off"] and d["thrust_n"] == 0.0, d
     data = read_log(tmp_path / "f.mcap")
@@ -145,8 +145,9 @@ def test_real_signal_mid_race_stops_everything(pols, tmp_path, sig, code):
 
 
 def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, tmp_path):
+    from cfrace.flight.dryrun import sim_race
     from cfrace.flight.faults import FaultInjector
-    from cfrace.flight.runner import run_race
+    from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
     class Boom(FaultInjector):
@@ -159,7 +160,7 @@ def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, t
                        timeout_s=3.0, log=tmp_path / "f.mcap")
     fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
     with pytest.raises(RuntimeError, match="exploded"):
-        run_race(cfg, fleet=fleet, lockstep=True, uris=["sim://0", "sim://1"], injector=Boom([], {}))
+        sim_race(resolve_race(cfg), fleet, injector=Boom([], {})).to_json()
     for _ in range(5):
         fleet.advance(0.01)
     for i in range(2):

@@ -6,11 +6,14 @@ import numpy as np
 import onnx
 import pytest
 
+from cfrace.contract import encode_meta
 from cfrace.drone import load_profile
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import PolicyError
-from cfrace.export import build_model, encode_meta
-from cfrace.policy import OnnxPolicy, make_test_policy, resolve_policy
+from cfrace.policygraph import build_model
+from cfrace.policy import OnnxPolicy, resolve_policy
+
+from policyfiles import make_test_policy
 
 
 def _one_line(exc: pytest.ExceptionInfo) -> str:
@@ -144,3 +147,23 @@ def test_resolve_policy(tmp_path, monkeypatch):
     assert resolve_policy(str(p), "complex", False) == p
     with pytest.raises(PolicyError):
         resolve_policy(tmp_path / "missing.onnx", "complex", False)
+
+
+def test_schema_versions(tmp_path):
+    """Files from before schema_version (the shipped ones) load as schema 1; new files carry the
+    current version; a newer schema or a bad version is one line naming the file."""
+    from cfrace.contract import SCHEMA_VERSION
+    from cfrace.paths import POLICIES_DIR
+
+    shipped = OnnxPolicy(POLICIES_DIR / "ours_lemniscate.onnx")
+    assert "schema_version" not in shipped.meta   # written before the key existed: schema 1
+    v1 = OnnxPolicy(_write(tmp_path / "v1.onnx", _meta()))
+    assert "schema_version" not in v1.meta
+    new = OnnxPolicy(make_test_policy(tmp_path / "new.onnx", "race42", "complex", False))
+    assert new.meta["schema_version"] == SCHEMA_VERSION
+    with pytest.raises(PolicyError) as e:
+        OnnxPolicy(_write(tmp_path / "future.onnx", _meta(schema_version=SCHEMA_VERSION + 1)))
+    assert "future.onnx" in _one_line(e) and f"schema {SCHEMA_VERSION + 1}" in _one_line(e)
+    with pytest.raises(PolicyError) as e:
+        OnnxPolicy(_write(tmp_path / "odd.onnx", _meta(schema_version="two")))
+    assert "schema_version" in _one_line(e)

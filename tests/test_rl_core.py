@@ -11,7 +11,8 @@ from cfrace.rl.ippo import make_optimizer, ppo_loss, ppo_update
 from cfrace.rl.models import AgentModels, RunningNorm
 from cfrace.rl.runner import Runner
 from cfrace.rl.storage import RolloutStorage, gae
-from cfrace.rl.toy_env import ToyRaceEnv
+
+from toy_env import ToyRaceEnv
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -1,4 +1,4 @@
-"""Seconds-long training on the real RaceEnv shows learning (design.md rule 12)."""
+"""Seconds-long training on the real RaceEnv shows learning."""
 
 from __future__ import annotations
 

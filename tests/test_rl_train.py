@@ -14,8 +14,9 @@ from cfrace.drone import load_profile
 from cfrace.errors import ConfigError, PolicyError
 from cfrace.export import export_checkpoint
 from cfrace.policy import OnnxPolicy
-from cfrace.rl.toy_env import ToyRaceEnv
 from cfrace.rl.train import TrainConfig, bench_train, env_meta, load_checkpoint, resume_config, train
+
+from toy_env import ToyRaceEnv
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

@@ -1,22 +1,10 @@
-"""`cfrace bench ...`: benchmarks that print figures. Other CLI modules add commands to `bench_app`.
-
-`cfrace bench sim` measures the batched simulator in drone-steps per second: one drone advanced by
-one 2 ms physics step with the full model (motors, rate PID, drag, floor, arena, gate frames and
-gate passing, obstacles, drone-drone contacts) with each backend (fused C kernel, torch eager,
-torch.compile), and runs the crazyflow
-simulator (JAX, benchmarks/crazyflow_peer.py, in its own venv) on the same numbers of drones.
-"""
+"""`cfrace bench ...`: benchmarks that print figures (the measuring: cfrace.sim.bench and the modules
+each command names). Other CLI modules add commands to `bench_app`."""
 
 from __future__ import annotations
 
 import json
-import math
 import os
-import platform
-import subprocess
-import tempfile
-import time
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Optional
 
@@ -24,210 +12,15 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.errors import CfraceError, ConfigError
+from cfrace.errors import ConfigError
 
 bench_app = typer.Typer(help="Benchmarks that print figures (speed, latency).", no_args_is_help=True)
 console = Console()
 
-DEFAULT_PEER_PYTHON = Path("/work/peers/venv/bin/python")
-
-
-# ------------------------------------------------------------------------------------- measuring
-
-def hover_start(track, worlds: int, drones: int):
-    """(W, D, 3) start positions: 1.5 m before gate 0 on its approach side, drones 0.5 m apart."""
-    import torch
-
-    x, y, z, yaw = track.gates[0]
-    n = torch.tensor([math.cos(yaw), math.sin(yaw), 0.0])
-    side = torch.tensor([-math.sin(yaw), math.cos(yaw), 0.0])
-    offsets = (torch.arange(drones, dtype=torch.float32) - (drones - 1) / 2.0) * 0.5
-    pos = torch.tensor([x, y, max(z, 1.0)]) + 1.5 * n + offsets[:, None] * side   # (D, 3)
-    return pos.expand(worlds, drones, 3).clone()
-
-
-def gates_start(track, worlds: int, drones: int):
-    """(W, D, 3) start positions 0.6 m before gate (w mod G) on its approach side, at the gate's height,
-    drones 0.4 m apart: every drone is within reach of a gate's frame bars, so the kernel's
-    "no drone near a gate" shortcut never applies (the worst case for it; a race is in between)."""
-    import torch
-
-    g = torch.as_tensor(track.gate_array(), dtype=torch.float32)[torch.arange(worlds) % len(track.gates)]  # (W, 4)
-    n = torch.stack([torch.cos(g[:, 3]), torch.sin(g[:, 3]), torch.zeros(worlds)], -1)        # (W, 3)
-    side = torch.stack([-torch.sin(g[:, 3]), torch.cos(g[:, 3]), torch.zeros(worlds)], -1)    # (W, 3)
-    offsets = (torch.arange(drones, dtype=torch.float32) - (drones - 1) / 2.0) * 0.4          # (D,)
-    return g[:, None, :3] + 0.6 * n[:, None] + offsets[None, :, None] * side[:, None]
-
-
-SCENARIOS = {"hover": hover_start, "gates": gates_start}
-MODES = ("c", "eager", "compiled")  #: fused C kernel, torch eager, torch.compile
-
-
-def available_modes(compile: bool) -> list[str]:
-    """Simulator modes to measure: the fused C kernel when the simulator has one and it builds here,
-    torch eager always, torch.compile when asked."""
-    import inspect
-
-    from cfrace.sim import simulator
-
-    modes = []
-    if "backend" in inspect.signature(simulator.Simulator).parameters:
-        try:
-            from cfrace.sim import ckernel
-
-            if ckernel.available():
-                modes.append("c")
-        except ImportError:
-            pass
-    return modes + ["eager"] + (["compiled"] if compile else [])
-
-
-def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int, substeps: int,
-                track: str, profile: str, repeats: int = 3, scenario: str = "hover") -> dict:
-    """Time ``repeats`` x ``steps`` calls of Simulator.step(hover thrust, zero rates, substeps) after
-    ``warmup`` calls; the rate is that of the fastest repeat (the median is kept too).
-    mode: "c" (fused C kernel), "eager" (torch) or "compiled" (torch.compile)."""
-    import inspect
-
-    import torch
-
-    from cfrace.drone import load_profile
-    from cfrace.sim.simulator import Simulator
-    from cfrace.track import load_track
-
-    if mode not in MODES:
-        raise ConfigError(f"unknown simulator mode {mode!r} (known: {', '.join(MODES)})")
-    trk, prof = load_track(track), load_profile(profile)
-    kwargs = {"compile": mode == "compiled"}
-    if "backend" in inspect.signature(Simulator).parameters:
-        kwargs["backend"] = "c" if mode == "c" else "torch"
-    sim = Simulator(trk, prof, worlds, drones, obstacles=True, **kwargs)
-    if scenario not in SCENARIOS:
-        raise ConfigError(f"unknown scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
-    sim.reset(torch.arange(worlds), SCENARIOS[scenario](trk, worlds, drones))
-    thrust = torch.full((worlds, drones), prof.weight)                  # (W, D) N, hover
-    rates = torch.zeros(worlds, drones, 3)                               # (W, D, 3) rad/s
-    t0 = time.perf_counter()
-    for _ in range(warmup):
-        sim.step(thrust, rates, substeps)
-    warm = time.perf_counter() - t0
-    walls, cpus = [], []
-    for _ in range(repeats):  # best of `repeats`: the machine may be shared
-        cpu0, t0 = time.process_time(), time.perf_counter()
-        for _ in range(steps):
-            sim.step(thrust, rates, substeps)
-        walls.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - cpu0)
-    drone_steps = worlds * drones * substeps * steps
-    best = min(range(repeats), key=walls.__getitem__)
-    return {"worlds": worlds, "drones": drones, "total_drones": worlds * drones, "mode": mode,
-            "drone_steps_per_s": drone_steps / walls[best],
-            "median_drone_steps_per_s": drone_steps / sorted(walls)[len(walls) // 2],
-            "seconds": walls, "policy_steps": steps, "substeps": substeps, "repeats": repeats, "warmup_s": warm,
-            "cpu_per_wall": cpus[best] / walls[best], "crashed_fraction": float(sim.crashed.float().mean()),
-            "mean_z_m": float(sim.pos[..., 2].mean()), "scenario": scenario, "kernel": _kernel_name() if mode == "c" else None}
-
-
-def _kernel_name() -> str | None:
-    """File name of the loaded C kernel (its name carries the hash of its source and flags)."""
-    try:
-        from cfrace.sim import ckernel
-
-        lib = getattr(ckernel, "_lib", None)
-        return Path(lib._name).name if lib is not None else None
-    except ImportError:
-        return None
-
-
-def peer_python(explicit: Optional[Path]) -> Optional[Path]:
-    """--peer-python, else $CFRACE_PEER_PYTHON, else /work/peers/venv/bin/python if it exists."""
-    if explicit is not None:
-        return explicit
-    env = os.environ.get("CFRACE_PEER_PYTHON")
-    if env:
-        return Path(env)
-    return DEFAULT_PEER_PYTHON if DEFAULT_PEER_PYTHON.exists() else None
-
-
-def run_peer(python: Path, totals: list[int], per_world: int, calls: int, threads: int, timeout: float) -> dict:
-    """Run benchmarks/crazyflow_peer.py with the peer's python; returns its JSON document."""
-    from cfrace.paths import ROOT
-
-    script = ROOT / "benchmarks" / "crazyflow_peer.py"
-    if not script.exists():
-        raise ConfigError(f"{script}: peer benchmark script not found")
-    if not python.exists():
-        raise ConfigError(f"{python}: peer python not found (set --peer-python or CFRACE_PEER_PYTHON)")
-    env = dict(os.environ)
-    if threads > 0:  # same thread budget as the torch side
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + f" --xla_cpu_multi_thread_eigen={'true' if threads > 1 else 'false'}"
-                            f" intra_op_parallelism_threads={threads}").strip()
-    cmd = [str(python), str(script), "--drones", ",".join(map(str, totals)), "--per-world", str(per_world),
-           "--calls", str(calls)]
-    with tempfile.TemporaryDirectory() as cwd:  # MuJoCo may drop a log file into the working directory
-        try:
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=cwd, env=env, timeout=timeout)
-        except subprocess.TimeoutExpired:
-            raise CfraceError(f"peer benchmark {script.name} timed out after {timeout:.0f} s") from None
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
-    if proc.returncode != 0 or not lines:
-        tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
-        raise CfraceError(f"peer benchmark failed (exit {proc.returncode}) with {python}: {tail}")
-    doc = json.loads(lines[-1])
-    doc["command"] = " ".join(cmd)
-    return doc
-
-
-def machine_info(threads: int) -> dict:
-    import torch
-
-    model = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    import hashlib
-
-    from cfrace.paths import ROOT
-
-    sim_dir = ROOT / "cfrace" / "sim"
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in sorted(sim_dir.glob("*.[pc]*")) if p.is_file()))
-    try:
-        git = subprocess.run(["git", "-C", str(ROOT), "describe", "--always", "--dirty"], capture_output=True,
-                             text=True, timeout=10).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        git = ""
-    return {"cpu": model, "cores": os.cpu_count(), "torch": torch.__version__,
-            "cfrace_git": git, "sim_sources_sha256": digest.hexdigest()[:16], "torch_threads": torch.get_num_threads(),
-            "threads_option": threads, "python": platform.python_version(), "platform": platform.platform(),
-            "loadavg_start": list(os.getloadavg()), "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-
-
-# ------------------------------------------------------------------------------------- reporting
-
-def _rate(x: Optional[float]) -> str:
-    if x is None or not math.isfinite(x):
-        return "-"
-    return f"{x / 1e6:.2f} M" if x >= 1e5 else f"{x / 1e3:.1f} k"
-
-
-def summarize(results: list[dict], peer: list[dict]) -> list[dict]:
-    """Per size: the rate of each mode, the best cfrace rate, crazyflow's and the ratio best/crazyflow."""
-    rows = []
-    for w, d in dict.fromkeys((r["worlds"], r["drones"]) for r in results):
-        by_mode = {r["mode"]: r["drone_steps_per_s"] for r in results if (r["worlds"], r["drones"]) == (w, d)}
-        best_mode = max(by_mode, key=by_mode.get)
-        cf = next((p["drone_steps_per_s"] for p in peer if p["total_drones"] == w * d), None)
-        rows.append({"worlds": w, "drones": d, "total_drones": w * d, **{m: by_mode.get(m) for m in MODES},
-                     "best": by_mode[best_mode], "best_mode": best_mode,
-                     "crazyflow": cf, "ratio": by_mode[best_mode] / cf if cf else None})
-    return rows
-
 
 def summary_table(rows: list[dict]) -> Table:
+    from cfrace.sim.bench import MODES, rate_text
+
     table = Table(title="simulator speed: drone-steps per second (one drone, one 2 ms step)")
     modes = [m for m in MODES if any(r[m] is not None for r in rows)]
     for col in ("worlds", "x drones", "= drones", *[f"cfrace {m}" for m in modes], "cfrace best",
@@ -235,8 +28,8 @@ def summary_table(rows: list[dict]) -> Table:
         table.add_column(col, justify="right")
     for r in rows:
         ratio = "-" if r["ratio"] is None else f"{r['ratio']:.2f}x"
-        table.add_row(str(r["worlds"]), str(r["drones"]), str(r["total_drones"]), *[_rate(r[m]) for m in modes],
-                      _rate(r["best"]), _rate(r["crazyflow"]), ratio)
+        table.add_row(str(r["worlds"]), str(r["drones"]), str(r["total_drones"]), *[rate_text(r[m]) for m in modes],
+                      rate_text(r["best"]), rate_text(r["crazyflow"]), ratio)
     return table
 
 
@@ -274,72 +67,115 @@ def sim_cmd(
 ) -> None:
     """Simulator drone-steps per second for each world count (C kernel, torch eager, torch.compile)
     against crazyflow."""
-    import torch
+    from cfrace.sim import bench
 
     sizes = _ints(worlds, "worlds")
     if threads > 0:
+        import torch
+
         torch.set_num_threads(threads)
-    machine = machine_info(threads)
+    machine = bench.machine_info(threads)
     console.print(f"[bold]cfrace bench sim[/bold] on {machine['cpu']} ({machine['cores']} cores, torch "
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
-    modes = available_modes(compile)
-    if modes_opt:
-        wanted = [m.strip() for m in modes_opt.split(",") if m.strip()]
-        unknown = [m for m in wanted if m not in MODES]
-        if unknown or not wanted:
-            raise ConfigError(f"--modes: expected a subset of {','.join(MODES)}, got {modes_opt!r}")
-        missing = [m for m in wanted if m not in available_modes(True)]
-        if missing:
-            raise ConfigError(f"--modes: {', '.join(missing)} not available on this machine")
-        modes = wanted
+    modes = bench.choose_modes(compile, modes_opt)
     console.print(f"modes: {', '.join(modes)}")
-    results, errors = [], {}
-    for w in sizes:
-        for mode in modes:
-            if mode in errors:
-                continue
-            try:
-                r = measure_sim(w, drones, mode=mode, steps=steps, warmup=warmup, substeps=substeps,
-                                track=track, profile=profile, repeats=repeats, scenario=scenario)
-            except CfraceError:
-                raise
-            except Exception as exc:  # torch.compile missing a compiler, etc.: report, keep the others
-                if mode == "eager":
-                    raise
-                errors[mode] = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-                console.print(f"[yellow]{mode} unavailable: {errors[mode]}[/yellow]")
-                continue
-            results.append(r)
-            console.print(f"  {w:>5} worlds x {drones} drones, {r['mode']:>8}: {_rate(r['drone_steps_per_s'])} "
-                          f"drone-steps/s (warm-up {r['warmup_s']:.1f} s, crashed {r['crashed_fraction']:.0%})")
-    peer_doc, peer_rows = None, []
-    py = peer_python(peer_python_path)
-    if peer is True and py is None:
-        raise ConfigError("--peer: no peer python (give --peer-python or set CFRACE_PEER_PYTHON)")
-    if peer is not False and py is not None:
-        totals = sorted({w * drones for w in sizes})
-        console.print(f"running crazyflow peer with {py} on {totals} drones ...")
-        try:
-            peer_doc = run_peer(py, totals, drones, peer_calls, threads, timeout=3600)
-            peer_rows = peer_doc["results"]
-        except CfraceError as exc:
-            if peer is True:
-                raise
-            console.print(f"[yellow]peer skipped: {exc}[/yellow]")
+    results, errors = bench.measure_all(sizes, drones, modes, console.print, steps=steps, warmup=warmup,
+                                        substeps=substeps, track=track, profile=profile, repeats=repeats,
+                                        scenario=scenario)
+    peer_doc = bench.measure_peer(peer, bench.peer_python(peer_python_path), sizes, drones, peer_calls, threads,
+                                  console.print)
     machine["loadavg_end"] = list(os.getloadavg())
-    rows = summarize(results, peer_rows)
+    rows = bench.summarize(results, (peer_doc or {}).get("results", []))
     console.print(summary_table(rows))
     if peer_doc:
         console.print(f"crazyflow {peer_doc['versions'].get('crazyflow')} (jax {peer_doc['versions'].get('jax')}): "
                       "first_principles + attitude control, 500 Hz, sim.step(1000) jitted; no collision checks")
     console.print(f"load average at start {machine['loadavg_start'][0]:.2f}, at end {machine['loadavg_end'][0]:.2f}")
     if json_out is not None:
-        doc = {"results": results, "peer": peer_rows, "summary": rows, "machine": machine, "errors": errors,
-               "peer_info": {k: v for k, v in (peer_doc or {}).items() if k != "results"}}
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(doc, indent=2))
+        bench.write_doc(json_out, results, peer_doc, rows, machine, errors)
         console.print(f"wrote {json_out}")
+
+
+@bench_app.command("loop")
+def bench_loop_cmd(
+    duration_s: float = typer.Option(10.0, help="Seconds of real-time flight to measure."),
+    track: str = typer.Option("lemniscate", help="Track name."),
+    profile: Optional[str] = typer.Option(None, help="Drone profile (default: the shipped policies' training "
+                                                     "profile with --policies shipped, else cf21bl)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures as JSON."),
+    rt_priority: str = typer.Option("auto", help="SCHED_FIFO priority of the loop thread: auto (50 where permitted: "
+                                              "root or CAP_SYS_NICE), 0 = off, or 1-99."),
+    policies: str = typer.Option("paper", help="paper: a hold controller in the paper's actor size "
+                                               "[512, 512, 256, 128]; shipped: policies/ours_TRACK vs ds_TRACK."),
+    prewarm_ms: float = typer.Option(3.0, help="Warm-up window this many ms before each tick (as `cfrace fly`); "
+                                               "0 = off."),
+    latency_comp_ms: Optional[float] = typer.Option(None, help="Mocap latency compensation (as `cfrace fly`; "
+                                                               "default 10: the pose stream is 0-10 ms old)."),
+    loop_cpu: str = typer.Option("auto", help="CPU of the loop thread (as `cfrace fly`): auto, off or a CPU "
+                                              "number; the simulated drones run on the other CPUs."),
+    log: bool = typer.Option(True, "--log/--no-log", help="Write the flight log, as `cfrace fly` does."),
+    floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
+                                            "on the same CPU and priority (0 = skip)."),
+):
+    """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
+    from cfrace.flight.benchloop import bench_loop
+
+    if policies not in ("paper", "shipped"):
+        raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
+    r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
+                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log,
+                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+    console.print(loop_table(r))
+    if r["floor"] is not None:
+        console.print(floor_line(r, floor_s), highlight=False)
+    console.print(goals_line(r))
+    if json_out is not None:
+        json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")
+
+
+def loop_table(r: dict) -> Table:
+    """The figures of a bench_loop result as a table (ms)."""
+    loop = r["loop"]
+    t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
+                    f"({r['policies']}), ms")
+    for col in ("figure", "p50", "p99", "max", "goal (p99)"):
+        t.add_column(col)
+    rows = [("compute latency", loop["compute_ms"], "1.0"), ("period jitter", loop["period_jitter_ms"], "0.5"),
+            ("tick start late", loop["late_ms"], "")]
+    rows += [(f"observation {n}", s, "") for n, s in loop["observation_ms"].items()]
+    rows += [(f"inference {n} (ONNX)", s, "0.2") for n, s in loop["inference_ms"].items()]
+    rows += [("compute, CPU time only", loop["compute_cpu_ms"], "")]
+    if r["prewarm_s"] > 0:
+        rows += [(f"warm-up in the {r['prewarm_s'] * 1e3:g} ms before each tick, CPU per tick "
+                  f"({loop['prewarm_calls_mean']:.1f} passes; not in compute)", loop["prewarm_ms"], "")]
+    for name, s, goal in rows:
+        if s["p50"] is None:
+            t.add_row(name, "-", "-", "-", goal)
+            continue
+        t.add_row(name, f"{s['p50']:.3f}", f"{s['p99']:.3f}", f"{s['max']:.3f}", goal)
+    return t
+
+
+def floor_line(r: dict, floor_s: float) -> str:
+    """The machine's floor against the flight loop's late and jitter p99."""
+    loop, fl = r["loop"], r["floor"]
+
+    def ratio(ours, floor):
+        return f" = {ours / floor:.1f} x the floor" if ours is not None and floor else ""
+    ours_j, ours_l = loop["period_jitter_ms"]["p99"], loop["late_ms"]["p99"]
+    return (f"machine floor, a loop with no work on the same CPU and priority for {floor_s:g} s: tick late "
+            f"p99 {fl['late_ms']['p99']:.3f} (max {fl['late_ms']['max']:.3f}), period jitter p99 "
+            f"{fl['period_jitter_ms']['p99']:.3f} ms; the flight loop: late p99 {ours_l:.3f}"
+            f"{ratio(ours_l, fl['late_ms']['p99'])}, jitter p99 {ours_j:.3f}"
+            f"{ratio(ours_j, fl['period_jitter_ms']['p99'])}")
+
+
+def goals_line(r: dict) -> str:
+    return ("goals met: " + ", ".join(f"{k} {'yes' if v else 'NO'}" for k, v in r["goals_met"].items())
+            + f"   (load average {r['load_avg'][0]:.2f} on {r['cpu_count']} CPUs"
+            + (f", loop thread on CPU {r['loop_cpu']}" if r["loop_cpu"] is not None else ", loop not pinned")
+            + (", loop thread SCHED_FIFO)" if r["rt_fifo"] else ")"))
 
 
 def register(app: typer.Typer) -> None:

@@ -156,6 +156,7 @@ def register(app: typer.Typer) -> None:
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
         from cfrace.flight.config import make_config, split_list
         from cfrace.flight.runner import fly
+        from cfrace.flight.setup import resolve_race
 
         safety = {k: v for k, v in (("geofence_margin_m", geofence_margin_m), ("speed_max_mps", speed_max_mps),
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
@@ -170,7 +171,7 @@ def register(app: typer.Typer) -> None:
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
-        result = fly(cfg, console=console, announce=announce)
+        result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)
         write_json(result, json_out)
         code = exit_code(result)

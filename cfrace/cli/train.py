@@ -123,7 +123,7 @@ def train_cmd(
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
-                            precision=precision)
+                            precision=precision, keep_checkpoints=keep_checkpoints)
     else:
         if method is None or track is None:
             raise ConfigError("--method and --track are required (or --resume DIR)")

@@ -1,6 +1,6 @@
 """Observations, shared by the environment and the flight loop (one function, no skew).
 
-Layout (facts.md, paper Sec. III-B), each drone from its own body frame:
+Layout (paper Sec. III-B and the authors' code), each drone from its own body frame:
     [world position (3), only with obstacles]
     linear velocity in body frame (3)
     rotation matrix world-from-body, row-major (9)
@@ -12,15 +12,21 @@ No normalisation here: the exported actor carries its own normaliser.
 Pure array code on torch tensors (the environment, batched, CPU or CUDA) or numpy arrays (the flight
 loop, one drone per call: no torch dispatch in the 100 Hz tick). Both run the very same elementwise
 float32 operations, so the two give bit-identical observations (tests/test_flight_core.py).
-Depends only on states and gate corners, never on simulator internals.
+Depends only on states and gate corners, never on simulator internals. Imports no torch: tensors
+bring it (the flight path, numpy only, never loads it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
+
+from cfrace.arrays import array_module
+
+if TYPE_CHECKING:
+    import torch
 
 
 @dataclass(frozen=True)
@@ -61,9 +67,9 @@ def build_observation(pos, vel, rot, target, gate_corners, layout: ObsLayout, op
     gate_corners: (G, 4, 3) world; opp_pos, opp_vel: (..., 3) the opponent's world position and
     velocity (multi-agent layouts). Returns (..., layout.dim).
     """
-    xp = np if isinstance(pos, np.ndarray) else torch
+    xp = array_module(pos)
     num_gates = gate_corners.shape[0]
-    if xp is torch:
+    if xp is not np:
         target = target.long()
     cur = gate_corners[target]                       # (..., 4, 3)
     nxt = gate_corners[(target + 1) % num_gates]     # (..., 4, 3)
@@ -95,4 +101,4 @@ def build_observations(pos: torch.Tensor, vel: torch.Tensor, rot: torch.Tensor, 
 
 def critic_observations(obs: torch.Tensor) -> torch.Tensor:
     """Joint state for the critics: [own obs, opponent obs] per drone, (..., 2, 2 D)."""
-    return torch.cat([obs, obs.flip(-2)], dim=-1)
+    return array_module(obs).cat([obs, obs.flip(-2)], dim=-1)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import build_observations, critic_observations, layout_for
@@ -20,7 +21,6 @@ from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading,
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import Track
 
-POLICY_DT = 0.02  #: s, 50 Hz
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
 

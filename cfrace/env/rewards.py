@@ -1,7 +1,7 @@
 """Reward terms of the paper's four training schemes, as named tensors (each one logged).
 
 All inputs are (E, A) tensors for E worlds and A agents (A = 2 multi-agent, 1 single-agent).
-facts.md:
+The paper's schemes with the authors' weights:
 - ours (sparse multi-agent): gate pass 10 if leading else 5; lap bonus 50 to the leader only, paid
   once per lap per race; rate cost (0.15 (a1^2 + a2^2) + 0.05 a3^2) dt; contact -0.1 per step;
   crash -2 once.
@@ -20,8 +20,9 @@ from dataclasses import dataclass
 
 import torch
 
-METHODS = ("ours", "ds", "ss", "dm")
-MULTI_AGENT = {"ours": True, "dm": True, "ds": False, "ss": False}
+from cfrace.contract import METHODS, MULTI_AGENT_METHODS
+
+MULTI_AGENT = {m: m in MULTI_AGENT_METHODS for m in METHODS}   #: method -> trained two drones per world
 
 
 @dataclass(frozen=True)

@@ -10,14 +10,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from cfrace.contract import METHODS, POLICY_HZ
 from cfrace.drone import DroneProfile, load_profile
 from cfrace.env.observations import LAYOUTS, ObsLayout
 from cfrace.errors import ConfigError, PolicyError
-from cfrace.export import METHODS
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.track import Track, load_track
-
-POLICY_HZ = 50.0  #: Hz, the rate evaluation steps policies at (10 x 2 ms physics steps)
 
 
 @dataclass(frozen=True)

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cfrace.contract import POLICY_DT
 from cfrace.sim.simulator import GATE_FRAME, REASONS
 
-POLICY_DT = 0.02  #: s
 
 # race outcome codes
 EGO_WIN, OPP_WIN, DRAW_CRASH, DRAW_TIMEOUT, DRAW_TIE = 0, 1, 2, 3, 4

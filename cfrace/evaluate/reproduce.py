@@ -172,7 +172,7 @@ def transfer(cfg: ReproduceConfig) -> list[dict]:
                               rt_priority=0, loop_cpu="off")
             res = dry_run(fc, lockstep=True, seed=cfg.seed + k, mocap_noise_m=TRANSFER_NOISE_M,
                           mocap_latency_s=TRANSFER_LATENCY_S)
-            for d, name in zip(res["drones"], (ego, opp)):
+            for d, name in zip(res.drones, (ego, opp)):
                 stack[name].append(d)
         for name, stats in (("ours", sim.ego_stats), ("ds", sim.opp_stats)):
             ds_ = stack[name]

@@ -19,13 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import action_to_command
 from cfrace.env.observations import build_observation
 from cfrace.env.race_env import RaceEnv
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant
-from cfrace.evaluate.metrics import POLICY_DT, RunSummary, summarize
+from cfrace.evaluate.metrics import RunSummary, summarize
 from cfrace.sim.simulator import Simulator
 from cfrace.track import Track
 

@@ -25,6 +25,7 @@ from cfrace.errors import CfraceError, LinkError
 from cfrace.flight.config import FlightConfig
 from cfrace.flight.realtime import other_cpus, resolve_loop_cpu
 from cfrace.flight.runner import run_race
+from cfrace.flight.setup import real_io, resolve_race, training_profile
 from cfrace.paths import POLICIES_DIR
 
 GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_ms": 0.2}
@@ -63,7 +64,7 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
             from cfrace.errors import PolicyError
             raise PolicyError(f"no shipped policies {ours.name} and {ds.name} in {POLICIES_DIR}")
         return str(ours), str(ds), "shipped ours vs ds"
-    from cfrace.flight.testpolicy import make_sized_hold_policy
+    from cfrace.flight.holdpolicy import make_sized_hold_policy
 
     ego = make_sized_hold_policy(workdir / "ego.onnx", "race42", track, False)
     opp = make_sized_hold_policy(workdir / "opp.onnx", "solo36", track, False, seed=1)
@@ -117,8 +118,8 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         work = Path(tmp)
         ego, opp, kind = bench_policies(track, work, policies)
         if profile is None:
-            from cfrace.flight.dryrun import training_profile
-            profile = training_profile(track, ego, False) if policies == "shipped" else "cf21bl"
+            from cfrace.track import load_track
+            profile = training_profile(load_track(track), ego, False) if policies == "shipped" else "cf21bl"
         base = _free_base_port()
         cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track, "--drones", "2",
                "--port", str(base), "--profile", profile,
@@ -137,7 +138,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
             floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
                 if floor_s > 0 else None
             try:
-                result = run_race(cfg)
+                result = run_race(resolve_race(cfg), real_io(cfg)).to_json()
                 sim_cpus = sorted(os.sched_getaffinity(proc.pid)) if hasattr(os, "sched_getaffinity") else None
             except CfraceError as exc:
                 if proc.poll() is not None:   # the simulator process died: say why

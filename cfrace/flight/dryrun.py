@@ -5,6 +5,8 @@ ports, the real cflib client connects to them (udp:// URIs) and the `sim` mocap 
 simulated poses; everything else is `cfrace fly`'s code (runner.run_race). --lockstep: the same
 loop with DirectSimLinks and the simulator advanced exactly one tick per loop iteration (no
 wall clock, no cflib, no threads): fast and deterministic, for tests.
+This module builds the race's I/O (cfrace.flight.setup.RaceIO) for simulated drones: the runner
+knows nothing of the fleet, the lockstep clock or the fault injection.
 
 After the race every drone has been told to stop; the dry-run then keeps the simulation running
 until every simulated drone reports zero thrust (at most 3 s: a drone whose link was cut is
@@ -16,9 +18,18 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
-from cfrace.flight.config import FlightConfig
+from cfrace.errors import LinkError
+from cfrace.flight.clock import LockstepClock, RealClock
+from cfrace.flight.config import DRONE_NAMES, FlightConfig
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
+from cfrace.flight.link import DirectSimLink
+from cfrace.flight.links import open_link
+from cfrace.flight.loopstate import RaceResult
+from cfrace.flight.mocap import open_mocap
 from cfrace.flight.runner import run_race
+from cfrace.flight.setup import RaceIO, RaceSetup, resolve_race
+from cfrace.simcf.firmware import SimFleet
+from cfrace.simcf.server import SimCrazyflieServer
 
 SETTLE_MAX_S = 3.0
 
@@ -50,34 +61,55 @@ def _settle(fleet, lockstep: bool, dt: float):
     return settle
 
 
-def training_profile(track: str, ego: str, obstacles: bool, default: str = "cf21bl") -> str:
-    """The drone profile the ego policy was trained for (metadata drone_profile), if it names a
-    known profile; else ``default``. Policy errors surface later, in the checks before flight."""
-    from cfrace.drone import load_profile
-    from cfrace.errors import CfraceError
-    from cfrace.policy import OnnxPolicy, resolve_policy
-    from cfrace.track import load_track
+def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector: FaultInjector | None = None,
+           mocap_options: dict | None = None, lockstep_warm_calls: int = 0) -> RaceIO:
+    """The I/O of a race on ``fleet``: the `sim` mocap source (wrapped by the injector's faults),
+    sim://N links (lockstep: straight to the fleet, on the fleet's clock) or udp:// links through
+    cflib (real time), each registered with the injector as a link it may cut. With
+    lockstep_warm_calls > 0 the loop's warm-up runs that often before every lockstep tick, as it
+    does in real time (tests show it changes nothing)."""
+    clock = LockstepClock(cfg.dt, advance=fleet.advance, warm_calls=lockstep_warm_calls) if lockstep \
+        else RealClock(cfg.dt)
+    link_clock = clock.now if lockstep else time.monotonic
 
-    try:
-        name = OnnxPolicy(resolve_policy(ego, load_track(track).name, obstacles)).meta["drone_profile"]
-        load_profile(name)
-        return name
-    except (CfraceError, KeyError):
-        return default
+    def mocap():
+        source = open_mocap("sim", bodies=list(cfg.bodies), sim=fleet, **(mocap_options or {}))
+        return injector.wrap_mocap(source) if injector is not None else source
+
+    def link(i: int, uri: str):
+        if uri.startswith("sim://"):
+            try:
+                made = DirectSimLink(fleet, int(uri[len("sim://"):]), clock=link_clock)
+            except ValueError:
+                raise LinkError(f"{uri}: expected sim://INDEX") from None
+        else:
+            made = open_link(uri)
+        if injector is not None:
+            injector.cutters.setdefault(DRONE_NAMES[i], getattr(made, "cut_link", None))
+        return made
+
+    prewarm_s = 0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s
+    return RaceIO(open_mocap=mocap, open_link=link, clock=clock, link_clock=link_clock, prewarm_s=prewarm_s,
+                  uris=tuple(uris), hooks=injector)
+
+
+def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=("sim://0", "sim://1"),
+             injector: FaultInjector | None = None, **run_options) -> RaceResult:
+    """run_race on an in-process fleet (tests and the dry-run)."""
+    return run_race(setup, sim_io(setup.cfg, fleet, lockstep=lockstep, uris=uris, injector=injector), **run_options)
 
 
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
-            lockstep_warm_calls: int = 0) -> dict:
-    """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info."""
-    from cfrace.simcf.firmware import SimFleet
-    from cfrace.simcf.server import SimCrazyflieServer
-
+            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None) -> RaceResult:
+    """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info.
+    ``setup``: the race resolved already (the CLI's), else resolved here from cfg."""
     fault_list = parse_faults(faults)
     cfg = replace(cfg, mocap="sim")
     if cfg.latency_comp_s is None:    # make up for the simulated latency (the `sim` default is none)
         cfg = replace(cfg, latency_comp_s=float(mocap_latency_s))
-    fleet = SimFleet(cfg.track, cfg.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles)
+    setup = replace(setup, cfg=cfg) if setup is not None else resolve_race(cfg)
+    fleet = SimFleet(setup.track, setup.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles)
     injector = FaultInjector(fault_list, dict(zip(("ego", "opp"), cfg.bodies))) if fault_list else None
     server, relays = None, {}
     mocap_options = {"noise_m": mocap_noise_m, "latency_s": mocap_latency_s, "seed": seed}
@@ -93,20 +125,19 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
                     if f.drone not in relays:
                         relays[f.drone] = UdpCutRelay(server.ports[i])
                         uris[i] = relays[f.drone].uri
-        if injector is not None:   # lockstep: run_race uses DirectSimLink.cut_link
+        if injector is not None:   # lockstep: the DirectSimLinks cut themselves (sim_io)
             for name, relay in relays.items():
                 injector.cutters[name] = relay.cut
-        result = run_race(cfg, fleet=fleet, lockstep=lockstep, injector=injector,
-                          mocap_options=mocap_options, uris=uris, settle=_settle(fleet, lockstep, cfg.dt),
+        io = sim_io(cfg, fleet, lockstep=lockstep, uris=uris, injector=injector, mocap_options=mocap_options,
+                    lockstep_warm_calls=lockstep_warm_calls)
+        result = run_race(setup, io, settle=_settle(fleet, lockstep, cfg.dt), console=console,
                           extra_meta={"dry_run": True, "seed": seed, "faults": faults or "",
-                                      "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s},
-                          console=console, lockstep_warm_calls=lockstep_warm_calls)
+                                      "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s})
         if server is not None:
-            result["sim"] = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
+            result.sim = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
         return result
     finally:
         for relay in relays.values():
             relay.close()
         if server is not None:
             server.stop()
-

@@ -3,7 +3,7 @@
 Units at this boundary (design rule 10: conversions happen only here):
 ``send(roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts)`` takes the BODY rates the
 drone must fly, right-handed, x forward, y left, z up (pitch + = nose down), in deg/s, and the
-collective thrust in CRTP counts (profile.thrust_curve.to_counts).
+collective thrust in CRTP counts (cfrace.env.actions.SetpointMap: the calibration curve).
 
 The legacy CRTP setpoint (port 3, ``<fffH``) does not carry those values as they are:
 cflib's ``send_setpoint`` negates pitch, and the firmware negates the yaw rate of this packet
@@ -21,12 +21,9 @@ import time
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-import numpy as np
-
 from cfrace.errors import LinkError
 
 RATE_MODE_PARAMS = ("flightmode.stabModeRoll", "flightmode.stabModePitch")  #: set to 0 after EVERY connect
-THRUST_MAX_COUNTS = 65535
 
 
 def packet_values(p_dps: float, q_dps: float, r_dps: float) -> tuple[float, float, float]:
@@ -37,12 +34,6 @@ def packet_values(p_dps: float, q_dps: float, r_dps: float) -> tuple[float, floa
 def cflib_setpoint_args(p_dps: float, q_dps: float, r_dps: float) -> tuple[float, float, float]:
     """Body rates (deg/s) -> the (roll, pitch, yawrate) arguments of cflib's send_setpoint."""
     return p_dps, q_dps, -r_dps
-
-
-def thrust_to_counts(thrust_n, curve) -> np.ndarray | int:
-    """Collective thrust (N) -> uint16 counts through the calibration curve (clamped, rounded)."""
-    counts = np.clip(np.rint(curve.to_counts(thrust_n)), 0, THRUST_MAX_COUNTS)
-    return int(counts) if np.ndim(counts) == 0 else counts.astype(np.int64)
 
 
 @dataclass
@@ -217,23 +208,3 @@ class RecordingLink:
 
     def close(self) -> None:
         self.quality.connected = False
-
-
-def open_link(uri: str, *, fleet=None, clock=time.monotonic) -> Link:
-    """A Link for ``uri``: radio:// and udp:// go through cflib (link_cflib.py); sim://N is a
-    DirectSimLink to drone N of ``fleet``; null:// records only."""
-    if uri.startswith(("radio://", "udp://", "usb://")):
-        from cfrace.flight.link_cflib import CflibLink
-
-        return CflibLink(uri)
-    if uri.startswith("sim://"):
-        if fleet is None:
-            raise LinkError(f"{uri}: a sim:// link needs the in-process simulator (cfrace sim dry-run --lockstep)")
-        try:
-            index = int(uri[len("sim://"):])
-        except ValueError:
-            raise LinkError(f"{uri}: expected sim://INDEX") from None
-        return DirectSimLink(fleet, index, clock=clock)
-    if uri.startswith("null://"):
-        return RecordingLink(uri, clock=clock)
-    raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N)")

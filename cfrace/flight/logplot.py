@@ -203,76 +203,87 @@ def plot_log(data: FlightLogData, out_dir: str | Path, *, dpi: int = 120) -> lis
     written: list[Path] = []
     trajs = trajectories(data)
     colors = {b: f"C{i}" for i, b in enumerate(sorted(trajs))}
-
     track = _load_track(data.meta)
     if trajs or track is not None:
-        fig, ax = plt.subplots(figsize=(7, 7))
-        if track is not None:
-            obstacles = bool(data.meta.get("obstacles", True))
-            try:
-                from cfrace.trackplot import draw_track
-                draw_track(ax, track, obstacles, view="top")
-            except ImportError:
-                _draw_gates_fallback(ax, track)
-        for body, d in trajs.items():
-            p = d["pos"]
-            ax.plot(p[:, 0], p[:, 1], color=colors[body], lw=1.5, label=body, zorder=8)
-            ax.plot(p[0, 0], p[0, 1], "o", color=colors[body], ms=6, zorder=9)
-            ax.plot(p[-1, 0], p[-1, 1], "s", color=colors[body], mec="black", ms=6, zorder=9)
-        if trajs:
-            ax.legend(loc="upper right", title="o start, \u25a0 end")
-        ax.set_title(f"{title}\ntrack {data.meta.get('track', '?')}, top view")
-        written.append(_save(fig, out / f"{stem}_trajectory.png", dpi))
-
+        written.append(_save(_trajectory_figure(plt, data, track, trajs, colors, title), out / f"{stem}_trajectory.png",
+                             dpi))
     if trajs:
-        fig, ax = plt.subplots(figsize=(9, 4))
-        for body, d in trajs.items():
-            speed = np.linalg.norm(d["vel"], axis=1)
-            ok = np.isfinite(speed)
-            if ok.any():
-                ax.plot(d["t"][ok], speed[ok], color=colors[body], lw=1.2,
-                        label=f"{body} (max {speed[ok].max():.2f}, mean {speed[ok].mean():.2f} m/s)")
-        ax.set_xlabel("flight time t [s]")
-        ax.set_ylabel("speed [m/s]")
-        ax.grid(alpha=0.3)
-        ax.legend(loc="upper right")
-        ax.set_title(f"{title}: speed")
-        written.append(_save(fig, out / f"{stem}_speed.png", dpi))
-
+        written.append(_save(_speed_figure(plt, trajs, colors, title), out / f"{stem}_speed.png", dpi))
     ts = timing_series(data)
     if len(ts["t"]):
-        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
-        both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
-        top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
-        bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
-        for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute"),
-                                  ("late_s", "C2", "start late")):
-            ms = ts[key] * 1e3
-            ok = np.isfinite(ms)
-            if not ok.any():
-                continue
-            st = _percentiles(ms)
-            text = f"{label}: p50 {st['p50']:.2f}, p99 {st['p99']:.2f}, max {st['max']:.2f} ms"
-            ax0.plot(ts["t"][ok], ms[ok], ".", ms=2, color=color, label=text)
-            ax1.hist(ms[ok], bins=bins, color=color, alpha=0.6, label=label)
-        period = data.meta.get("period_s") or (1.0 / data.meta["rate_hz"]
-                                               if data.meta.get("rate_hz") else None)
-        if isinstance(period, (int, float)):
-            for ax in (ax0, ax1):
-                (ax.axhline if ax is ax0 else ax.axvline)(period * 1e3, color="black", ls="--",
-                                                          lw=0.8)
-        ax0.set_xlabel("flight time t [s]")
-        ax0.set_ylabel("ms")
-        ax0.grid(alpha=0.3)
-        ax0.legend(loc="best", fontsize=8, markerscale=4)
-        ax0.set_title(f"{title}: loop timing")
-        ax1.set_xlabel("ms")
-        ax1.set_ylabel("ticks")
-        ax1.set_yscale("log")
-        ax1.legend(fontsize=8)
-        ax1.set_title("histogram")
-        written.append(_save(fig, out / f"{stem}_timing.png", dpi))
+        written.append(_save(_timing_figure(plt, data, ts, title), out / f"{stem}_timing.png", dpi))
     return written
+
+
+def _trajectory_figure(plt, data: FlightLogData, track, trajs: dict, colors: dict, title: str):
+    """Top view: the track and each body's path (o start, square end)."""
+    fig, ax = plt.subplots(figsize=(7, 7))
+    if track is not None:
+        obstacles = bool(data.meta.get("obstacles", True))
+        try:
+            from cfrace.trackplot import draw_track
+            draw_track(ax, track, obstacles, view="top")
+        except ImportError:
+            _draw_gates_fallback(ax, track)
+    for body, d in trajs.items():
+        p = d["pos"]
+        ax.plot(p[:, 0], p[:, 1], color=colors[body], lw=1.5, label=body, zorder=8)
+        ax.plot(p[0, 0], p[0, 1], "o", color=colors[body], ms=6, zorder=9)
+        ax.plot(p[-1, 0], p[-1, 1], "s", color=colors[body], mec="black", ms=6, zorder=9)
+    if trajs:
+        ax.legend(loc="upper right", title="o start, \u25a0 end")
+    ax.set_title(f"{title}\ntrack {data.meta.get('track', '?')}, top view")
+    return fig
+
+
+def _speed_figure(plt, trajs: dict, colors: dict, title: str):
+    """Each body's estimated speed over the flight."""
+    fig, ax = plt.subplots(figsize=(9, 4))
+    for body, d in trajs.items():
+        speed = np.linalg.norm(d["vel"], axis=1)
+        ok = np.isfinite(speed)
+        if ok.any():
+            ax.plot(d["t"][ok], speed[ok], color=colors[body], lw=1.2,
+                    label=f"{body} (max {speed[ok].max():.2f}, mean {speed[ok].mean():.2f} m/s)")
+    ax.set_xlabel("flight time t [s]")
+    ax.set_ylabel("speed [m/s]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right")
+    ax.set_title(f"{title}: speed")
+    return fig
+
+
+def _timing_figure(plt, data: FlightLogData, ts: dict, title: str):
+    """The loop's period, compute and lateness per tick, and their histogram."""
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
+    both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
+    top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
+    bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
+    for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute"),
+                              ("late_s", "C2", "start late")):
+        ms = ts[key] * 1e3
+        ok = np.isfinite(ms)
+        if not ok.any():
+            continue
+        st = _percentiles(ms)
+        text = f"{label}: p50 {st['p50']:.2f}, p99 {st['p99']:.2f}, max {st['max']:.2f} ms"
+        ax0.plot(ts["t"][ok], ms[ok], ".", ms=2, color=color, label=text)
+        ax1.hist(ms[ok], bins=bins, color=color, alpha=0.6, label=label)
+    period = data.meta.get("period_s") or (1.0 / data.meta["rate_hz"] if data.meta.get("rate_hz") else None)
+    if isinstance(period, (int, float)):
+        for ax in (ax0, ax1):
+            (ax.axhline if ax is ax0 else ax.axvline)(period * 1e3, color="black", ls="--", lw=0.8)
+    ax0.set_xlabel("flight time t [s]")
+    ax0.set_ylabel("ms")
+    ax0.grid(alpha=0.3)
+    ax0.legend(loc="best", fontsize=8, markerscale=4)
+    ax0.set_title(f"{title}: loop timing")
+    ax1.set_xlabel("ms")
+    ax1.set_ylabel("ticks")
+    ax1.set_yscale("log")
+    ax1.legend(fontsize=8)
+    ax1.set_title("histogram")
+    return fig
 
 
 def _save(fig, path: Path, dpi: int) -> Path:

@@ -35,18 +35,17 @@ idle part of the period, not in the middle of a tick.
 
 from __future__ import annotations
 
-import bisect
 import math
 import time
-from dataclasses import dataclass
 
 import numpy as np
 
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, GRAVITY
-from cfrace.env.observations import ObsLayout, build_observation
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight import safety as sf
-from cfrace.flight.link import THRUST_MAX_COUNTS
+from cfrace.flight.loopstate import Drone, KillSwitch, LoopResult, ObservationBuilder, TickTimes
 from cfrace.flight.mocap import frame_to_msg
+
+__all__ = ["FlightLoop", "Drone", "KillSwitch", "LoopResult", "ObservationBuilder", "FLYING_MIN_COUNTS"]
 
 #: thrust counts sent at least while a drone races: the Crazyflie firmware turns a legacy setpoint
 #: below 1000 counts (MIN_THRUST, crtp_commander_rpyt.c) into zero thrust, and at zero thrust its
@@ -59,122 +58,6 @@ PRE_RACE_WARM_CALLS = 20   #: policy calls per drone before the clock starts (Fl
 
 perf = time.perf_counter
 thread_time = time.thread_time   # CPU time of this thread: the tick's own cost, without preemption
-
-
-class SetpointMap:
-    """One drone's action (4,) -> (thrust N, body rates deg/s, thrust counts): the training action
-    map (cfrace.env.actions.action_to_command), np.degrees and the calibration curve
-    (cfrace.flight.link.thrust_to_counts), done with the same float64 operations in the same order
-    on Python floats. Bit-identical to those (tests/test_flight_core.py) and a fraction of their
-    cost on a 4-vector: about 10 numpy calls fewer in every tick."""
-
-    def __init__(self, mass: float, max_thrust_weights: float, max_rates_deg, curve):
-        self.scale = max_thrust_weights * mass * GRAVITY
-        self.k = tuple(math.radians(v) for v in max_rates_deg)
-        self.xp = [float(v) for v in curve.newtons]
-        self.fp = [float(v) for v in curve.counts]
-
-    def _interp(self, x: float) -> float:
-        """np.interp(x, newtons, counts) for one finite x: numpy's rule and arithmetic
-        (compiled_base.c: clamp at the ends, knot values exact, slope * (x - x_j) + y_j)."""
-        xp, fp = self.xp, self.fp
-        if x > xp[-1]:
-            return fp[-1]
-        if x < xp[0]:
-            return fp[0]
-        j = bisect.bisect_right(xp, x) - 1           # xp[j] <= x < xp[j + 1]
-        if j == len(xp) - 1 or xp[j] == x:
-            return fp[j]
-        slope = (fp[j + 1] - fp[j]) / (xp[j + 1] - xp[j])
-        return slope * (x - xp[j]) + fp[j]
-
-    def __call__(self, act) -> tuple[float, tuple[float, float, float], int]:
-        """act: 4 numbers. Counts are 0 for a non-finite thrust (never sent: the safety check stops
-        the drone)."""
-        a0, a1, a2, a3 = (min(max(float(x), -1.0), 1.0) for x in act)   # NaN stays NaN, like clip
-        thrust = (a0 + 1.0) * 0.5 * self.scale
-        k = self.k
-        rates = (math.degrees(a1 * k[0]), math.degrees(a2 * k[1]), math.degrees(a3 * k[2]))
-        if not math.isfinite(thrust):
-            return thrust, rates, 0
-        c = round(self._interp(thrust))                             # round half to even, as np.rint
-        return thrust, rates, min(max(c, 0), THRUST_MAX_COUNTS)
-
-
-class KillSwitch:
-    """Set by signal handlers (or anyone): the next tick stops every drone and ends the loop."""
-
-    def __init__(self):
-        self.reason: str | None = None
-
-    def request(self, reason: str) -> None:
-        if self.reason is None:
-            self.reason = reason
-
-
-@dataclass
-class Drone:
-    """One racing drone in the loop (mutable runtime state)."""
-
-    name: str                  #: "ego" / "opp"
-    body: str                  #: mocap body name
-    policy: object             #: callable obs (1, D) float32 -> (1, 4) actions
-    layout: ObsLayout
-    link: object               #: cfrace.flight.link.Link
-    meta: dict                 #: policy metadata
-    mass: float                #: kg, flown drone (thrust in N = weights x m g)
-    thrust_curve: object       #: profile.thrust_curve
-    decimation: int = 2        #: loop ticks per policy step
-    phase: int = 0             #: the policy runs on ticks with k % decimation == phase
-    stopped: bool = False
-    stop_kind: str = ""
-    stop_t: float = float("nan")
-    stop_k: int = -1
-    frozen_pos: np.ndarray | None = None
-    action: np.ndarray | None = None   #: (4,) last policy output; None before the first inference
-    obs: np.ndarray | None = None
-    thrust_n: float = 0.0
-    rates_dps: tuple = (0.0, 0.0, 0.0)   #: roll, pitch, yaw rate setpoint, deg/s
-    counts: int = 0
-    speed_max: float = 0.0
-    speed_sum: float = 0.0
-    speed_n: int = 0
-    setpoint_map: SetpointMap | None = None   #: built from meta, mass and thrust_curve
-
-    def __post_init__(self):
-        if self.setpoint_map is None:
-            self.setpoint_map = SetpointMap(self.mass, self.meta["max_thrust_weights"], self.meta["max_rates_deg"],
-                                            self.thrust_curve)
-
-
-class ObservationBuilder:
-    """The training observation (cfrace.env.observations.build_observation, the same function)
-    from estimates, on float32 numpy arrays: no torch dispatch in the tick. Bit-identical to the
-    env's torch observations on the same states (tests/test_flight_core.py); 87 us instead of 428 us
-    per call on one-drone torch tensors (p50 in the real-time loop, docs/benchmarks.md)."""
-
-    def __init__(self, gate_corners: np.ndarray):
-        self.corners = np.ascontiguousarray(np.asarray(gate_corners, dtype=np.float32))  # (G, 4, 3)
-        self._no_opp = np.zeros(6)
-
-    def __call__(self, layout: ObsLayout, est, target: int, opp=None) -> np.ndarray:
-        o = (opp.pos, opp.vel) if layout.opponent else (self._no_opp,)
-        st = np.concatenate([est.pos, est.vel, np.ravel(est.rot), *o]).astype(np.float32)
-        pos, vel, rot = st[0:3], st[3:6], st[6:15].reshape(3, 3)
-        opp_pos, opp_vel = (st[15:18], st[18:21]) if layout.opponent else (None, None)
-        return build_observation(pos, vel, rot, int(target), self.corners, layout, opp_pos, opp_vel)
-
-
-@dataclass
-class LoopResult:
-    end: str                         #: "finished", "all_stopped", "timeout", "operator_kill", "loop_overrun"
-    winner: str                      #: drone name or "draw"
-    t_end: float
-    ticks: int
-    skipped: int
-    timing: dict                     #: arrays: late, period, compute, compute_cpu, infer + obs (per drone)
-    safety_events: list
-    drones: list
 
 
 class FlightLoop:
@@ -323,95 +206,86 @@ class FlightLoop:
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> LoopResult:
-        n = len(self.drones)
-        late_l, period_l, compute_l, cpu_l, warm_l, warm_n = [], [], [], [], [], []
-        before = self.prewarm if self.prewarm_s > 0.0 else None
-        infer_l, obs_l = [[] for _ in range(n)], [[] for _ in range(n)]
+        times = TickTimes(len(self.drones))
         end, winner = "", "draw"
-        prev_wall = None
-        k = 0
         try:
             for d in self.drones:     # before the clock starts: it may wait for cflib's ping thread
                 d.link.pace_pings()   # pinged by this loop from now on, after the setpoints (Link.ping)
-            if before is not None:    # the first ticks have no warm-up window before them: warm now
+            if self.prewarm_s > 0.0:  # the first ticks have no warm-up window before them: warm now
                 self.warm_policies()
             self.clock.start()
             self.running = True
-            while True:
-                self._warm_s, self._warm_n = 0.0, 0
-                tick = (self.clock.wait_next() if before is None
-                        else self.clock.wait_next(before, self.prewarm_s, self.warm_links))
-                t_start = perf()
-                cpu_start = thread_time()
-                k, t = tick.k, tick.t
-                self.t = t
-                if self.faults is not None:
-                    self.faults.before_tick(self, t)
-                frame = self.mocap.read(0.0)
-                if frame is not None:
-                    self._last_frame = frame
-                now = self._now = self.clock.now()
-                est_map = self.estimator.update(frame, now)
-                ests = self._last_ests = [est_map[d.body] for d in self.drones]
-                safe_pos = self._positions(ests)
-                passed, lap_done, hit = self.progress.update(t, safe_pos)
-                infer, obs_t = [np.nan] * n, [np.nan] * n
-                computed = [False] * n
-                for i, d in enumerate(self.drones):
-                    if self._due(d, k):
-                        obs_t[i], infer[i] = self._policy_step(i, ests, k)
-                        computed[i] = True
-                inputs = self._safety_inputs(t, tick.late_s, ests, computed, hit)
-                decision = sf.check(inputs, self.fence, self.safety_cfg)
-                for i, d in enumerate(self.drones):
-                    if decision.stop[i]:
-                        kinds = [v.kind for v in decision.violations
-                                 if v.action != sf.NONE and (v.drone == i or v.drone is None)]
-                        if not d.stopped:
-                            d.frozen_pos = ests[i].pos.copy()
-                            d.stop_k = k
-                        self._stop(i, t, kinds[0] if kinds else "safety")
-                    elif not d.stopped:
-                        r = d.rates_dps
-                        d.link.send(r[0], r[1], r[2], d.counts)
-                t_sent = perf()
-                cpu_l.append(thread_time() - cpu_start)
-                # ---------------------------------------------- after the send: bookkeeping
-                compute = t_sent - t_start
-                late_l.append(tick.late_s)
-                period_l.append(np.nan if prev_wall is None else tick.wall - prev_wall)
-                prev_wall = tick.wall
-                compute_l.append(compute)
-                warm_l.append(self._warm_s if self._warm_n else np.nan)
-                warm_n.append(self._warm_n)
-                for i in range(n):
-                    infer_l[i].append(infer[i])
-                    obs_l[i].append(obs_t[i])
-                self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu_l[-1],
-                                  (obs_t, infer), computed)
-                # ---------------------------------------------- race end
-                if decision.stop_all:   # includes the operator kill (a signal seen by this tick's check)
-                    end = next(v.kind for v in decision.violations if v.action == sf.STOP_ALL)
-                    break
-                done = [i for i in range(n) if self.progress.laps[i] >= self.laps and not self.drones[i].stopped]
-                if done:
-                    end, winner = "finished", (self.drones[done[0]].name if len(done) == 1 else "draw")
-                    break
-                if all(d.stopped for d in self.drones):
-                    end = "all_stopped"
-                    break
-                if t >= self.timeout_s:
-                    end = "timeout"
-                    break
+            while not end:
+                end, winner = self._tick(times)
         finally:
             self.running = False
             self.stop_all(self.t, end or "exception")
-        return LoopResult(end=end, winner=winner, t_end=self.t, ticks=len(compute_l), skipped=self.clock.skipped,
-                          timing={"late": np.asarray(late_l), "period": np.asarray(period_l),
-                                  "compute": np.asarray(compute_l), "compute_cpu": np.asarray(cpu_l),
-                                  "prewarm": np.asarray(warm_l), "prewarm_calls": np.asarray(warm_n),
-                                  "infer": [np.asarray(x) for x in infer_l], "obs": [np.asarray(x) for x in obs_l]},
-                          safety_events=self.events, drones=self.drone_results())
+        return LoopResult(end=end, winner=winner, t_end=self.t, ticks=len(times.compute), skipped=self.clock.skipped,
+                          timing=times.arrays(), safety_events=self.events, drones=self.drone_results())
+
+    def _tick(self, times: "TickTimes") -> tuple[str, str]:
+        """One tick: wait for it, read the newest poses, estimate, race progress, the due drones'
+        policies, the safety check, the setpoints; then the bookkeeping. Returns (end, winner),
+        end "" while the race goes on."""
+        self._warm_s, self._warm_n = 0.0, 0
+        tick = (self.clock.wait_next() if self.prewarm_s <= 0.0
+                else self.clock.wait_next(self.prewarm, self.prewarm_s, self.warm_links))
+        t_start = perf()
+        cpu_start = thread_time()
+        k, t = tick.k, tick.t
+        self.t = t
+        if self.faults is not None:
+            self.faults.before_tick(self, t)
+        frame = self.mocap.read(0.0)
+        if frame is not None:
+            self._last_frame = frame
+        now = self._now = self.clock.now()
+        est_map = self.estimator.update(frame, now)
+        ests = self._last_ests = [est_map[d.body] for d in self.drones]
+        passed, lap_done, hit = self.progress.update(t, self._positions(ests))
+        n = len(self.drones)
+        infer, obs_t, computed = [np.nan] * n, [np.nan] * n, [False] * n
+        for i, d in enumerate(self.drones):
+            if self._due(d, k):
+                obs_t[i], infer[i] = self._policy_step(i, ests, k)
+                computed[i] = True
+        decision = sf.check(self._safety_inputs(t, tick.late_s, ests, computed, hit), self.fence, self.safety_cfg)
+        self._send_or_stop(decision, ests, t, k)
+        t_sent = perf()
+        cpu = thread_time() - cpu_start
+        # ---------------------------------------------- after the send: bookkeeping
+        times.add(tick, t_sent - t_start, cpu, self._warm_s, self._warm_n, infer, obs_t)
+        self._bookkeeping(t, k, tick, frame, est_map, ests, decision, passed, lap_done, t_sent - t_start, cpu,
+                          (obs_t, infer), computed)
+        return self._race_end(decision, t)
+
+    def _send_or_stop(self, decision, ests: list, t: float, k: int) -> None:
+        """Each drone's setpoint to its link, or its stop when the safety decision says so."""
+        for i, d in enumerate(self.drones):
+            if decision.stop[i]:
+                kinds = [v.kind for v in decision.violations
+                         if v.action != sf.NONE and (v.drone == i or v.drone is None)]
+                if not d.stopped:
+                    d.frozen_pos = ests[i].pos.copy()
+                    d.stop_k = k
+                self._stop(i, t, kinds[0] if kinds else "safety")
+            elif not d.stopped:
+                r = d.rates_dps
+                d.link.send(r[0], r[1], r[2], d.counts)
+
+    def _race_end(self, decision, t: float) -> tuple[str, str]:
+        """(end, winner) after this tick; end "" while the race goes on."""
+        if decision.stop_all:   # includes the operator kill (a signal seen by this tick's check)
+            return next(v.kind for v in decision.violations if v.action == sf.STOP_ALL), "draw"
+        n = len(self.drones)
+        done = [i for i in range(n) if self.progress.laps[i] >= self.laps and not self.drones[i].stopped]
+        if done:
+            return "finished", (self.drones[done[0]].name if len(done) == 1 else "draw")
+        if all(d.stopped for d in self.drones):
+            return "all_stopped", "draw"
+        if t >= self.timeout_s:
+            return "timeout", "draw"
+        return "", "draw"
 
     def _bookkeeping(self, t, k, tick, frame, est_map, ests, decision, passed, lap_done, compute, cpu, infer,
                      computed) -> None:
@@ -443,37 +317,41 @@ class FlightLoop:
                 d.speed_max = max(d.speed_max, s)
                 d.speed_sum += s
                 d.speed_n += 1
-        log = self.log
-        if log is not None:
-            if frame is not None:
-                log.write("/mocap/pose", t, {**frame_to_msg(frame), "k": k})
-            log.write("/estimate", t, {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
-                                           "valid": e.valid} for b, e in est_map.items()})
-            if any(computed):
-                done = [d for c, d in zip(computed, self.drones) if c]
-                log.write("/obs", t, {"k": k, **{d.body: d.obs for d in done}})
-                log.write("/action", t, {"k": k, **{d.body: d.action for d in done}})
-            log.write("/setpoint", t, {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n,
-                                                "thrust_counts": d.counts, "rates_dps": np.array(d.rates_dps)}
-                                       for d in self.drones})
-            log.write("/timing", t, {"k": k, "now": self._now,
-                                     "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
-                                     "compute_cpu_s": cpu,
-                                     "prewarm_s": self._warm_s if self._warm_n else float("nan"), "prewarm_calls": self._warm_n,
-                                     "obs_s": {d.body: obs_t[i] for i, d in enumerate(self.drones)},
-                                     "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
-            if passed.any() or lap_done.any():
-                log.write("/race", t, self.race_state())
-            if k % self.link_log_every == 0:
-                mono = self.link_clock()
-                log.write("/link", t, {d.body: d.link.quality.as_dict(mono) for d in self.drones})
+        if self.log is not None:
+            self._log_tick(t, k, tick, frame, est_map, passed, lap_done, compute, cpu, obs_t, infer, computed)
         if self.view is not None:
             try:
                 self.view.maybe_update(self, t, ests)
             except Exception as exc:  # noqa: BLE001 - a broken terminal must not end the race
                 self.view = None
-                if log is not None:
-                    log.write("/event", t, {"kind": "view_off", "text": f"live view disabled: {exc}"})
+                if self.log is not None:
+                    self.log.write("/event", t, {"kind": "view_off", "text": f"live view disabled: {exc}"})
+
+    def _log_tick(self, t, k, tick, frame, est_map, passed, lap_done, compute, cpu, obs_t, infer, computed) -> None:
+        """This tick's records in the flight log (topics: docs/flight-log.md)."""
+        log = self.log
+        if frame is not None:
+            log.write("/mocap/pose", t, {**frame_to_msg(frame), "k": k})
+        log.write("/estimate", t, {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
+                                       "valid": e.valid} for b, e in est_map.items()})
+        if any(computed):
+            done = [d for c, d in zip(computed, self.drones) if c]
+            log.write("/obs", t, {"k": k, **{d.body: d.obs for d in done}})
+            log.write("/action", t, {"k": k, **{d.body: d.action for d in done}})
+        log.write("/setpoint", t, {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n,
+                                            "thrust_counts": d.counts, "rates_dps": np.array(d.rates_dps)}
+                                   for d in self.drones})
+        log.write("/timing", t, {"k": k, "now": self._now,
+                                 "late_s": tick.late_s, "skipped": tick.skipped, "compute_s": compute,
+                                 "compute_cpu_s": cpu,
+                                 "prewarm_s": self._warm_s if self._warm_n else float("nan"), "prewarm_calls": self._warm_n,
+                                 "obs_s": {d.body: obs_t[i] for i, d in enumerate(self.drones)},
+                                 "infer_s": {d.body: infer[i] for i, d in enumerate(self.drones)}})
+        if passed.any() or lap_done.any():
+            log.write("/race", t, self.race_state())
+        if k % self.link_log_every == 0:
+            mono = self.link_clock()
+            log.write("/link", t, {d.body: d.link.quality.as_dict(mono) for d in self.drones})
 
     def race_state(self) -> dict:
         p = self.progress

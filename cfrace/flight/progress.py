@@ -1,11 +1,10 @@
 """Race progress for the flight loop: cfrace.sim.gates.RaceProgress with a fast update on floats.
 
-The rule is the simulator's (cfrace.sim.gates.crossing, to_gate_frame; same constants, float64),
-re-written with plain Python floats for the two drones because the torch version costs
-~0.1-0.3 ms per call on (2, 3) tensors, a third of the loop's compute budget (this one: ~20 us).
-tests/test_flight_core.py proves the two give the same passes, frame hits, targets, laps and
-lap times on random and flown trajectories.
-The gate yaw cos/sin are computed once by torch so both paths use the very same values.
+The rule is the simulator's (cfrace.sim.gates.crossing, to_gate_frame; its constants, float64),
+repeated on plain Python floats per drone because array code costs several times more per call
+on (2, 3) arrays (this one: ~20 us). tests/test_flight_core.py proves the two give the same
+passes, frame hits, targets, laps and lap times on random and flown trajectories.
+The gate yaw cos/sin are computed once by numpy, as in the reference, so both use the same values.
 """
 
 from __future__ import annotations
@@ -13,7 +12,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import torch
 
 from cfrace.sim.gates import FRAME_HIT_HALF, PASS_HALF, PASS_RADIUS, RaceProgress
 
@@ -23,12 +21,12 @@ class FastRaceProgress(RaceProgress):
 
     def __post_init__(self):
         super().__post_init__()
-        yaw = torch.as_tensor(np.asarray(self.gates)[:, 3], dtype=torch.float64)
-        self._cos = torch.cos(yaw).numpy()   # (G,)
-        self._sin = torch.sin(yaw).numpy()
+        yaw = np.asarray(self.gates, dtype=np.float64)[:, 3]
+        self._cos = np.cos(yaw)   # (G,)
+        self._sin = np.sin(yaw)
         self._centre = np.asarray(self.gates, dtype=np.float64)[:, :3]   # (G, 3)
         # plain floats: for two drones Python arithmetic beats numpy's per-call overhead, and
-        # float64 + - * / sqrt round exactly like torch's float64 ops
+        # float64 + - * / sqrt round exactly like numpy's float64 ops
         self._cos_l, self._sin_l = self._cos.tolist(), self._sin.tolist()
         self._centre_l = [tuple(c) for c in self._centre.tolist()]
         self._nothing = np.zeros(self.num_drones, bool)

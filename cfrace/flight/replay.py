@@ -12,11 +12,12 @@ ones are compared.)
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from cfrace.drone import load_profile
+from cfrace.drone import DroneProfile, load_profile
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import LogError
 from cfrace.flight.clock import Tick
@@ -25,16 +26,17 @@ from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import read_log
 from cfrace.flight.link import RecordingLink
 from cfrace.flight.loop import Drone, FlightLoop, ObservationBuilder
-from cfrace.flight.mocap import frame_from_msg
+from cfrace.flight.mocap import frame_from_msg, open_mocap
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.safety import Fence
-from cfrace.track import load_track
+from cfrace.track import Track, load_track
 
 
 class _ReplayClock:
     def __init__(self, ticks: list[dict], dt: float):
         self.ticks, self.dt, self.i = ticks, dt, -1
         self.realtime, self.skipped = False, 0
+        self.links: list = []   #: links marked as heard at every tick
 
     def start(self) -> None:
         self.i = -1
@@ -42,6 +44,8 @@ class _ReplayClock:
     def wait_next(self) -> Tick:
         self.i = min(self.i + 1, len(self.ticks) - 1)
         m = self.ticks[self.i]
+        for link in self.links:
+            link.quality.last_rx = self.now()
         return Tick(int(m["k"]), float(m["t"]), float(m["late_s"] or 0.0), int(m["skipped"] or 0), float(m["t"]))
 
     def now(self) -> float:
@@ -84,23 +88,32 @@ class _Collect:
                     self.obs[(k, body)] = np.asarray(v, dtype=np.float32)
 
 
-def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
-    """Re-run a logged flight lockstep; returns counts and whether every observation matched.
+@dataclass(frozen=True)
+class _Logged:
+    """What a log says of its flight: the set-up, the ticks, the frames and the observations."""
 
-    via_replay_source: read the frames through the mocap source ``replay://LOG?speed=0`` (one
-    frame per read) instead of by tick index; needs a log with exactly one frame per tick (a
-    lockstep dry-run without mocap faults)."""
+    meta: dict
+    track: Track
+    profile: DroneProfile
+    safety: SafetyConfig
+    policies: list
+    bodies: list[str]
+    rate_hz: float
+    laps: int
+    ticks: list[dict]
+    frames: dict
+    obs: dict
+
+
+def _read(path: str | Path, data) -> _Logged:
+    """The log's flight; LogError when it cannot be replayed."""
     from cfrace.policy import OnnxPolicy
 
-    data = read_log(path)
     meta = data.meta
     try:
-        track = load_track(meta["track"])
-        profile = load_profile(meta["profile"])
-        bodies = list(meta["bodies"])
-        dt = 1.0 / float(meta["rate_hz"])
-        safety = SafetyConfig(**meta["safety"])
-        pols = [OnnxPolicy(meta["policies"][n]["path"]) for n in DRONE_NAMES]
+        setup = (meta, load_track(meta["track"]), load_profile(meta["profile"]), SafetyConfig(**meta["safety"]),
+                 [OnnxPolicy(meta["policies"][n]["path"]) for n in DRONE_NAMES], list(meta["bodies"]),
+                 float(meta["rate_hz"]), int(meta["laps"]))
         ticks = [m for _, m in data.messages("/timing")]
         for (t, m) in data.messages("/timing"):
             m["t"] = t
@@ -114,45 +127,32 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
         for body, v in m.items():
             if body != "k" and v is not None:
                 logged[(int(m["k"]), body)] = np.asarray(v, dtype=np.float32)
-    clock = _ReplayClock(ticks, dt)
-    source = _LogFrames(frames, clock)
-    if via_replay_source:
-        from cfrace.flight.mocap import open_mocap
+    return _Logged(*setup, ticks, frames, logged)
 
-        if sorted(frames) != [int(m["k"]) for m in ticks]:
-            raise LogError(f"{path}: not one mocap frame per tick; replay it by tick (without via_replay_source)")
-        source = open_mocap(f"replay://{path}?speed=0", bodies=bodies)
-        source.open()
-    links = [RecordingLink(f"null://{n}", clock=clock.now) for n in DRONE_NAMES]
-    for link in links:
-        link.connect()
+
+def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightLoop:
+    """The flight loop of the logged flight, with the replay's clock, frames and links."""
+    meta, track, profile, safety, pols, bodies = lg.meta, lg.track, lg.profile, lg.safety, lg.policies, lg.bodies
     drones = [Drone(name=n, body=bodies[i], policy=pols[i], layout=LAYOUTS[pols[i].meta["obs_layout"]], link=links[i],
                     meta=pols[i].meta, mass=profile.mass, thrust_curve=profile.thrust_curve,
-                    decimation=int(round(float(meta["rate_hz"]) / pols[i].meta["policy_hz"])), phase=i)
+                    decimation=int(round(lg.rate_hz / pols[i].meta["policy_hz"])), phase=i)
               for i, n in enumerate(DRONE_NAMES)]
-    collect = _Collect()
-    loop = FlightLoop(drones=drones, mocap=source, estimator=PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s,
-                                                                         alpha=float(meta.get("velocity_alpha", 0.5)),
-                                                                         lead_s=float(meta.get("latency_comp_s", 0.0))),
+    estimator = PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s, alpha=float(meta.get("velocity_alpha", 0.5)),
+                              lead_s=float(meta.get("latency_comp_s", 0.0)))
+    return FlightLoop(drones=drones, mocap=source, estimator=estimator,
                       progress=FastRaceProgress(track.gate_array(), len(drones)),
                       obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                       fence=Fence.from_track(track, safety.geofence_margin_m), safety_cfg=safety,
-                      laps=int(meta["laps"]), timeout_s=float(ticks[-1]["t"]) - 1e-9, log=collect,
+                      laps=lg.laps, timeout_s=float(clock.ticks[-1]["t"]) - 1e-9, log=log,
                       link_clock=clock.now)
-    # links never go silent in a replay: keep them "heard" every tick
-    orig_wait = clock.wait_next
 
-    def wait_next(*args):
-        tick = orig_wait(*args)
-        for link in links:
-            link.quality.last_rx = clock.now()
-        return tick
-    clock.wait_next = wait_next
-    loop.run()
+
+def _compare(logged: dict, replayed: dict) -> tuple[int, int, float]:
+    """(observations compared, mismatched, max |difference|) of the logged against the replayed."""
     compared = mismatched = 0
     max_diff = 0.0
     for key, v in logged.items():
-        r = collect.obs.get(key)
+        r = replayed.get(key)
         compared += 1
         if r is None or r.shape != v.shape or not np.array_equal(r, v):
             mismatched += 1
@@ -160,5 +160,29 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
                 max_diff = max(max_diff, float(np.max(np.abs(r.astype(np.float64) - v))))
             else:
                 max_diff = float("inf")
-    return {"log": str(path), "ticks": len(ticks), "frames": len(frames), "observations": compared,
+    return compared, mismatched, max_diff
+
+
+def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
+    """Re-run a logged flight lockstep; returns counts and whether every observation matched.
+
+    via_replay_source: read the frames through the mocap source ``replay://LOG?speed=0`` (one
+    frame per read) instead of by tick index; needs a log with exactly one frame per tick (a
+    lockstep dry-run without mocap faults)."""
+    lg = _read(path, read_log(path))
+    clock = _ReplayClock(lg.ticks, 1.0 / lg.rate_hz)
+    source = _LogFrames(lg.frames, clock)
+    if via_replay_source:
+        if sorted(lg.frames) != [int(m["k"]) for m in lg.ticks]:
+            raise LogError(f"{path}: not one mocap frame per tick; replay it by tick (without via_replay_source)")
+        source = open_mocap(f"replay://{path}?speed=0", bodies=lg.bodies)
+        source.open()
+    links = [RecordingLink(f"null://{n}", clock=clock.now) for n in DRONE_NAMES]
+    for link in links:
+        link.connect()
+    clock.links = links   # links never go silent in a replay: keep them "heard" every tick
+    collect = _Collect()
+    _loop(lg, clock, source, links, collect).run()
+    compared, mismatched, max_diff = _compare(lg.obs, collect.obs)
+    return {"log": str(path), "ticks": len(lg.ticks), "frames": len(lg.frames), "observations": compared,
             "mismatched": mismatched, "max_abs_diff": max_diff, "identical": compared > 0 and mismatched == 0}

@@ -1,12 +1,13 @@
-"""`cfrace fly` orchestration: check everything, connect, race, and stop every drone on every way out.
+"""Fly one race: the thin runner around the flight loop. It owns the clock, the links, the mocap
+source and the log it gets from a RaceIO (cfrace.flight.setup) and stops every drone on every way out.
 
 Order (nothing is sent to a drone before every check passed):
-  1. track, drone profile, both policies loaded and checked against track, obstacles, layout and
-     loop rate (PolicyError / ConfigError);
+  1. track, drone profile, both policies loaded and checked (cfrace.flight.setup.resolve_race,
+     done by the caller: PolicyError / ConfigError);
   2. the mocap source opened and every body seen (MocapError: unknown body);
   3. every link connected (LinkError: no answer / no Crazyradio / nothing listening);
   4. every link set up (rate mode params, arming, zero-thrust unlock), then the loop.
-Every exit after step 3 (race end, exception, Ctrl-C, SIGTERM, safety) goes through one finally
+Every exit after step 2 (race end, exception, Ctrl-C, SIGTERM, safety) goes through one finally
 block that stops every drone, closes the links and the mocap source and closes the log with a
 /summary. SIGINT/SIGTERM during the race ask the loop to stop everything on its next tick
 (<= 10 ms); a second signal raises KeyboardInterrupt at once (the finally still stops them).
@@ -18,48 +19,21 @@ import gc
 import signal
 import sys
 import threading
-import time
 from dataclasses import asdict
-from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from cfrace.drone import load_profile
-from cfrace.env.observations import LAYOUTS
-from cfrace.errors import PolicyError
 from cfrace.flight import realtime
-from cfrace.flight.clock import LockstepClock, RealClock
-from cfrace.flight.config import DRONE_NAMES, FlightConfig
+from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
-from cfrace.flight.link import open_link
+from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
-from cfrace.flight.mocap import open_mocap
+from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.progress import FastRaceProgress
-from cfrace.flight.safety import Fence
-from cfrace.track import load_track
+from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
 EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143}
-
-
-def load_checked_policies(cfg: FlightConfig, track) -> list:
-    """Both policies, loaded and checked BEFORE anything flies. Returns [(policy, path)]."""
-    from cfrace.policy import OnnxPolicy, resolve_policy
-
-    out = []
-    for name, spec in zip(DRONE_NAMES, (cfg.ego, cfg.opp)):
-        path = resolve_policy(spec, track.name, cfg.obstacles)
-        pol = OnnxPolicy(path)
-        pol.check(track.name, cfg.obstacles)
-        meta = pol.meta
-        layout = LAYOUTS[meta["obs_layout"]]
-        dec = cfg.rate_hz / meta["policy_hz"]
-        if abs(dec - round(dec)) > 1e-6 or round(dec) < 1:
-            raise PolicyError(f"{path}: policy_hz {meta['policy_hz']:g} does not divide the {cfg.rate_hz:g} Hz loop")
-        if layout.world_position != cfg.obstacles:
-            raise PolicyError(f"{path}: layout {layout.name} does not fit a race "
-                              f"{'with' if cfg.obstacles else 'without'} obstacles")
-        out.append((pol, Path(path)))
-    return out
 
 
 def ms_stats(x) -> dict:
@@ -142,128 +116,143 @@ class _Signals:
             signal.signal(s, h)
 
 
-def run_race(cfg: FlightConfig, *, fleet=None, lockstep: bool = False, injector=None, mocap_options=None,
-             uris=None, extra_meta=None, settle=None, console=None, announce=None,
-             lockstep_warm_calls: int = 0) -> dict:
-    """Fly one race (real drones or simulated ones) and return the result dict (see docs/flight.md).
-
-    fleet: the in-process SimFleet for `sim` mocap / sim:// links; lockstep: drive it tick by tick
-    (with lockstep_warm_calls > 0 the loop's warm-up runs that often before every tick, as it does
-    in real time: tests show it changes nothing).
-    injector: a faults.FaultInjector; settle(): called after every drone was stopped, returns a
-    dict stored in the result and the log summary (the dry-run waits for motors off there).
-    announce(meta): called once every check passed and every link answered, before the set-up."""
-    from cfrace.flight.flightlog import FlightLog
-
-    track = load_track(cfg.track)
-    profile = load_profile(cfg.profile)
-    policies = load_checked_policies(cfg, track)
-    uris = list(uris or cfg.uris)
-    if len(uris) != len(DRONE_NAMES):
-        from cfrace.errors import ConfigError
-        raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {uris}")
-    dt = cfg.dt
-    loop_cpu = None if lockstep else realtime.resolve_loop_cpu(cfg.loop_cpu)   # ConfigError before anything flies
-    kill = KillSwitch()
-    loop_ref: list = []
-    links, mocap, log, view = [], None, None, None
-    result: dict = {"end": "error", "winner": "draw"}
-    clock = LockstepClock(dt, advance=fleet.advance, warm_calls=lockstep_warm_calls) if lockstep else RealClock(dt)
-    link_clock = clock.now if lockstep else time.monotonic
-    meta = {"track": track.name, "obstacles": cfg.obstacles, "laps": cfg.laps, "profile": profile.name,
-            "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies), "uris": uris, "mocap": cfg.mocap,
-            "lockstep": lockstep, "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
-            "latency_comp_s": cfg.latency_comp, "loop_cpu": loop_cpu,
-            "rt_priority": 0 if lockstep else realtime.resolve_rt_priority(cfg.rt_priority),
-            "policies": {n: {"path": str(p), **pol.meta} for n, (pol, p) in zip(DRONE_NAMES, policies)},
-            **(extra_meta or {})}
-    with _Signals(kill, loop_ref):
-        try:
-            mocap = open_mocap(cfg.mocap, bodies=list(cfg.bodies), sim=fleet, **(mocap_options or {}))
-            if injector is not None:
-                mocap = injector.wrap_mocap(mocap)
-            mocap.open(cfg.mocap_timeout_s)
-            for uri in uris:
-                links.append(open_link(uri, fleet=fleet, clock=link_clock))
-            for link in links:
-                link.connect(cfg.connect_timeout_s)
-            if cfg.log is not None:
-                log = FlightLog(cfg.log, meta)
-            if announce is not None:
-                announce(meta | {"fence": Fence.from_track(track, cfg.safety.geofence_margin_m)})
-            for link in links:
-                link.setup()
-            drones = []
-            for i, (name, (pol, path)) in enumerate(zip(DRONE_NAMES, policies)):
-                m = dict(pol.meta, path=str(path))
-                drones.append(Drone(name=name, body=cfg.bodies[i], policy=pol, layout=LAYOUTS[m["obs_layout"]],
-                                    link=links[i], meta=m, mass=profile.mass, thrust_curve=profile.thrust_curve,
-                                    decimation=int(round(cfg.rate_hz / m["policy_hz"])), phase=i))
-            if injector is not None:
-                for d in drones:
-                    injector.cutters.setdefault(d.name, getattr(d.link, "cut_link", None))
-            estimator = PoseEstimator(list(cfg.bodies), stale_after_s=cfg.safety.mocap_stale_s,
-                                      alpha=cfg.velocity_alpha, lead_s=cfg.latency_comp)
-            progress = FastRaceProgress(track.gate_array(), len(drones))
-            if not cfg.quiet:
-                from cfrace.flight.liveview import LiveView
-                view = LiveView(title=f"cfrace {track.name}: {drones[0].meta['method']} vs {drones[1].meta['method']}",
-                                laps=cfg.laps, every_ticks=int(round(cfg.rate_hz / cfg.view_hz)), console=console)
-                view.__enter__()
-            loop = FlightLoop(drones=drones, mocap=mocap, estimator=estimator, progress=progress,
-                              obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
-                              fence=Fence.from_track(track, cfg.safety.geofence_margin_m), safety_cfg=cfg.safety,
-                              laps=cfg.laps, timeout_s=cfg.timeout_s, log=log, view=view, faults=injector,
-                              kill=kill, link_clock=link_clock, prewarm_s=0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s)
-            loop_ref.append(loop)
-            if log is not None:
-                log.write("/event", 0.0, {"kind": "start", "text": "race start"})
-            res, fifo, loop_cpu = _run_realtime_friendly(loop, meta["rt_priority"], loop_cpu)
-            result = {"end": res.end, "winner": res.winner, "duration_s": round(res.t_end, 3),
-                      "operator_kill": kill.reason, "rt_fifo": fifo, "loop_cpu": loop_cpu, "track": track.name, "profile": profile.name,
-                      "loop": timing_summary(res.timing, dt, [d.name for d in drones]) | {"skipped": res.skipped},
-                      "safety_events": res.safety_events, "drones": res.drones,
-                      "estimator": {b: dict(c) for b, c in loop.estimator.counters.items()},
-                      "laps": {d["name"]: d["laps"] for d in res.drones},
-                      "lap_times": {d["name"]: d["lap_times"] for d in res.drones}}
-            if log is not None:
-                log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
-        except BaseException as exc:
-            result["error"] = f"{type(exc).__name__}: {exc}"
-            if kill.reason is not None:
-                result["operator_kill"] = kill.reason
-            raise
-        finally:
-            for link in links:          # every way out: stop every drone first
-                try:
-                    link.stop()
-                except Exception:
-                    pass
-            if view is not None:
-                view.__exit__(None, None, None)
-            if settle is not None:
-                try:
-                    result["drones_final"] = settle()
-                except Exception as exc:  # noqa: BLE001
-                    result["drones_final_error"] = str(exc)
-            for link in links:
-                try:
-                    link.close()
-                except Exception:
-                    pass
-            if mocap is not None:
-                try:
-                    mocap.close()
-                except Exception:
-                    pass
-            if injector is not None:
-                result["faults"] = injector.log
-            if log is not None:
-                log.close({k: v for k, v in result.items() if k != "loop"} | {"loop": result.get("loop")})
-                result["log"] = str(cfg.log)
-    return result
+def _quietly(call: Callable[[], object]) -> None:
+    """Call, ignoring any exception (clean-up on the way out: every step must run)."""
+    try:
+        call()
+    except Exception:  # noqa: BLE001
+        pass
 
 
-def fly(cfg: FlightConfig, console=None, announce=None) -> dict:
+class RaceRun:
+    """One race from a resolved set-up and its I/O: open, fly, always stop and close."""
+
+    def __init__(self, setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None, announce=None):
+        self.setup, self.io = setup, io
+        self.settle, self.console, self.announce = settle, console, announce
+        cfg = setup.cfg
+        # ConfigError before anything flies; a lockstep clock is neither pinned nor SCHED_FIFO
+        real_time = io.clock.realtime
+        self.loop_cpu = realtime.resolve_loop_cpu(cfg.loop_cpu) if real_time else None
+        rt_priority = realtime.resolve_rt_priority(cfg.rt_priority) if real_time else 0
+        self.kill, self.loop_ref = KillSwitch(), []
+        self.links, self.mocap, self.log, self.view = [], None, None, None
+        self.result = RaceResult()
+        self.meta = {"track": setup.track.name, "obstacles": cfg.obstacles, "laps": cfg.laps,
+                     "profile": setup.profile.name, "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies),
+                     "uris": list(io.uris), "mocap": cfg.mocap, "lockstep": not real_time,
+                     "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
+                     "latency_comp_s": cfg.latency_comp, "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
+                     "policies": {n: {"path": str(p.path), **p.policy.meta}
+                                  for n, p in zip(DRONE_NAMES, setup.policies)},
+                     **(extra_meta or {})}
+
+    def run(self) -> RaceResult:
+        with _Signals(self.kill, self.loop_ref):
+            try:
+                loop = self._open()
+                self._fly(loop)
+            except BaseException as exc:
+                self.result.error = f"{type(exc).__name__}: {exc}"
+                if self.kill.reason is not None:
+                    self.result.operator_kill = self.kill.reason
+                raise
+            finally:
+                self._shut_down()
+        return self.result
+
+    def _open(self) -> FlightLoop:
+        """Steps 2-4 of the module doc, then the loop, ready to run."""
+        cfg, io = self.setup.cfg, self.io
+        self.mocap = io.open_mocap()
+        self.mocap.open(cfg.mocap_timeout_s)
+        for i, uri in enumerate(io.uris):
+            self.links.append(io.open_link(i, uri))
+        for link in self.links:
+            link.connect(cfg.connect_timeout_s)
+        if cfg.log is not None:
+            self.log = FlightLog(cfg.log, self.meta)
+        if self.announce is not None:
+            self.announce(self.meta | {"fence": self.setup.fence})
+        for link in self.links:
+            link.setup()
+        return self._loop()
+
+    def _drones(self) -> list[Drone]:
+        s = self.setup
+        return [Drone(name=name, body=s.cfg.bodies[i], policy=p.policy, layout=p.layout,
+                      link=self.links[i], meta=dict(p.policy.meta, path=str(p.path)), mass=s.profile.mass,
+                      thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=i)
+                for i, (name, p) in enumerate(zip(DRONE_NAMES, s.policies))]
+
+    def _loop(self) -> FlightLoop:
+        s, cfg, io = self.setup, self.setup.cfg, self.io
+        drones = self._drones()
+        estimator = PoseEstimator(list(cfg.bodies), stale_after_s=cfg.safety.mocap_stale_s,
+                                  alpha=cfg.velocity_alpha, lead_s=cfg.latency_comp)
+        if not cfg.quiet:
+            from cfrace.flight.liveview import LiveView
+            self.view = LiveView(title=f"cfrace {s.track.name}: {drones[0].meta['method']} vs "
+                                       f"{drones[1].meta['method']}", laps=cfg.laps,
+                                 every_ticks=int(round(cfg.rate_hz / cfg.view_hz)), console=self.console)
+            self.view.__enter__()
+        loop = FlightLoop(drones=drones, mocap=self.mocap, estimator=estimator,
+                          progress=FastRaceProgress(s.track.gate_array(), len(drones)),
+                          obs_builder=ObservationBuilder(s.track.gate_corners()), clock=io.clock, fence=s.fence,
+                          safety_cfg=cfg.safety, laps=cfg.laps, timeout_s=cfg.timeout_s, log=self.log,
+                          view=self.view, faults=io.hooks, kill=self.kill, link_clock=io.link_clock,
+                          prewarm_s=io.prewarm_s)
+        self.loop_ref.append(loop)
+        return loop
+
+    def _fly(self, loop: FlightLoop) -> None:
+        s, log = self.setup, self.log
+        if log is not None:
+            log.write("/event", 0.0, {"kind": "start", "text": "race start"})
+        res, fifo, loop_cpu = _run_realtime_friendly(loop, self.meta["rt_priority"], self.loop_cpu)
+        self.result = RaceResult(
+            end=res.end, winner=res.winner, duration_s=round(res.t_end, 3), operator_kill=self.kill.reason,
+            rt_fifo=fifo, loop_cpu=loop_cpu, track=s.track.name, profile=s.profile.name,
+            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones]) | {"skipped": res.skipped},
+            safety_events=res.safety_events, drones=res.drones,
+            estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
+            laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones})
+        if log is not None:
+            log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
+
+    def _shut_down(self) -> None:
+        """Every way out: stop every drone first, then settle, close links, mocap, log."""
+        result = self.result
+        for link in self.links:
+            _quietly(link.stop)
+        if self.view is not None:
+            self.view.__exit__(None, None, None)
+        if self.settle is not None:
+            try:
+                result.drones_final = self.settle()
+            except Exception as exc:  # noqa: BLE001
+                result.drones_final_error = str(exc)
+        for link in self.links:
+            _quietly(link.close)
+        if self.mocap is not None:
+            _quietly(self.mocap.close)
+        if self.io.hooks is not None and hasattr(self.io.hooks, "log"):
+            result.faults = self.io.hooks.log
+        if self.log is not None:
+            doc = result.to_json()
+            self.log.close({k: v for k, v in doc.items() if k != "loop"} | {"loop": doc.get("loop")})
+            result.log = str(self.setup.cfg.log)
+
+
+def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None,
+             announce=None) -> RaceResult:
+    """Fly one race and return its RaceResult (docs/flight.md). settle(): called after every drone
+    was stopped, returns what the result and the log summary store as drones_final (the dry-run
+    waits for motors off there); announce(meta): called once every check passed and every link
+    answered, before the set-up."""
+    return RaceRun(setup, io, extra_meta=extra_meta, settle=settle, console=console, announce=announce).run()
+
+
+def fly(setup: RaceSetup, console=None, announce=None) -> RaceResult:
     """`cfrace fly`: real drones (radio:// or udp://) from a mocap system."""
-    return run_race(cfg, console=console, announce=announce)
+    return run_race(setup, real_io(setup.cfg), console=console, announce=announce)

@@ -1,6 +1,6 @@
 """IPPO hyperparameters as frozen dataclasses, with two presets.
 
-``paper``: the authors' settings (facts.md "Training"), sized for a large GPU.
+``paper``: the authors' settings (the paper's training settings), sized for a large GPU.
 ``cpu``  : the default, sized by measurement for a 2-core laptop CPU (docs/training.md has the
            figures behind every choice). Both come in a multi-agent (ours, dm) and a
            single-agent (ds, ss) flavour, as in the paper.

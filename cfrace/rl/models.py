@@ -12,7 +12,7 @@ from typing import Sequence
 import torch
 from torch import nn
 
-from cfrace.export import NORM_CLIP, NORM_EPS
+from cfrace.contract import NORM_CLIP, NORM_EPS
 
 
 def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, out_gain: float = 1.0) -> nn.Sequential:

@@ -21,18 +21,16 @@ from typing import Callable
 import torch
 
 from cfrace import __version__
+from cfrace.contract import METHODS, MULTI_AGENT_METHODS
 from cfrace.drone import DEFAULT_PROFILE, load_profile
 from cfrace.env.actions import action_map_constants
 from cfrace.errors import ConfigError
-from cfrace.export import METHODS, MULTI_AGENT_METHODS
+from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
 from cfrace.rl.precision import Precision, choose_precision
 from cfrace.rl.runner import Runner
 from cfrace.track import load_track
-
-CHECKPOINT = "checkpoint.pt"
-FORMAT = "cfrace-ippo-1"
 
 
 @dataclass(frozen=True)
@@ -130,21 +128,6 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
 
 
-def load_checkpoint(path: str | Path) -> dict:
-    path = Path(path)
-    if path.is_dir():
-        path = path / CHECKPOINT
-    if not path.exists():
-        raise ConfigError(f"{path}: no such checkpoint")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises many types for damaged files
-        raise ConfigError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:120]})") from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
-        raise ConfigError(f"{path}: not a cfrace training checkpoint")
-    return ckpt
-
-
 def resume_config(resume: str | Path, **given) -> TrainConfig:
     """The saved TrainConfig with this run's budget/output/device; settings that define the task
     (method, track, obstacles, preset, seed, profile, envs) must match if given."""
@@ -159,6 +142,8 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
         keep[key] = given.get(key)
     if given.get("precision") is not None:  # how the update computes, not what the task is
         keep["precision"] = given["precision"]
+    if given.get("keep_checkpoints"):  # a resumed run may start keeping its checkpoints
+        keep["keep_checkpoints"] = True
     keep["out"] = str(given.get("out") or resume)
     if keep["checkpoint_every_s"] is None:
         keep["checkpoint_every_s"] = saved.get("checkpoint_every_s", 300.0)

@@ -21,6 +21,7 @@ import torch
 
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import ConfigError
+from cfrace.rl.checkpoint import load_checkpoint
 
 OPP_POS_VAR = 4.0  #: m^2, prior variance of the opponent's body-frame position (std 2 m)
 OPP_VEL_VAR = 9.0  #: (m/s)^2, prior variance of the opponent's velocity (std 3 m/s)
@@ -30,8 +31,6 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
     """Copy the best source actor (greatest total training reward) into every agent of ``runner``;
     with ``critic`` also its critic and critic normaliser (see _copy_critic). Returns a description
     for the metadata."""
-    from cfrace.rl.train import load_checkpoint
-
     path = Path(source)
     if path.is_dir():
         path = path / "checkpoint.pt"

@@ -18,10 +18,14 @@ from pathlib import Path
 
 import torch
 
+from cfrace.drone import GRAVITY
+from cfrace.sim.gates import FRAME_HIT_HALF, PASS_HALF, PASS_RADIUS
+
 _SRC = Path(__file__).with_name("kernel.c")
 _lib = None
 _error: str | None = None
 MIN_DRONES_PER_THREAD = 512  #: below this many drones per thread, use fewer threads
+MAX_DRONES = 16              #: drones per world the kernel takes (MAXD in kernel.c)
 
 
 def _cache_dir() -> Path:
@@ -70,14 +74,12 @@ def build_error() -> str | None:
 
 
 def constants_array(c, radius: float, z_rest: float, arena: tuple, outer_half: float, rules) -> torch.Tensor:
-    """Pack constants in the order of the C enum."""
-    from cfrace.drone import GRAVITY
-
+    """Pack constants in the order of the C enum (the gate rule's from cfrace.sim.gates)."""
     vals = [c.dt, c.mass, *c.inertia, c.k_eta, c.k_ratio, *c.rotor_x, *c.rotor_y, *c.dirs]
     vals += [v for row in c.mix for v in row]
     vals += [c.w_min, c.w_max, *c.i_limit, GRAVITY, radius, z_rest, *arena, outer_half,
              -1.0 if rules.floor_grace_s is None else rules.floor_grace_s, rules.floor_z, rules.floor_impact_speed,
-             rules.long_contact_s, 1.0 if rules.arena else 0.0]
+             rules.long_contact_s, 1.0 if rules.arena else 0.0, PASS_RADIUS, PASS_HALF, FRAME_HIT_HALF]
     return torch.tensor(vals, dtype=torch.float32)
 
 

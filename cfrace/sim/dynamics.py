@@ -23,6 +23,8 @@ import torch
 
 from cfrace.drone import GRAVITY, DroneProfile
 
+PHYSICS_DT = 0.002  #: s, one physics step (500 Hz: the body-rate PID, the motors, the integration)
+
 
 class DroneState(NamedTuple):
     pos: torch.Tensor        # (W, D, 3) m, world
@@ -62,7 +64,7 @@ class Constants:
     i_limit: tuple[float, float, float]
 
     @staticmethod
-    def from_profile(profile: DroneProfile, dt: float = 0.002) -> "Constants":
+    def from_profile(profile: DroneProfile, dt: float = PHYSICS_DT) -> "Constants":
         import numpy as np
 
         inv = np.linalg.inv(profile.allocation())

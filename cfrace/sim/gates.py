@@ -1,6 +1,6 @@
 """Gate passing: one rule for the simulator, the environment and the flight loop.
 
-facts.md: a gate is passed when the drone's x in the gate frame goes from > 0 to <= 0 (it
+The authors' rule: a gate is passed when the drone's x in the gate frame goes from > 0 to <= 0 (it
 approaches from the +n side and flies along -n), within 1.0 m of the centre, with |y| < 0.5 and
 |z| < 0.5 in the gate frame. Crossing the target gate's plane with |y| or |z| >= 0.4 (inside the
 outer frame) is a gate-frame hit, a terminal crash.
@@ -11,30 +11,37 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
+
+from cfrace.arrays import array_module
 
 PASS_HALF = 0.5        #: m, |y|, |z| limit in the gate frame for a pass
 PASS_RADIUS = 1.0      #: m, distance from the centre within which a crossing counts
 FRAME_HIT_HALF = 0.4   #: m, crossing the target plane with |y| or |z| >= this hits the frame
 
 
-def to_gate_frame(pos: torch.Tensor, gate_pose: torch.Tensor) -> torch.Tensor:
-    """World position (..., 3) -> gate-frame position (..., 3) for gate poses (..., 4) [x, y, z, yaw]."""
+def to_gate_frame(pos, gate_pose):
+    """World position (..., 3) -> gate-frame position (..., 3) for gate poses (..., 4) [x, y, z, yaw]
+    (torch tensors or numpy arrays)."""
+    xp = array_module(pos)
     d = pos - gate_pose[..., :3]
-    c, s = torch.cos(gate_pose[..., 3]), torch.sin(gate_pose[..., 3])
+    c, s = xp.cos(gate_pose[..., 3]), xp.sin(gate_pose[..., 3])
     x = c * d[..., 0] + s * d[..., 1]
     y = -s * d[..., 0] + c * d[..., 1]
-    return torch.stack([x, y, d[..., 2]], dim=-1)
+    return xp.stack([x, y, d[..., 2]], -1)
 
 
-def crossing(prev_local: torch.Tensor, local: torch.Tensor, outer_half: float = 0.7):
-    """(passed, frame_hit) bool tensors (...,) from gate-frame positions before and after a step."""
+def crossing(prev_local, local, outer_half: float = 0.7):
+    """(passed, frame_hit) bool arrays (...,) from gate-frame positions before and after a step
+    (torch tensors or numpy arrays). The rule; the C kernel gets its constants from
+    cfrace.sim.ckernel.constants_array and cfrace.flight.progress repeats it on floats for one drone."""
+    xp = array_module(local)
     crossed = (prev_local[..., 0] > 0.0) & (local[..., 0] <= 0.0)
     # the plane crossing point, interpolated between the two samples
-    frac = prev_local[..., 0] / (prev_local[..., 0] - local[..., 0]).clamp_min(1e-9)
-    yz = prev_local[..., 1:] + frac.unsqueeze(-1) * (local[..., 1:] - prev_local[..., 1:])
-    ay, az = yz[..., 0].abs(), yz[..., 1].abs()
-    near = torch.linalg.vector_norm(local, dim=-1) < PASS_RADIUS
+    gap = prev_local[..., 0] - local[..., 0]
+    frac = prev_local[..., 0] / (np.maximum(gap, 1e-9) if xp is np else gap.clamp_min(1e-9))
+    yz = prev_local[..., 1:] + frac[..., None] * (local[..., 1:] - prev_local[..., 1:])
+    ay, az = abs(yz[..., 0]), abs(yz[..., 1])
+    near = (np.linalg.norm(local, axis=-1) if xp is np else xp.linalg.vector_norm(local, dim=-1)) < PASS_RADIUS
     passed = crossed & near & (ay < PASS_HALF) & (az < PASS_HALF)
     inside_outer = (ay < outer_half) & (az < outer_half)
     frame_hit = crossed & inside_outer & ((ay >= FRAME_HIT_HALF) | (az >= FRAME_HIT_HALF))
@@ -43,7 +50,8 @@ def crossing(prev_local: torch.Tensor, local: torch.Tensor, outer_half: float = 
 
 @dataclass
 class RaceProgress:
-    """Per-drone race progress for the flight loop (numpy in, same rule as the simulator).
+    """Per-drone race progress (numpy, float64; the simulator's rule), the reference of
+    cfrace.flight.progress.FastRaceProgress.
 
     Call update(t, positions) every tick with world positions (N, 3)."""
 
@@ -90,12 +98,12 @@ class RaceProgress:
 
     def _crossings(self, positions) -> tuple[np.ndarray, np.ndarray]:
         """(passed, frame_hit) bool (N,) against each drone's target gate since the last call."""
-        pos = torch.as_tensor(np.asarray(positions, dtype=np.float64))
-        cur_gate = torch.as_tensor(self.gates, dtype=torch.float64)[torch.as_tensor(self.target)]
+        pos = np.array(positions, dtype=np.float64)
+        cur_gate = np.asarray(self.gates, dtype=np.float64)[self.target]
         prev = pos if self._prev is None else self._prev
         passed, hit = crossing(to_gate_frame(prev, cur_gate), to_gate_frame(pos, cur_gate), self.outer_half)
-        self._prev = pos.clone()
-        return passed.numpy(), hit.numpy()
+        self._prev = pos
+        return passed, hit
 
     def distance_to_target(self, positions: np.ndarray) -> np.ndarray:
         return np.linalg.norm(np.asarray(positions) - self.gates[self.target, :3], axis=-1)

@@ -3,7 +3,7 @@
 State is float32 tensors shaped (W worlds, D drones, ...) on one device. ``step`` holds one
 command (collective thrust N, body rates rad/s) for ``substeps`` physics steps of 2 ms (10 = one
 50 Hz policy step). Crashed drones are frozen until their world is reset.
-Crash rules (facts.md): gate-frame hit, leaving the arena, z above the ceiling, z below 0.1 m after
+Crash rules (the authors' training code): gate-frame hit, leaving the arena, z above the ceiling, z below 0.1 m after
 the first 1.0 s, hitting the floor fast, contact longer than ``long_contact_s``.
 """
 
@@ -17,7 +17,7 @@ import torch
 from cfrace.drone import DroneProfile
 from cfrace.sim import ckernel
 from cfrace.sim import collisions as col
-from cfrace.sim.dynamics import Constants, DroneParams, DroneState, hover_motor_speed, physics_step, quat_to_rot
+from cfrace.sim.dynamics import PHYSICS_DT, Constants, DroneParams, DroneState, hover_motor_speed, physics_step, quat_to_rot
 from cfrace.sim.gates import crossing, to_gate_frame
 from cfrace.track import Track
 
@@ -147,13 +147,13 @@ def _step(s, r, thrust, rates, p, g, c, rules, radius, z_rest, arena, outer_half
 class Simulator:
     """Batched simulator of W worlds x D drones racing on one track."""
 
-    dt = 0.002
+    dt = PHYSICS_DT
 
     def __init__(self, track: Track, profile: DroneProfile, worlds: int, drones: int, *, obstacles: bool = True,
                  device: str | torch.device = "cpu", seed: int = 0, compile: bool = False,
                  rules: CrashRules = CrashRules(), backend: str = "auto", threads: int | None = None):
-        """backend: "c" (fused C kernel, CPU only), "torch" (reference; CPU or CUDA; ``compile`` applies)
-        or "auto" (C on CPU when a C compiler is available, else torch)."""
+        """backend: "c" (fused C kernel, CPU only, at most ckernel.MAX_DRONES drones per world), "torch"
+        (reference; CPU or CUDA; ``compile`` applies) or "auto" (C when it can, else torch)."""
         self.track, self.profile = track, profile
         self.num_worlds, self.num_drones = worlds, drones
         self.device = torch.device(device)
@@ -189,13 +189,15 @@ class Simulator:
                        for k, n in (("kp", 3), ("ki", 3), ("kd", 3), ("k_aero", 3), ("tau_m", 1))}
         self._update_params()
         if backend == "auto":
-            backend = "c" if self.device.type == "cpu" and ckernel.available() else "torch"
+            fits = self.device.type == "cpu" and drones <= ckernel.MAX_DRONES and ckernel.available()
+            backend = "c" if fits else "torch"
         if backend == "c" and (self.device.type != "cpu" or not ckernel.available()):
             raise RuntimeError(f"the C kernel needs a CPU device and a C compiler ({ckernel.build_error()})")
+        if backend == "c" and drones > ckernel.MAX_DRONES:
+            raise ValueError(f"the C kernel takes at most {ckernel.MAX_DRONES} drones per world, not {drones} "
+                             f"(backend torch or auto)")
         if backend not in ("c", "torch"):
             raise ValueError(f"unknown simulator backend {backend!r}")
-        if drones > 16 and backend == "c":
-            backend = "torch"
         self.backend = backend
         self.threads = threads or torch.get_num_threads()
         self._kernel = None
@@ -227,32 +229,8 @@ class Simulator:
         self._update_params()
 
     # ----------------------------------------------------------------- state access
-    @property
-    def pos(self) -> torch.Tensor:
-        return self.state.pos
-
-    @property
-    def vel(self) -> torch.Tensor:
-        return self.state.vel
-
-    @property
-    def quat(self) -> torch.Tensor:
-        return self.state.quat
-
-    @property
-    def omega(self) -> torch.Tensor:
-        return self.state.omega
-
-    @property
-    def motor(self) -> torch.Tensor:
-        return self.state.motor
-
-    def __getattr__(self, name):
-        race = self.__dict__.get("race")
-        if race is not None and name in RaceState._fields:
-            return getattr(race, name)
-        raise AttributeError(name)
-
+    # sim.pos, vel, quat, omega, motor (the drone state's tensors) and sim.target, crashed, ...
+    # (the race state's): properties added below the class
     def rot(self) -> torch.Tensor:
         """(W, D, 3, 3) world-from-body."""
         return quat_to_rot(self.state.quat)
@@ -301,3 +279,13 @@ class Simulator:
 
     def crash_reasons(self) -> list[list[str]]:
         return [[REASONS[int(v)] for v in row] for row in self.race.reason.cpu()]
+
+
+def _field(part: str, name: str) -> property:
+    return property(lambda self: getattr(getattr(self, part), name), doc=f"self.{part}.{name}")
+
+
+for _name in ("pos", "vel", "quat", "omega", "motor"):
+    setattr(Simulator, _name, _field("state", _name))
+for _name in RaceState._fields:
+    setattr(Simulator, _name, _field("race", _name))

@@ -39,7 +39,11 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
                                                  "qw", "qx", "qy", "qz")]
     + [(f"gyro.{n}", _FLOAT) for n in "xyz"]
     + [("stabilizer.thrust", _FLOAT), ("pm.vbat", _FLOAT), ("pm.state", _I8), ("supervisor.info", _U16),
-       ("sys.canfly", _U8), ("sys.isFlying", _U8), ("sys.isTumbled", _U8)])
+       ("sys.canfly", _U8), ("sys.isFlying", _U8), ("sys.isTumbled", _U8)]
+    # motor speeds (group rpm, uint16 revolutions per minute, as the firmware logs them where the drone
+    # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
+    # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
+    + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)])
 
 LOG_MAX_BLOCKS = 16
 LOG_MAX_OPS = 128

@@ -35,11 +35,12 @@ import numpy as np
 
 from cfrace.drone import DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf.params import PARAM_BY_NAME, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.track import Track, load_track
 
-DT = 0.002                 #: s, physics step of the simulator (500 Hz)
+DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
 MIN_THRUST = 1000          #: counts, below this the firmware commands zero thrust
 MAX_THRUST = 60000         #: counts, the firmware caps the legacy setpoint thrust here
 WDT_LEVEL = 0.5            #: s without setpoint -> level out
@@ -151,6 +152,7 @@ class SimFleet:
         self._cmd_thrust = np.zeros(self.n)   # N, collective thrust commanded in the last chunk
         self._fw = [DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
                     for i in range(self.n)]
+        self.log_hooks: list = []   #: callables drone index -> {log name: value} overriding log_values
         self._reset_physics()
 
     # ---------------------------------------------------------------- time and state
@@ -414,7 +416,7 @@ class SimFleet:
             fw = self._fw[i]
             pos, vel, om = self._pos[i], self._vel[i], np.degrees(self._omega[i])
             info = self.supervisor_bitfield(i)
-            return {
+            values = {
                 "stateEstimate.x": pos[0], "stateEstimate.y": pos[1], "stateEstimate.z": pos[2],
                 "stateEstimate.vx": vel[0], "stateEstimate.vy": vel[1], "stateEstimate.vz": vel[2],
                 "stateEstimate.roll": math.degrees(roll), "stateEstimate.pitch": -math.degrees(pitch),
@@ -425,7 +427,11 @@ class SimFleet:
                 "pm.vbat": 4.0, "pm.state": 0,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
                 "sys.isTumbled": (info >> 5) & 1,
+                **{f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)},
             }
+            for hook in self.log_hooks:   # e.g. the thrust stand (simcf/stand.py): pm.vbat, rpm.*, motor.*
+                values.update(hook(i))
+            return values
 
     def drain_events(self, i: int) -> list[str]:
         """Console lines produced by drone i since the last call (the server prints them)."""

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from cfrace.errors import ConfigError
+from cfrace.rl.checkpoint import CHECKPOINT
 from cfrace.yamlcfg import load_yaml
 
 VERSION = 1
@@ -35,7 +36,6 @@ SWEEP_OWNED = ("out", "resume")                    #: set by the sweep, never by
 PASS_THROUGH_FLAGS = ("keep_checkpoints",)
 EXPORT_KEYS = ("file", "agent")
 EXPORT_AGENTS = ("ego", "adversary", "best")
-CHECKPOINT = "checkpoint.pt"
 MIN_REMAINING_MIN = 1e-3   #: a minutes budget with less than this left counts as spent
 
 

@@ -1,0 +1,90 @@
+"""`cfrace bench sim|train|loop` of two code versions side by side, in one run, interleaved.
+
+    python benchmarks/side_by_side.py OLD_SRC NEW_SRC [--rounds 2] [--json F]
+
+OLD_SRC and NEW_SRC are checkout roots (e.g. `git archive COMMIT | tar -x -C OLD_SRC`); each
+benchmark runs as A B A B ... (``rounds`` times each, with the interpreter running this script and
+PYTHONPATH=SRC), so that both see the same machine load. Prints, per figure, the median of each
+version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
+Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread), bench train (the cpu preset,
+ours on complex, one thread), bench loop (10 s, the paper-size actors and the shipped policies).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+BENCHES: dict[str, list[str]] = {
+    "sim": ["bench", "sim", "--worlds", "4096", "--modes", "c", "--no-peer", "--threads", "1", "--steps", "20"],
+    "train": ["bench", "train", "--threads", "1", "--iterations", "2"],
+    "loop_paper": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "paper"],
+    "loop_shipped": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "shipped"],
+}
+
+
+def figures(name: str, doc: dict) -> dict[str, tuple[float, bool]]:
+    """name -> (value, higher is better)."""
+    if name == "sim":
+        return {"sim drone-steps/s": (doc["results"][0]["drone_steps_per_s"], True)}
+    if name == "train":
+        return {"train env-steps/s": (doc["env_steps_per_s"], True)}
+    loop = doc["loop"]
+    out = {f"{name} compute p50 ms": (loop["compute_ms"]["p50"], False),
+           f"{name} compute p99 ms": (loop["compute_ms"]["p99"], False),
+           f"{name} inference p99 ms": (loop["inference_p99_ms"], False),
+           f"{name} jitter p99 ms": (loop["period_jitter_ms"]["p99"], False)}
+    return out
+
+
+def run_one(src: Path, args: list[str], out: Path) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(src), OMP_NUM_THREADS="1")
+    code = f"import sys; sys.argv = {['cfrace', *args, '--json', str(out)]!r}; from cfrace.cli.main import main; main()"
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"{src}: cfrace {' '.join(args)} failed: {proc.stderr.strip()[-400:]}")
+    return json.loads(out.read_text())
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("old", type=Path)
+    ap.add_argument("new", type=Path)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--benches", default=",".join(BENCHES))
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+    values: dict[str, dict[str, list[float]]] = {}
+    better: dict[str, bool] = {}
+    loads = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.benches.split(","):
+            for r in range(args.rounds):
+                for label, src in (("old", args.old), ("new", args.new)):
+                    loads.append(os.getloadavg()[0])
+                    doc = run_one(src, BENCHES[name], Path(tmp) / f"{name}_{label}_{r}.json")
+                    for fig, (v, hib) in figures(name, doc).items():
+                        values.setdefault(fig, {"old": [], "new": []})[label].append(v)
+                        better[fig] = hib
+                    print(f"{name} round {r} {label}: " + ", ".join(f"{k} {v[0]:.4g}" for k, v in
+                                                                  figures(name, doc).items()), flush=True)
+    rows = []
+    for fig, v in values.items():
+        old, new = statistics.median(v["old"]), statistics.median(v["new"])
+        speed = (new / old) if better[fig] else (old / new)
+        rows.append({"figure": fig, "old": old, "new": new, "speed_new_over_old": speed, "runs": v})
+        print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x")
+    print(f"load average during the runs: {min(loads):.2f}-{max(loads):.2f} on {os.cpu_count()} CPUs")
+    if args.json:
+        args.json.write_text(json.dumps({"rows": rows, "load_avg": loads}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

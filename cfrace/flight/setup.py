@@ -1,0 +1,111 @@
+"""The race set-up, resolved once at the edge (the CLI) and passed down: track, drone profile,
+checked policies, geofence. Everything here can fail (one-line CfraceError) and nothing here
+touches a drone: `cfrace fly` resolves it before it opens the mocap or any link.
+
+And the race's I/O as factories (RaceIO): the runner gets its clock, its links and its mocap
+source from them and knows nothing else of where they come from (radio, UDP, an in-process
+simulator, a lockstep clock, fault injection: cfrace.flight.dryrun builds those).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from cfrace.drone import DroneProfile, load_profile
+from cfrace.env.observations import LAYOUTS, ObsLayout
+from cfrace.errors import CfraceError, ConfigError, PolicyError
+from cfrace.flight.clock import RealClock
+from cfrace.flight.config import DRONE_NAMES, FlightConfig
+from cfrace.flight.links import open_link
+from cfrace.flight.mocap import open_mocap
+from cfrace.flight.safety import Fence
+from cfrace.policy import OnnxPolicy, resolve_policy
+from cfrace.track import Track, load_track
+
+
+@dataclass(frozen=True)
+class CheckedPolicy:
+    """A policy loaded and checked against the race (track, obstacles, layout, loop rate)."""
+
+    policy: OnnxPolicy
+    path: Path
+    layout: ObsLayout
+    decimation: int            #: loop ticks per policy step (rate_hz / policy_hz)
+
+
+@dataclass(frozen=True)
+class RaceSetup:
+    """What one race flies, resolved once: cfg plus the objects its names stand for."""
+
+    cfg: FlightConfig
+    track: Track
+    profile: DroneProfile
+    policies: tuple[CheckedPolicy, ...]   #: ego first
+    fence: Fence
+
+
+def check_policy(cfg: FlightConfig, track: Track, spec: str) -> CheckedPolicy:
+    """One policy, loaded and checked BEFORE anything flies (PolicyError naming the file)."""
+    path = resolve_policy(spec, track.name, cfg.obstacles)
+    pol = OnnxPolicy(path)
+    pol.check(track.name, cfg.obstacles)
+    meta = pol.meta
+    layout = LAYOUTS[meta["obs_layout"]]
+    dec = cfg.rate_hz / meta["policy_hz"]
+    if abs(dec - round(dec)) > 1e-6 or round(dec) < 1:
+        raise PolicyError(f"{path}: policy_hz {meta['policy_hz']:g} does not divide the {cfg.rate_hz:g} Hz loop")
+    if layout.world_position != cfg.obstacles:
+        raise PolicyError(f"{path}: layout {layout.name} does not fit a race "
+                          f"{'with' if cfg.obstacles else 'without'} obstacles")
+    return CheckedPolicy(pol, Path(path), layout, int(round(dec)))
+
+
+def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
+    """Load the track (unless given), the profile and both policies and check them together."""
+    track = track if track is not None else load_track(cfg.track)
+    profile = load_profile(cfg.profile)
+    policies = tuple(check_policy(cfg, track, spec) for spec in (cfg.ego, cfg.opp))
+    return RaceSetup(cfg, track, profile, policies, Fence.from_track(track, cfg.safety.geofence_margin_m))
+
+
+def training_profile(track: Track, ego: str, obstacles: bool, default: str = "cf21bl") -> str:
+    """The drone profile the ego policy was trained for (metadata drone_profile), if it names a
+    known profile; else ``default``. Policy errors surface later, in resolve_race."""
+    try:
+        name = OnnxPolicy(resolve_policy(ego, track.name, obstacles)).meta["drone_profile"]
+        load_profile(name)
+        return name
+    except (CfraceError, KeyError):
+        return default
+
+
+@dataclass(frozen=True)
+class RaceIO:
+    """Where a race's clock, links and mocap come from.
+
+    open_mocap(): a MocapSource, not yet opened; open_link(index, uri): the Link of drone ``index``,
+    not yet connected; clock: RealClock (the loop thread is then pinned and SCHED_FIFO as
+    configured) or a LockstepClock (neither); link_clock(): the time the links stamp what they
+    hear with; prewarm_s: the clock's warm-up window before each tick (0 = none); uris: one link
+    URI per drone, ego first; hooks: an object with before_tick/filter_obs/filter_action called by
+    the loop and a ``log`` list stored as the result's "faults" (fault injection), or None."""
+
+    open_mocap: Callable[[], object]
+    open_link: Callable[[int, str], object]
+    clock: object
+    link_clock: Callable[[], float]
+    prewarm_s: float
+    uris: tuple[str, ...]
+    hooks: object | None = None
+
+
+def real_io(cfg: FlightConfig) -> RaceIO:
+    """Real drones: cflib links to cfg.uris, the mocap source cfg.mocap, the wall clock."""
+    if len(cfg.uris) != len(DRONE_NAMES):
+        raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {list(cfg.uris)}")
+    return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
+                  open_link=lambda i, uri: open_link(uri), clock=RealClock(cfg.dt), link_clock=time.monotonic,
+                  prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris))
