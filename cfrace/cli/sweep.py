@@ -121,6 +121,12 @@ def bench_sweep_cmd(
         t.add_row(f"two at once, run {i + 1}, env steps/s", f"{v:,.0f}")
     t.add_row("two at once, total env steps/s", f"{r['pair_total_env_steps_per_s']:,.0f}")
     t.add_row("[bold]speed-up (two together / one alone)[/bold]", f"[bold]{r['speedup']:.2f}x[/bold]")
+    if r["alone_cores"] is not None:
+        t.add_row("env steps per CPU second: alone / two at once",
+                  f"{r['alone_env_steps_per_cpu_s']:,.0f} / " + " + ".join(f"{v:,.0f}"
+                                                                   for v in r["pair_env_steps_per_cpu_s"]))
+        t.add_row("cores the runs got: alone / two at once",
+                  f"{r['alone_cores']:.2f} / " + " + ".join(f"{v:.2f}" for v in r["pair_cores"]))
     console.print(t)
     console.print(f"load before: {r['load_before']}\nload after: {r['load_after']}", highlight=False)
     console.print("CPU use while the two ran (share of one core; ours are the ray:: workers):\n"

@@ -71,11 +71,16 @@ def bench_parallel(method: str = "ds", track: str = "lemniscate", envs: int | No
     t2 = time.perf_counter()
     busy = busy_processes(snap, cpu_times(), t2 - t1)
     rates = [p["env_steps_per_s"] for p in pair]
+    # CPU cores each run got while timed: wall rate / rate per CPU second of its process
+    cores = lambda r: r["env_steps_per_s"] / r["env_steps_per_cpu_s"] if "env_steps_per_cpu_s" in r else None
     return {"method": method, "track": track, "num_envs": alone["num_envs"], "iterations": iterations,
             "threads_per_run": 1, "alone_env_steps_per_s": alone["env_steps_per_s"],
             "pair_env_steps_per_s": rates, "pair_total_env_steps_per_s": sum(rates),
             "speedup": sum(rates) / alone["env_steps_per_s"], "alone_wall_s": t1 - t0, "pair_wall_s": t2 - t1,
             "alone_shares": {k: alone[k] for k in alone if k.startswith("share_")},
+            "alone_env_steps_per_cpu_s": alone.get("env_steps_per_cpu_s"),
+            "pair_env_steps_per_cpu_s": [p.get("env_steps_per_cpu_s") for p in pair],
+            "alone_cores": cores(alone), "pair_cores": [cores(p) for p in pair],
             "load_before": load_before, "load_after": machine_load(), "busy_processes": busy,
             "cpu_count": os.cpu_count(), "ray_start_s": ray_start_s,
             "ray": "cluster " + address if address else "local instance, 2 CPUs"}
