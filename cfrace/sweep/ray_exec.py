@@ -78,6 +78,56 @@ def _task_body(run: Run, out_root: str) -> dict:
     return train_and_export(run, out_root, run.out_dir(out_root) / "train.log")
 
 
+class _Scheduler:
+    """The driver's bookkeeping: which run goes when, what came back, what is blocked."""
+
+    def __init__(self, ray, sweep: Sweep, out_root: str, retries: int):
+        self.ray, self.out_root, self.retries = ray, out_root, retries
+        self.task = ray.remote(max_retries=0)(_task_body)
+        self.states = {r.name: RunState(r) for r in sweep.runs}
+        self.running: dict = {}   # ObjectRef -> run name
+        for s in self.states.values():
+            if s.run.done(out_root):
+                s.state, s.action = "done", "skip"
+
+    def submit_ready(self) -> None:
+        """Submit every waiting run whose dependencies are done; notice queued runs that started."""
+        for s in self.states.values():
+            if s.state == "waiting" and all(self.states[d].state == "done" for d in s.run.deps):
+                s.attempts += 1
+                s.state, s.started_s, s.submitted = "queued", None, time.time()
+                ref = self.task.options(num_cpus=run_threads(s.run), name=f"cfrace-{s.run.name}").remote(
+                    s.run, self.out_root)
+                self.running[ref] = s.run.name
+            elif s.state == "queued":
+                s.poll_started(self.out_root)
+
+    def collect(self, ref) -> None:
+        """A task returned: done, back to waiting for another try, or failed (dependents blocked)."""
+        s = self.states[self.running.pop(ref)]
+        try:
+            rep = self.ray.get(ref)
+            s.action, s.error = rep["action"], rep["error"]
+            s.wall_s += rep["wall_s"]
+        except Exception as exc:   # the worker died (killed, out of memory, node lost)
+            s.error = f"task failed: {type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
+            s.wall_s += time.time() - (s.started_s or s.submitted)
+        s.started_s = None
+        if s.error is None:
+            s.state = "done"
+        elif s.attempts <= self.retries:
+            s.state = "waiting"      # submitted again: resumes from its checkpoint
+        else:
+            s.state = "failed"
+            self.block_dependents(s.run.name)
+
+    def block_dependents(self, name: str) -> None:
+        for s in self.states.values():
+            if name in s.run.deps and s.state == "waiting":
+                s.state, s.error = "blocked", f"needs {name}"
+                self.block_dependents(s.run.name)
+
+
 def run_ray(sweep: Sweep, out_root: str | Path | None = None, address: str | None = None, cpus: int | None = None,
             retries: int = 1, on_update: Callable[[list[RunState]], None] | None = None,
             poll_s: float = 1.0) -> SweepReport:
@@ -89,57 +139,18 @@ def run_ray(sweep: Sweep, out_root: str | Path | None = None, address: str | Non
         if run_threads(r) > total:
             raise ConfigError(f"{sweep.path}: {r.name} ({r.source}) asks for {run_threads(r)} threads, the Ray "
                               f"instance has {total} CPUs")
-    task = ray.remote(max_retries=0)(_task_body)
     t0 = time.perf_counter()
-    states = {r.name: RunState(r) for r in sweep.runs}
-    for s in states.values():
-        if s.run.done(out_root):
-            s.state, s.action = "done", "skip"
-    running: dict = {}   # ObjectRef -> name
-
-    def submit(s: RunState) -> None:
-        s.attempts += 1
-        s.state = "queued"
-        s.started_s = None
-        s.submitted = time.time()
-        ref = task.options(num_cpus=run_threads(s.run), name=f"cfrace-{s.run.name}").remote(s.run, out_root)
-        running[ref] = s.run.name
-
-    def block_dependents(name: str) -> None:
-        for s in states.values():
-            if name in s.run.deps and s.state == "waiting":
-                s.state, s.error = "blocked", f"needs {name}"
-                block_dependents(s.run.name)
-
+    sched = _Scheduler(ray, sweep, out_root, retries)
     while True:
-        for s in states.values():
-            if s.state == "waiting" and all(states[d].state == "done" for d in s.run.deps):
-                submit(s)
-            elif s.state == "queued":
-                s.poll_started(out_root)
+        sched.submit_ready()
         if on_update is not None:
-            on_update(list(states.values()))
-        if not running:
+            on_update(list(sched.states.values()))
+        if not sched.running:
             break
-        ready, _ = ray.wait(list(running), num_returns=1, timeout=poll_s)
+        ready, _ = ray.wait(list(sched.running), num_returns=1, timeout=poll_s)
         for ref in ready:
-            s = states[running.pop(ref)]
-            try:
-                rep = ray.get(ref)
-                s.action, s.error = rep["action"], rep["error"]
-                s.wall_s += rep["wall_s"]
-            except Exception as exc:   # the worker died (killed, out of memory, node lost)
-                s.error = f"task failed: {type(exc).__name__}: {str(exc).splitlines()[0][:160]}"
-                s.wall_s += time.time() - (s.started_s or s.submitted)
-            s.started_s = None
-            if s.error is None:
-                s.state = "done"
-            elif s.attempts <= retries:
-                s.state = "waiting"      # resubmitted above: resumes from its checkpoint
-            else:
-                s.state = "failed"
-                block_dependents(s.run.name)
-    all_states = list(states.values())
-    return SweepReport(all_states, time.perf_counter() - t0, sum(s.wall_s for s in all_states),
-                       [s.run.name for s in all_states if s.state == "failed"],
-                       [s.run.name for s in all_states if s.state == "blocked"])
+            sched.collect(ref)
+    states = list(sched.states.values())
+    return SweepReport(states, time.perf_counter() - t0, sum(s.wall_s for s in states),
+                       [s.run.name for s in states if s.state == "failed"],
+                       [s.run.name for s in states if s.state == "blocked"])
