@@ -78,3 +78,9 @@ def test_post_stage_scores_kept_checkpoints_and_exports_the_choice(tmp_path):
     curve = tmp_path / "curves" / "ds_lemniscate_s3.csv"
     assert curve.exists() and "env_steps" in curve.read_text().splitlines()[0]
     assert any("chose iteration 1" in s for s in said)
+    # later stages naming this one start from the chosen checkpoint
+    assert (out_root / "tiny" / "selected.pt").samefile(out_root / "tiny" / "checkpoints" / "it00001.pt")
+    later = parse_spec({"version": 1, "out": str(out_root), "runs": [
+        {"name": "tiny", "method": "ds", "track": "lemniscate", "steps": 1},
+        {"name": "next", "method": "ss", "track": "lemniscate", "steps": 1, "init_from": "tiny"}]}).run("next")
+    assert str(out_root / "tiny" / "selected.pt") in later.train_argv(out_root)

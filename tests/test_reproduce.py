@@ -8,7 +8,8 @@ from typer.testing import CliRunner
 
 from cfrace.cli.main import app
 from cfrace.evaluate import paper
-from cfrace.evaluate.reproduce import claims, markdown, shipped
+from cfrace.evaluate.report import claims, markdown
+from cfrace.evaluate.reproduce import shipped
 
 
 def test_paper_reference_figures():

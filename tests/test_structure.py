@@ -128,7 +128,6 @@ LONG_FILES = {
     "sim/kernel.c": "one fused C kernel: its blocks share the lane layout and must be read together",
     "simcf/firmware.py": "the simulated firmware's one state machine (setpoints, watchdog, arming, params)",
     "sweep/spec.py": "the sweep file format (landed from its branch during the consolidation; its owner splits it)",
-    "evaluate/reproduce.py": "the reproduction report (landed from main during the consolidation; its owner splits it)",
 }
 LONG_FUNCTIONS = {
     "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",
@@ -142,7 +141,8 @@ LONG_FUNCTIONS = {
     "flight/estimator.py:_ingest": "the per-frame estimator update, kept in one place for the 100 Hz tick",
     # landed from other branches during the consolidation; their owners split them when they next change
     "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
-    "evaluate/reproduce.py:markdown": "the reproduction report, one document written top to bottom",
+    "cli/calibrate.py:thrust_cmd": "the `calibrate thrust` command's option list (typer signature)",
+    "calibrate/plots.py:plot_fits": "the five fit figures one after the other (split when it next changes)",
     "sweep/spec.py:parse_spec": "the sweep file's parser, one key after the other",
 }
 

@@ -17,7 +17,9 @@ the last one (cfrace.evaluate.select):
       agent: ego         # which actor of a multi-agent checkpoint (ego | adversary | best)
       export: policies/ours_complex.onnx
 
-After a stage is done, its training curve is kept as policies/curves/{method}_{setting}_s{seed}.csv
+The chosen checkpoint is linked as OUT/NAME/selected.pt: later stages that name this one
+(init_from, fixed_opponent) start from it, not from its last checkpoint (a sweep on Ray, which
+does not select, uses the last one). After a stage is done, its training curve is kept as policies/curves/{method}_{setting}_s{seed}.csv
 (a reduced metrics.csv, so that `cfrace reproduce` draws the curves on a fresh clone).
 """
 
@@ -26,11 +28,13 @@ from __future__ import annotations
 import dataclasses
 import fnmatch
 import json
+import os
 import shutil
 from pathlib import Path
 
 from cfrace.errors import ConfigError
 from cfrace.paths import POLICIES_DIR, ROOT
+from cfrace.sweep.spec import SELECTED
 
 PIPELINE = POLICIES_DIR / "pipeline.yaml"
 SELECT_KEYS = {"against", "runs", "laps", "seed", "agent", "export"}
@@ -114,6 +118,9 @@ def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR /
         dest = Path(s["export"])
         dest.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(scored.chosen["onnx"], dest)
+        chosen = out_dir / SELECTED  # what later stages warm-start from (cfrace.sweep.spec.reference_checkpoint)
+        chosen.unlink(missing_ok=True)
+        os.link(scored.chosen["checkpoint"], chosen)
         (out_dir / "selected.json").write_text(json.dumps({"chosen": scored.chosen, "rows": scored.rows,
                                                            "select": s}, indent=2, default=str) + "\n")
         echo(f"{run.name}: chose iteration {scored.chosen['iteration']} -> {dest}")

@@ -51,7 +51,8 @@ def score_checkpoint(ckpt: Path, track: str, obstacles: bool, opp: str | None, r
 
     onnx = ckpt.with_suffix(f".{agent}.onnx")
     _, meta, _ = export_checkpoint(ckpt, onnx, agent)
-    row = {"iteration": int(re.sub(r"\D", "", ckpt.stem) or 0), "env_steps": int(meta.get("train_steps", 0)),
+    row = {"iteration": int(re.sub(r"\D", "", ckpt.stem) or 0), "checkpoint": str(ckpt),
+           "env_steps": int(meta.get("train_steps", 0)),
            "wall_min": round(float(load_checkpoint(ckpt).get("wall_s", 0.0)) / 60.0, 2), "onnx": str(onnx)}
     if opp is None:
         r = evaluate([str(onnx)], track, obstacles, runs, laps, seed).rows[0]

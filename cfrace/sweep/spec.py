@@ -127,7 +127,7 @@ class Run:
                 continue
             opt = opts[key]
             if key in self.refs:
-                value = str(Path(out_root) / self.refs[key] / CHECKPOINT)
+                value = str(reference_checkpoint(Path(out_root) / self.refs[key]))
             if opt.kind == "set":
                 for k, v in value.items():
                     argv += ["--set", f"{k}={_fmt_value(v)}"]
@@ -190,6 +190,16 @@ class Run:
             return True
         onnx = Path(self.export["file"])
         return onnx.exists() and onnx.stat().st_mtime >= self.checkpoint(out_root).stat().st_mtime
+
+
+SELECTED = "selected.pt"  #: a run's chosen checkpoint, where the reproduction pipeline chose one
+
+
+def reference_checkpoint(run_dir: Path) -> Path:
+    """What a reference to a run means: its chosen checkpoint (RUN/selected.pt, written by the
+    reproduction pipeline's `select`) where there is one, else its last (RUN/checkpoint.pt)."""
+    chosen = Path(run_dir) / SELECTED
+    return chosen if chosen.exists() else Path(run_dir) / CHECKPOINT
 
 
 def checkpoint_progress(path: Path) -> tuple[int, float]:
