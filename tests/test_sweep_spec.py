@@ -202,3 +202,19 @@ def test_run_local_resumes_and_chains(tmp_path):
     assert calls == [("a", "a"), ("b", "b")]
     assert run_local(sw, post_run=lambda run, d: calls.append(run.name), echo=lambda s: None) == []
     assert calls[-2:] == ["a", "b"]
+
+
+def test_dry_run_prints_commands_and_state(tmp_path):
+    from typer.testing import CliRunner
+
+    from cfrace.cli.main import app
+
+    p = tmp_path / "s.yaml"
+    p.write_text(TINY.format(out=tmp_path / "out"))
+    res = CliRunner().invoke(app, ["sweep", str(p), "--dry-run"], env={"COLUMNS": "400"})
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert lines[0] == "a (new; after nothing)" and lines[2] == "b (new; after a)"
+    assert lines[1].startswith("  cfrace train --track lemniscate") and lines[1].endswith(f"--out {tmp_path}/out/a")
+    assert lines[4] == f"  cfrace export {tmp_path}/out/b/checkpoint.pt -o {tmp_path}/out/b.onnx --agent best"
+    assert not (tmp_path / "out").exists()

@@ -118,11 +118,21 @@ def tournament_cmd(
     laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
     json_out: Optional[Path] = _JSON,
     heatmap: Optional[Path] = typer.Option(None, "--heatmap", help="write the win-rate heatmap PNG here"),
+    ray: bool = typer.Option(False, "--ray", help="spread the pairs over Ray workers (a local instance by default)"),
+    address: Optional[str] = typer.Option(None, "--address", help="with --ray: the Ray cluster's address"),
 ) -> None:
     """Every pair races; a matrix of win rates (row vs column), draws apart, like the paper's Fig. 6."""
     from cfrace.evaluate.race import tournament
 
-    r = tournament(list(policies), track, obstacles, races, laps, seed, time_limit, profile, heatmap)
+    runner = None
+    if ray or address:
+        from cfrace.sweep.ray_exec import require_ray
+        from cfrace.sweep.ray_tournament import ray_pair_runner
+
+        require_ray()
+        runner = ray_pair_runner(address)
+    r = tournament(list(policies), track, obstacles, races, laps, seed, time_limit, profile, heatmap,
+                   pair_runner=runner)
     t = Table(title=f"tournament on {r.track}{' with obstacles' if r.obstacles else ''}: {r.races} races x {r.laps} "
                     f"laps per pair, win rate of row vs column (draws) ({r.wall_s:.1f} s)")
     t.add_column("policy")

@@ -6,13 +6,13 @@ import sys
 
 import typer
 
-from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, tracks, train
+from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
 from cfrace.errors import CfraceError
 
 app = typer.Typer(help="cfrace: multi-agent competitive drone racing for Crazyflies.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
 
-for module in (tracks, bench, train, evaluate, reproduce, flight, sim, logs, calibrate):
+for module in (tracks, bench, train, evaluate, reproduce, flight, sim, logs, calibrate, sweep):
     module.register(app)
 
 

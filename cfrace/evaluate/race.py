@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -161,11 +162,38 @@ class TournamentResult:
         return out
 
 
+def tournament_pairs(policies: list[str], track_name: str, obstacles: bool, races: int, laps: int, seed: int,
+                     time_limit_s: float | None, profile: str | None, threads: int | None,
+                     pairs: list[tuple[int, int]]) -> list[dict]:
+    """Race the given pairs of ``policies`` (indices; all pairs in one batched rollout) from the
+    tournament's starts; one row per pair: win/draw rates and lap times. A world's race does not
+    depend on the other worlds of the batch, so any split of the pairs gives the same rows."""
+    track = load_race_track(track_name, obstacles)
+    entrants = load_entrants(policies, track, obstacles)
+    prof = common_profile(entrants, profile)
+    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True)
+    assign, all_starts = _pair_worlds(pairs, races, starts)
+    limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
+    rec = rollout(track, prof, obstacles, entrants, assign, all_starts, laps, limit, (), seed, threads)
+    s = rec.summary()
+    rows = []
+    for k, (i, j) in enumerate(pairs):
+        ws = slice(k * races, (k + 1) * races)
+        r = race_rates(race_outcomes(s.finish_time[ws], s.crashed[ws]))
+        rows.append({"ego": entrants[i].name, "opp": entrants[j].name, **r,
+                     "ego_lap_time_s": solo_metrics(s, ws, 0)["lap_time_s"],
+                     "opp_lap_time_s": solo_metrics(s, ws, 1)["lap_time_s"]})
+    return rows
+
+
 def tournament(policies: list[str], track_name: str, obstacles: bool = False, races: int = 50, laps: int = 3,
                seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
-               heatmap: Path | None = None, threads: int | None = None) -> TournamentResult:
+               heatmap: Path | None = None, threads: int | None = None,
+               pair_runner: Callable | None = None) -> TournamentResult:
     """Every pair of policies races ``races`` times (half with swapped slots), all pairs at once.
-    Cell [i][j] is i's win rate against j; the ordered pair (j, i) is the same races seen from j."""
+    Cell [i][j] is i's win rate against j; the ordered pair (j, i) is the same races seen from j.
+    ``pair_runner`` (same arguments and result as tournament_pairs) races the pairs elsewhere, e.g.
+    spread over Ray workers (cfrace.sweep.ray_tournament)."""
     import time
 
     t0 = time.perf_counter()
@@ -175,25 +203,19 @@ def tournament(policies: list[str], track_name: str, obstacles: bool = False, ra
         raise ConfigError("races and laps must be >= 1")
     track = load_race_track(track_name, obstacles)
     entrants = load_entrants(policies, track, obstacles)
-    prof = common_profile(entrants, profile)
-    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True)
+    common_profile(entrants, profile)
     pairs = list(combinations(range(len(entrants)), 2))
-    assign, all_starts = _pair_worlds(pairs, races, starts)
     limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
-    rec = rollout(track, prof, obstacles, entrants, assign, all_starts, laps, limit, (), seed, threads)
-    s = rec.summary()
+    paths = [str(e.path) for e in entrants]
+    pair_rows = (pair_runner or tournament_pairs)(paths, track_name, obstacles, races, laps, seed, limit, profile,
+                                                  threads, pairs)
     n = len(entrants)
     win = [[None] * n for _ in range(n)]
     draw = [[None] * n for _ in range(n)]
-    pair_rows = []
-    for k, (i, j) in enumerate(pairs):
-        ws = slice(k * races, (k + 1) * races)
-        r = race_rates(race_outcomes(s.finish_time[ws], s.crashed[ws]))
-        win[i][j], win[j][i] = r["ego_win_rate"], r["opp_win_rate"]
-        draw[i][j] = draw[j][i] = r["draw_rate"]
-        pair_rows.append({"ego": entrants[i].name, "opp": entrants[j].name, **r,
-                          "ego_lap_time_s": solo_metrics(s, ws, 0)["lap_time_s"],
-                          "opp_lap_time_s": solo_metrics(s, ws, 1)["lap_time_s"]})
+    for (i, j), row in zip(pairs, pair_rows):
+        row["ego"], row["opp"] = entrants[i].name, entrants[j].name   # display names (#2 for repeats)
+        win[i][j], win[j][i] = row["ego_win_rate"], row["opp_win_rate"]
+        draw[i][j] = draw[j][i] = row["draw_rate"]
     result = TournamentResult(track.name, obstacles, races, laps, seed, [e.name for e in entrants], win, draw,
                               pair_rows)
     if heatmap is not None:

@@ -13,6 +13,7 @@ The keys a run accepts are the options of `cfrace train` itself (read from its s
 
 from __future__ import annotations
 
+import functools
 import inspect
 import itertools
 import json
@@ -48,8 +49,9 @@ class TrainOption:
     type: type    #: int | float | str (paths are str)
 
 
+@functools.lru_cache(maxsize=1)
 def train_options() -> dict[str, TrainOption]:
-    """The options of `cfrace train`, read from the command's own signature."""
+    """The options of `cfrace train`, read from the command's own signature (do not modify)."""
     from cfrace.cli.train import train_cmd
 
     hints = typing.get_type_hints(train_cmd)
@@ -147,7 +149,7 @@ class Run:
         counts across resumes, the minutes budget is reduced by the checkpoint's wall time. Only
         options a resume accepts are passed (the task and hyperparameters come from the checkpoint)."""
         argv = ["train", "--resume", str(self.out_dir(out_root))]
-        keep = {"device", "threads", "checkpoint_min", *PASS_THROUGH_FLAGS}
+        keep = {"device", "threads", "checkpoint_min", "precision", *PASS_THROUGH_FLAGS}
         opts = {k: v for k, v in self.options.items() if k in keep}
         argv += Run(self.name, opts)._option_args(out_root)
         if self.minutes is not None:
@@ -294,8 +296,8 @@ def _mapping(path: str, where: str, value: Any) -> dict:
 def _grid_runs(path: str, grid: dict) -> list[tuple[str, dict, str]]:
     grid = dict(_mapping(path, "grid", grid))
     template = grid.pop("name", None)
-    axes = {k: v for k, v in grid.items() if isinstance(v, list) and train_options().get(k, None) is not None
-            and train_options()[k].kind != "set"}
+    opts = train_options()
+    axes = {k: v for k, v in grid.items() if isinstance(v, list) and k in opts and opts[k].kind != "set"}
     for k, v in axes.items():
         if not v:
             raise ConfigError(f"{path}: grid.{k}: empty list")
