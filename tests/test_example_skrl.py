@@ -1,4 +1,4 @@
-"""examples/train_skrl_ppo.py runs: skrl's PPO (a third-party trainer) trains on RaceVectorEnv,
+"""benchmarks/train_skrl_ppo.py runs: skrl's PPO (a third-party trainer) trains on RaceVectorEnv,
 logs to TensorBoard and evaluates the mean action (a few seconds of training)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("skrl")
 pytest.importorskip("gymnasium")
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_skrl_ppo.py"
+EXAMPLE = Path(__file__).resolve().parents[1] / "benchmarks" / "train_skrl_ppo.py"
 
 
 @pytest.mark.timeout(180)

@@ -2,7 +2,7 @@
 (the library the paper's authors used) on cfrace's Gymnasium vector environment.
 
     pip install "cfrace[envs]" skrl
-    python examples/train_skrl_ppo.py --minutes 3 [--worlds 256] [--out runs/skrl_ds]
+    python benchmarks/train_skrl_ppo.py --minutes 3 [--worlds 256] [--out runs/skrl_ds]
 
 cfrace provides only the environment (RaceVectorEnv: 256 worlds of the batched RaceEnv in one
 gymnasium.vector.VectorEnv); models, PPO, memory, logging and the trainer loop are skrl's. The
