@@ -220,8 +220,9 @@ def test_ctrl_c_stops_the_motors(patient_sensor):
             running.append(stand.motors_running())
             _thread.interrupt_main()
         threading.Thread(target=interrupt, daemon=True).start()
+        long_plan = dataclasses.replace(SAFETY_PLAN, hold_s=3.0)  # the interrupt lands mid-plan on a busy machine too
         with pytest.raises(KeyboardInterrupt):
-            run_stand(stand.uri, stand.sensor, bus, SAFETY_PLAN, confirmed=True, out=lambda s: None)
+            run_stand(stand.uri, stand.sensor, bus, long_plan, confirmed=True, out=lambda s: None)
         assert running == [True] and _stopped_within(stand, 0.3)
         assert stand.fleet.status(0)["emergency_stopped"]
 
