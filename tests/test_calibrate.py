@@ -2,6 +2,7 @@
 on the simulated stand through the real cflib client (UDP) and a real python-can bus."""
 
 import _thread
+import dataclasses
 import re
 import subprocess
 import sys
