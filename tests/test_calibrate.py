@@ -4,6 +4,7 @@ on the simulated stand through the real cflib client (UDP) and a real python-can
 import _thread
 import dataclasses
 import re
+import signal
 import subprocess
 import sys
 import threading
@@ -222,8 +223,13 @@ def test_ctrl_c_stops_the_motors(patient_sensor):
             _thread.interrupt_main()
         threading.Thread(target=interrupt, daemon=True).start()
         long_plan = dataclasses.replace(SAFETY_PLAN, hold_s=3.0)  # the interrupt lands mid-plan on a busy machine too
-        with pytest.raises(KeyboardInterrupt):
-            run_stand(stand.uri, stand.sensor, bus, long_plan, confirmed=True, out=lambda s: None)
+        # interrupt_main() calls whatever SIGINT handler is installed: make it Python's own, as in a terminal
+        old_handler = signal.signal(signal.SIGINT, signal.default_int_handler)
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                run_stand(stand.uri, stand.sensor, bus, long_plan, confirmed=True, out=lambda s: None)
+        finally:
+            signal.signal(signal.SIGINT, old_handler)
         assert running == [True] and _stopped_within(stand, 0.3)
         assert stand.fleet.status(0)["emergency_stopped"]
 
