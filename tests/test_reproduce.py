@@ -59,7 +59,7 @@ def test_claims_say_when_a_trend_does_not_hold():
          "collisions": 3, "paper": None, "trend_holds": None}],
         "settings": {}, "competition": None}
     out = claims(report)
-    dense = [c for c in out if c["claim"] == "the dense reward fails with obstacles"]
+    dense = [c for c in out if c["claim"] == "the dense reward fails with obstacles (lemniscate, complex)"]
     assert dense and dense[0]["holds"] is False and dense[0]["measured"] == "90%, 0%"
     md = markdown({**report, "commit": "x", "date": "d", "wall_s": 1.0, "missing": {}, "curves": [], "claims": out,
                    "config": {"quick": True, "runs": 1, "laps": 1, "races": 1, "seed": 0, "test_seeds": [1]}})
