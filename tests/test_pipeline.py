@@ -84,3 +84,10 @@ def test_post_stage_scores_kept_checkpoints_and_exports_the_choice(tmp_path):
         {"name": "tiny", "method": "ds", "track": "lemniscate", "steps": 1},
         {"name": "next", "method": "ss", "track": "lemniscate", "steps": 1, "init_from": "tiny"}]}).run("next")
     assert str(out_root / "tiny" / "selected.pt") in later.train_argv(out_root)
+
+
+def test_a_stage_select_without_export_is_refused(tmp_path):
+    bad = tmp_path / "p.yaml"
+    bad.write_text("version: 1\nout: runs/x\nruns:\n  - {name: a, method: ds, track: lemniscate, select: {runs: 5}}\n")
+    with pytest.raises(ConfigError, match="a.select"):
+        load_pipeline(bad)

@@ -46,18 +46,18 @@ def load_pipeline(path: Path = PIPELINE, only: str | None = None):
     from cfrace.sweep.spec import load_spec
 
     sweep = load_spec(path, check_paths=False)
-    # the files it writes are named relative to the repository (policies/...), wherever it runs from
-    sweep = dataclasses.replace(sweep, runs=tuple(
-        dataclasses.replace(r, export=None if r.export is None else {**r.export, "file": str(ROOT / r.export["file"])},
-                            select=None if not isinstance(r.select, dict) or "export" not in r.select
-                            else {**r.select, "export": str(ROOT / r.select["export"])}) if r.export or r.select
-        else r for r in sweep.runs))
     for run in sweep.runs:
         if run.select is not None:
             bad = set(run.select) - SELECT_KEYS if isinstance(run.select, dict) else {"(not a mapping)"}
             if bad or "export" not in run.select:
                 raise ConfigError(f"{path}: {run.name}.select: unknown key(s) {sorted(bad)} or no export "
                                   f"(keys: {', '.join(sorted(SELECT_KEYS))})")
+    # the files it writes are named relative to the repository (policies/...), wherever it runs from
+    sweep = dataclasses.replace(sweep, runs=tuple(
+        dataclasses.replace(r, export=None if r.export is None else {**r.export, "file": str(ROOT / r.export["file"])},
+                            select=None if r.select is None
+                            else {**r.select, "export": str(ROOT / r.select["export"])}) if r.export or r.select
+        else r for r in sweep.runs))
     if only:
         globs = [g.strip() for g in only.split(",") if g.strip()]
         keep = {r.name for r in sweep.runs if any(fnmatch.fnmatch(r.name, g) for g in globs)}
