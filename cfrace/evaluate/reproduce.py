@@ -154,8 +154,6 @@ def transfer(cfg: ReproduceConfig) -> list[dict]:
     profile they were not trained on, against the same races (ground starts) in the training simulator
     on their own profile: average-speed gap, failures (terminal crashes or safety stops) and collisions
     per attempted lap."""
-    from dataclasses import replace as dc_replace
-
     from cfrace.evaluate.race import race
     from cfrace.flight.config import FlightConfig
     from cfrace.flight.dryrun import dry_run
