@@ -48,26 +48,28 @@ def first_full(rows: list[dict]) -> int | None:
 
 
 def plot(rows: list[dict], path: Path) -> None:
+    """Success against env steps: each run faint, the mean and min-max spread over seeds
+    (cfrace.rl.curves.mean_spread, the reproduction report's rule) per precision."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from cfrace.rl.curves import mean_spread
+
     fig, ax = plt.subplots(figsize=(7, 4))
-    grid = np.linspace(0, max(r["env_steps"] for r in rows), 60)
     for prec, color in (("fp32", "tab:blue"), ("bf16", "tab:orange")):
         curves = []
         for seed in sorted({r["seed"] for r in rows if r["precision"] == prec}):
             rs = [r for r in rows if r["precision"] == prec and r["seed"] == seed]
-            x = [r["env_steps"] for r in rs]
-            y = [r["success"] for r in rs]
-            ax.plot(x, y, color=color, alpha=0.25, lw=1)
-            curves.append(np.where(grid <= x[-1], np.interp(grid, x, y, left=0.0), np.nan))
-        if curves:
-            c = np.array(curves)
-            full = ~np.isnan(c).any(0)  # where every seed has data
-            ax.plot(grid[full], c[:, full].mean(0), color=color, lw=2, label=f"{prec} (mean of {len(curves)} seeds)")
-            ax.fill_between(grid[full], c[:, full].min(0), c[:, full].max(0), color=color, alpha=0.15)
+            curves.append({"env_steps": np.array([r["env_steps"] for r in rs], float),
+                           "success": np.array([r["success"] for r in rs], float)})
+            ax.plot(curves[-1]["env_steps"], curves[-1]["success"], color=color, alpha=0.25, lw=1)
+        ms = mean_spread(curves, "success", points=60) if curves else None
+        if ms is not None:
+            grid, mean, lo, hi = ms
+            ax.plot(grid, mean, color=color, lw=2, label=f"{prec} (mean of {len(curves)} seeds)")
+            ax.fill_between(grid, lo, hi, color=color, alpha=0.15)
     ax.set_xlabel("env steps")
     ax.set_ylabel("success (3 laps, single-agent benchmark)")
     ax.set_title("DS on the lemniscate: bf16 update vs float32")
