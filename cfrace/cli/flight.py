@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -13,8 +11,16 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, write_json
+
 console = Console(stderr=True)
 out = Console()
+
+#: the forms of --mocap (cfrace.flight.mocap)
+MOCAP_FORMS = ("vicon://HOST, optitrack://HOST, qualisys://HOST, vrpn://HOST, replay://LOG.mcap, "
+               "or sim://HOST:PORT for `cfrace sim serve`'s drones (its pose port: first drone's port - 1)")
+FOXGLOVE_HELP = ("Serve the flight live to Foxglove (3D scene, commands) on ws://127.0.0.1:PORT; "
+                 "`--foxglove` alone: port 8765.")
 
 
 def _ms(stats: dict | None) -> str:
@@ -36,25 +42,13 @@ def print_result(result: dict, con: Console = out) -> None:
             t.add_column(col, overflow="fold")
         for d in drones:
             mean = "-" if d["speed_mean"] is None else f"{d['speed_mean']:.1f}"
-            res = (f"stopped: {d['stop_kind']} at {d['stop_t']:.2f} s"
-                   if d["stopped"] and d["stop_t"] is not None and d["stop_kind"] != end else "flew to the end")
+            res = drone_outcome(d, result)
             t.add_row(f"{d['name']} ({d['body']})", str(d.get("method")), f"{d['laps']} ({d['gates_passed']})",
                       ", ".join(f"{x:.2f}" for x in d["lap_times"]) or "-", f"{d['speed_max']:.1f} / {mean}", res)
         con.print(t)
     loop = result.get("loop")
     if loop:
-        t = Table(title=f"loop timing, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz (ms, p50 / p99 / max)")
-        t.add_column("figure")
-        t.add_column("ms")
-        t.add_row("compute (tick start -> setpoints sent)", _ms(loop["compute_ms"]))
-        t.add_row("period jitter |period - 10 ms|", _ms(loop["period_jitter_ms"]))
-        t.add_row("tick start late", _ms(loop["late_ms"]))
-        for name, s in loop["observation_ms"].items():
-            t.add_row(f"observation {name}", _ms(s))
-        for name, s in loop["inference_ms"].items():
-            t.add_row(f"inference {name} (ONNX)", _ms(s))
-        t.add_row("skipped ticks", str(loop.get("skipped", 0)))
-        con.print(t)
+        con.print(loop_table(loop))
     events = result.get("safety_events") or []
     if events:
         t = Table(title="safety events")
@@ -66,40 +60,63 @@ def print_result(result: dict, con: Console = out) -> None:
     else:
         con.print("safety events: none")
     for d in result.get("drones_final") or []:
-        con.print(f"  {d['body']}: motors {'off' if d['motors_off'] else 'ON'}, thrust {d['thrust_counts']} counts, "
-                  f"armed {d['armed']}, watchdog {d['watchdog']}")
+        con.print(f"  {final_state(d)}", highlight=False)
+    if result.get("profile_rule"):
+        con.print(f"drone profile {result.get('profile')}: {result['profile_rule']}", highlight=False)
     if result.get("log"):
         con.print(f"flight log: {result['log']}")
 
 
-def _clean(obj):
-    """JSON-safe copy: NaN/inf -> None, tuples -> lists, numpy scalars -> numbers."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if hasattr(obj, "item") and callable(obj.item):
-        return _clean(obj.item())
-    return obj
+def drone_outcome(d: dict, result: dict) -> str:
+    """How one drone's race ended, in words."""
+    end = result.get("end")
+    if d["stopped"] and d["stop_t"] is not None and d["stop_kind"] != end:
+        return f"stopped: {d['stop_kind']} at {d['stop_t']:.2f} s"
+    if end == "operator_kill" or result.get("operator_kill"):
+        return f"stopped by the operator ({result.get('operator_kill') or 'kill'}) at {result.get('duration_s') or 0:.2f} s"
+    if end == "finished":
+        return "finished the laps" if d["name"] == result.get("winner") or result.get("winner") == "draw" \
+            else "flew until the winner finished"
+    if end == "timeout":
+        return "flew until the time-out"
+    return f"stopped: the race ended ({end})"
 
 
-def write_json(result: dict, path: Path | None) -> None:
-    if path is None:
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_clean(result), indent=1, default=str, allow_nan=False) + "\n")
+def final_state(d: dict) -> str:
+    """A simulated drone's firmware state after the race, in words."""
+    if d["motors_off"]:
+        motors = "motors off"
+        if d.get("thrust_counts"):
+            why = "by its watchdog" if d.get("watchdog") not in (None, "ok") else "by the firmware"
+            motors += f" (stopped {why}; last setpoint {d['thrust_counts']} counts)"
+    else:
+        motors = f"motors ON at {d['thrust_counts']} counts"
+    armed = "armed" if d["armed"] else "disarmed"
+    return f"{d['body']}: {motors}, {armed}, watchdog {d['watchdog']}"
 
 
-def exit_code(result: dict) -> int:
-    from cfrace.flight.runner import EXIT_CODES
-
-    return EXIT_CODES.get(result.get("operator_kill") or "", 0) if result.get("end") == "operator_kill" else 0
+def loop_table(loop: dict, title: str | None = None) -> Table:
+    """The loop figures (cfrace.flight.loopfigures.loop_figures) as the table every command prints."""
+    t = Table(title=title or f"loop timing, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz (ms, p50 / p99 / max)")
+    t.add_column("figure")
+    t.add_column("ms")
+    t.add_row("compute (tick start -> setpoints sent)", _ms(loop["compute_ms"]))
+    t.add_row("period (tick start to tick start)", _ms(loop.get("period_ms")))
+    t.add_row(f"period jitter |period - {1e3 / loop['rate_hz']:g} ms|", _ms(loop["period_jitter_ms"]))
+    t.add_row("tick start late", _ms(loop["late_ms"]))
+    for name, s in loop["observation_ms"].items():
+        t.add_row(f"observation {name}", _ms(s))
+    for name, s in loop["inference_ms"].items():
+        t.add_row(f"inference {name} (ONNX)", _ms(s))
+    t.add_row("skipped ticks", str(loop.get("skipped", 0)))
+    return t
 
 
 def announce(meta: dict, con: Console = console) -> None:
     """One line per drone and the limits, printed once everything answered, before arming."""
+    con.print(f"drone profile {meta['profile']}: {meta.get('profile_rule') or '--profile'}", highlight=False)
+    if meta.get("foxglove"):
+        con.print(f"Foxglove: open connection {meta['foxglove']} (Foxglove WebSocket)", highlight=False)
     for (name, pol), uri, body in zip(meta["policies"].items(), meta["uris"], meta["bodies"]):
         con.print(f"{name}: {pol['method']} policy {pol['path']} ({pol['obs_layout']}) -> {uri}, mocap body {body}",
                   highlight=False)
@@ -111,7 +128,8 @@ def announce(meta: dict, con: Console = console) -> None:
               + (f"loop thread on CPU {meta['loop_cpu']}, the rest elsewhere" if meta.get("loop_cpu") is not None
                  else "loop thread not pinned")
               + (f", SCHED_FIFO {meta['rt_priority']} where permitted; " if meta.get("rt_priority") else "; ")
-              + f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
+              + f"{meta['laps']} laps on {meta['track']}{' with obstacles' if meta.get('obstacles') else ''}. "
+              f"Ctrl-C stops every drone.", highlight=False)
 
 
 def register(app: typer.Typer) -> None:
@@ -124,10 +142,13 @@ def register(app: typer.Typer) -> None:
         opp: Optional[str] = typer.Option(None, help="Opponent policy (flies uris[1])."),
         uris: Optional[str] = typer.Option(None, help="Link URIs ego,opp: radio://0/80/2M/E7E7E7E7E1,radio://1/90/2M/E7E7E7E7E2 "
                                                       "(one Crazyradio per drone), udp://127.0.0.1:19850,..."),
-        mocap: Optional[str] = typer.Option(None, help="vicon://HOST, optitrack://HOST, replay://LOG.mcap, sim://HOST:PORT."),
+        mocap: Optional[str] = typer.Option(None, help="Required: vicon://HOST, optitrack://HOST, qualisys://HOST, "
+                                                       "vrpn://HOST, replay://LOG.mcap, sim://HOST:PORT."),
         bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
         laps: Optional[int] = typer.Option(None, help="Laps to win (default 3)."),
-        profile: Optional[str] = typer.Option(None, help="Drone profile of the flown drones (default cf21bl)."),
+        profile: Optional[str] = typer.Option(None, help=f"Drone profile of the flown drones (default {DEFAULT_PROFILE}, "
+                                                          "as `sim serve` and `sim dry-run`; 'trained': the ego "
+                                                          "policy's training profile)."),
         log: Optional[Path] = typer.Option(None, help="Flight log (.mcap); default flights/fly-DATE.mcap."),
         obstacles: Optional[bool] = typer.Option(None, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
         config: Optional[Path] = typer.Option(None, help="Flight config YAML (room, URIs, bodies, safety limits)."),
@@ -135,7 +156,8 @@ def register(app: typer.Typer) -> None:
         geofence_margin_m: Optional[float] = typer.Option(None, help="Fence = track arena grown by this (m)."),
         speed_max_mps: Optional[float] = typer.Option(None, help="Stop a drone above this speed (m/s)."),
         tilt_max_deg: Optional[float] = typer.Option(None, help="Stop a drone tilted more than this (deg)."),
-        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
+        foxglove: Optional[int] = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
         rt_priority: Optional[str] = typer.Option(None, help="Run the loop thread SCHED_FIFO: auto (the default: "
                                                              "priority 50 where permitted, i.e. root or "
                                                              "CAP_SYS_NICE, else normal), 0 = off, or 1-99."),
@@ -154,26 +176,48 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
-        from cfrace.flight.config import make_config, split_list
-        from cfrace.flight.runner import fly
-        from cfrace.flight.setup import resolve_race
+        from cfrace.errors import ConfigError
+        from cfrace.flight.config import load_flight_file, make_config, split_list
 
         safety = {k: v for k, v in (("geofence_margin_m", geofence_margin_m), ("speed_max_mps", speed_max_mps),
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
+        from_file = load_flight_file(config) if config else {}
+        if mocap is None and "mocap" not in from_file:
+            raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
+        track_name = track or from_file.get("track")
+        profile, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
+                                       _track_or_none(track_name), ego or from_file.get("ego"),
+                                       bool(obstacles if obstacles is not None else from_file.get("obstacles")))
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
+                          foxglove_port=foxglove,
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
                           loop_cpu=loop_cpu,
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                           latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         if not cfg.uris:
-            from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
-        result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
-        print_result(result)
+        from cfrace.flight.runner import fly
+        from cfrace.flight.setup import resolve_race
+
+        result = fly(resolve_race(cfg), console=console,
+                     announce=lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
+        print_result(result, human_console(json_out))
         write_json(result, json_out)
-        code = exit_code(result)
+        code = race_exit_code(result)
         if code:
             sys.exit(code)
+
+
+def _track_or_none(name: str | None):
+    """The track for the profile rule, or None (its error comes later, from resolve_race)."""
+    if name is None:
+        return None
+    from cfrace.errors import CfraceError
+    from cfrace.track import load_track
+    try:
+        return load_track(name)
+    except CfraceError:
+        return None

@@ -1,4 +1,10 @@
-"""The `cfrace` command. Thin: each command group lives in its own module with a register(app)."""
+"""The `cfrace` command. Thin: each command group lives in its own module with a register(app).
+
+Every error a user can make ends the same way: one line ``error: ...`` on stderr (argument errors
+add the command's `--help` hint), exit code 2, no traceback. Ctrl-C exits 130 from every command.
+No command module imports torch, onnxruntime or matplotlib at import time: arguments are checked
+(and `--help` printed) before any heavy import (tests/test_cli_habits.py).
+"""
 
 from __future__ import annotations
 
@@ -6,23 +12,81 @@ import sys
 
 import typer
 
+try:
+    from typer._click import exceptions as cx   # typer >= 0.2x carries its own click
+except ImportError:                             # older typer: click itself
+    from click import exceptions as cx
+
+import cfrace
 from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
 from cfrace.errors import CfraceError
 
 app = typer.Typer(help="cfrace: multi-agent competitive drone racing for Crazyflies.",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                  rich_markup_mode=None)
+
+
+def _version(value: bool) -> None:
+    if value:
+        print(f"cfrace {cfrace.__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                       help="Print the version and exit.")) -> None:
+    """cfrace: multi-agent competitive drone racing for Crazyflies."""
+
 
 for module in (tracks, bench, train, evaluate, reproduce, flight, sim, logs, calibrate, sweep):
     module.register(app)
 
+#: options whose value may be left out (`--foxglove` alone = `--foxglove 8765`)
+OPTIONAL_VALUES = {"--foxglove": "8765"}
 
-def main() -> None:
-    """Entry point that turns user-facing errors into one line and exit code 2."""
+
+def fill_optional_values(argv: list[str]) -> list[str]:
+    """argv with the default value inserted after an OPTIONAL_VALUES option given without one."""
+    out = []
+    for i, arg in enumerate(argv):
+        out.append(arg)
+        if arg in OPTIONAL_VALUES:
+            nxt = argv[i + 1] if i + 1 < len(argv) else None
+            if nxt is None or nxt.startswith("-"):
+                out.append(OPTIONAL_VALUES[arg])
+    return out
+
+
+def _usage_error(exc: cx.UsageError) -> int:
+    """One line for an argument error, with the --help hint of the command it belongs to."""
+    ctx = exc.ctx
+    where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+    print(f"error: {exc.format_message()}{where}", file=sys.stderr)
+    return 2
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Entry point: user-facing errors as one line and exit code 2; Ctrl-C exits 130."""
+    args = fill_optional_values(list(sys.argv[1:] if argv is None else argv))
     try:
-        app()
+        code = app(args=args, prog_name="cfrace", standalone_mode=False)
     except CfraceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
+    except cx.UsageError as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":    # `cfrace`, `cfrace sim`: the help, as asked
+            print(exc.format_message())
+            sys.exit(0)
+        sys.exit(_usage_error(exc))
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:      # click turns Ctrl-C into Abort outside standalone mode
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+    except cx.ClickException as exc:
+        print(f"error: {exc.format_message()}", file=sys.stderr)
+        sys.exit(exc.exit_code)
+    sys.exit(code if isinstance(code, int) else 0)

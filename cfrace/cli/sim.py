@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
 from rich.console import Console
+
+from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, write_json
+from cfrace.cli.flight import FOXGLOVE_HELP
 
 sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
                       no_args_is_help=True)
@@ -21,8 +23,10 @@ def serve_cmd(
     track: str = typer.Option(..., help="Track name or YAML path."),
     drones: int = typer.Option(2, help="Number of simulated Crazyflies."),
     port: int = typer.Option(19850, help="UDP port of the first drone (pose stream on port - 1)."),
-    profile: str = typer.Option("cf21bl", help="Drone profile."),
-    obstacles: bool = typer.Option(True, "--obstacles/--no-obstacles", help="Simulate the track's obstacles."),
+    profile: Optional[str] = typer.Option(None, help=f"Drone profile (default {DEFAULT_PROFILE}, as `fly` and "
+                                                      "`sim dry-run`)."),
+    obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Simulate the track's obstacles "
+                                                                             "(off by default, as in `fly`)."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
     seed: int = typer.Option(0),
 ):
@@ -30,6 +34,12 @@ def serve_cmd(
     from cfrace.flight.config import split_list
     from cfrace.simcf.server import serve
 
+    if profile == "trained":
+        from cfrace.errors import ConfigError
+        raise ConfigError("--profile trained: `sim serve` flies no policy; name the profile (e.g. cf2x_paper)")
+    profile, rule = choose_profile(profile)
+    out.print(f"drone profile {profile}: {rule}; obstacles {'on' if obstacles else 'off'} "
+              f"(`cfrace fly` must be given the same: --profile, --obstacles)", highlight=False)
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
           out=lambda text: out.print(text, highlight=False))
 
@@ -40,12 +50,14 @@ def dry_run_cmd(
     ego: str = typer.Option(..., help="Ego policy: ours/ds/ss/dm or an .onnx path."),
     opp: str = typer.Option(..., help="Opponent policy."),
     laps: int = typer.Option(3, help="Laps to win."),
-    profile: Optional[str] = typer.Option(None, help="Drone profile, simulated and flown (default: the one "
-                                                      "the ego policy was trained for, from its metadata)."),
+    profile: Optional[str] = typer.Option(None, help=f"Drone profile, simulated and flown (default {DEFAULT_PROFILE}, "
+                                                      "as `fly` and `sim serve`; 'trained': the one the ego "
+                                                      "policy was trained for, from its metadata)."),
     obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
     bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
     log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
+    foxglove: Optional[int] = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
     faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp],...: mocap_dropout_short, mocap_dropout_long, "
                                                     "pose_outlier, geofence, nan_policy, link_loss, stall_50ms, "
                                                     "stall_200ms, sigterm, sigint."),
@@ -72,25 +84,26 @@ def dry_run_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
-    from cfrace.cli.flight import exit_code, print_result, write_json
+    from cfrace.cli.flight import announce, print_result
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
-    from cfrace.flight.setup import resolve_race, training_profile
+    from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
     the_track = load_track(track)
-    if profile is None:
-        profile = training_profile(the_track, ego, obstacles)
+    profile, rule = choose_profile(profile, the_track, ego, obstacles)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
+                       foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                      mocap_latency_s=mocap_latency_ms / 1e3, console=console,
-                     setup=resolve_race(cfg, the_track)).to_json()
-    print_result(result)
+                     setup=resolve_race(cfg, the_track),
+                     announce=lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
+    print_result(result, human_console(json_out))
     write_json(result, json_out)
-    code = exit_code(result)
+    code = race_exit_code(result)
     if code:
         sys.exit(code)
 
@@ -98,7 +111,7 @@ def dry_run_cmd(
 @sim_app.command("replay")
 def replay_cmd(
     log: Path = typer.Argument(..., help="A flight log written by cfrace fly / cfrace sim dry-run."),
-    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
     via_replay_source: bool = typer.Option(False, help="Read the frames through the mocap source "
                                                        "replay://LOG?speed=0 (one frame per tick logs)."),
 ):
@@ -107,10 +120,9 @@ def replay_cmd(
 
     r = replay_log(log, via_replay_source=via_replay_source)
     verdict = "[green]identical[/green]" if r["identical"] else "[red]MISMATCH[/red]"
-    out.print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
+    human_console(json_out).print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
               f"({r['mismatched']} differ, max |diff| {r['max_abs_diff']:.3g})")
-    if json_out is not None:
-        json_out.write_text(json.dumps(r, indent=1) + "\n")
+    write_json(r, json_out)
     if not r["identical"]:
         sys.exit(1)
 

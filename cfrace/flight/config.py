@@ -69,6 +69,7 @@ class FlightConfig:
     profile: str = "cf21bl"                      #: drone profile of the flown drones
     obstacles: bool = False
     log: Path | None = None                      #: flight log (.mcap); None = no log
+    foxglove_port: int | None = None             #: serve the flight live to Foxglove on 127.0.0.1:PORT (0: any free port)
     timeout_s: float = 120.0                     #: s, the race ends (draw) after this
     connect_timeout_s: float = 5.0               #: s per link
     mocap_timeout_s: float = 3.0                 #: s to wait for the first frame with every body
@@ -109,6 +110,8 @@ class FlightConfig:
             raise ConfigError(f"latency_comp_s: must be in [0, 0.1) s, got {self.latency_comp_s}")
         object.__setattr__(self, "loop_cpu", parse_loop_cpu(self.loop_cpu))
         object.__setattr__(self, "rt_priority", parse_rt_priority(self.rt_priority))
+        if self.foxglove_port is not None and not (0 <= self.foxglove_port < 65536):
+            raise ConfigError(f"foxglove_port: must be a TCP port 0-65535, got {self.foxglove_port}")
         if self.timeout_s <= 0:
             raise ConfigError(f"timeout_s: must be > 0, got {self.timeout_s}")
 

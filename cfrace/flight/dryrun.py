@@ -101,7 +101,7 @@ def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=(
 
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
-            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None) -> RaceResult:
+            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None, announce=None) -> RaceResult:
     """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info.
     ``setup``: the race resolved already (the CLI's), else resolved here from cfg."""
     fault_list = parse_faults(faults)
@@ -130,7 +130,7 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
                 injector.cutters[name] = relay.cut
         io = sim_io(cfg, fleet, lockstep=lockstep, uris=uris, injector=injector, mocap_options=mocap_options,
                     lockstep_warm_calls=lockstep_warm_calls)
-        result = run_race(setup, io, settle=_settle(fleet, lockstep, cfg.dt), console=console,
+        result = run_race(setup, io, settle=_settle(fleet, lockstep, cfg.dt), console=console, announce=announce,
                           extra_meta={"dry_run": True, "seed": seed, "faults": faults or "",
                                       "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s})
         if server is not None:

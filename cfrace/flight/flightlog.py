@@ -120,6 +120,7 @@ class FlightLog:
         self.error: OSError | None = None
         self.counts: Counter[str] = Counter()
         self._channels: dict[str, int] = {}
+        self._schemas: dict[tuple, int] = {}
         self._t_first: float | None = None
         self._t_last: float | None = None
         self._wall0_ns, self._mono0_ns = time.time_ns(), time.monotonic_ns()
@@ -155,6 +156,25 @@ class FlightLog:
         if self._pending is not None:          # a signal handler asked to close meanwhile
             self.close(self._pending)
 
+    def write_encoded(self, topic: str, t: float, data: bytes, schema: tuple[str, str, bytes],
+                      message_encoding: str) -> None:
+        """Append one message encoded by the caller (the Foxglove scene: cfrace.flight.foxglove_scene)
+        on `topic`, whose channel gets ``schema`` = (name, encoding, data) and ``message_encoding``
+        when it first appears. Same guarantees as write()."""
+        if self._closed or self.error is not None:
+            return
+        with self._lock:
+            self._owner = threading.get_ident()
+            try:
+                if not self._closed:
+                    if topic not in self._channels:
+                        self._register_schema(topic, *schema, message_encoding)
+                    self._append(topic, float(t), data)
+            finally:
+                self._owner = None
+        if self._pending is not None:
+            self.close(self._pending)
+
     def _append(self, topic: str, t: float, data: bytes) -> None:
         try:
             channel = self._channels.get(topic)
@@ -179,10 +199,16 @@ class FlightLog:
         props = dict(full.get("properties", {}))
         props["t"] = {"type": "number", "description": "s, flight clock"}
         full.update(title=topic, description=description, properties=props)
-        schema_id = self._writer.register_schema(name=topic.strip("/").replace("/", "."),
-                                                 encoding="jsonschema",
-                                                 data=json.dumps(full).encode())
-        self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+        return self._register_schema(topic, topic.strip("/").replace("/", "."), "jsonschema",
+                                     json.dumps(full).encode(), "json")
+
+    def _register_schema(self, topic: str, name: str, encoding: str, data: bytes, message_encoding: str) -> int:
+        """The schema (once per name) and the channel of `topic`."""
+        key = (name, encoding, data)
+        schema_id = self._schemas.get(key)
+        if schema_id is None:
+            schema_id = self._schemas[key] = self._writer.register_schema(name=name, encoding=encoding, data=data)
+        self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding=message_encoding,
                                                               schema_id=schema_id)
         return self._channels[topic]
 
@@ -273,12 +299,16 @@ class FlightLogData:
     truncated: bool
     stop_reason: str = ""                                   #: why reading stopped early
     raw: dict[str, list[bytes]] = field(default_factory=dict)   #: topic -> JSON payloads
+    #: topic -> payloads of the channels in other encodings (the Foxglove scene: protobuf)
+    other: dict[str, list[bytes]] = field(default_factory=dict)
+    #: topic -> (message encoding, schema name, schema encoding) of every channel
+    channels: dict[str, tuple[str, str, str]] = field(default_factory=dict)
     bad_messages: int = 0                                   #: payloads that did not decode
     _decoded: dict[str, list[tuple[float, dict]]] = field(default_factory=dict, repr=False)
 
     @property
     def topics(self) -> list[str]:
-        return list(self.raw)
+        return list(self.raw) + list(self.other)
 
     @property
     def complete(self) -> bool:
@@ -286,7 +316,7 @@ class FlightLogData:
         return self.summary is not None and not self.truncated
 
     def count(self, topic: str) -> int:
-        return len(self.raw.get(topic, ()))
+        return len(self.raw.get(topic, ()) or self.other.get(topic, ()))
 
     def messages(self, topic: str) -> list[tuple[float, dict]]:
         if topic not in self._decoded:
@@ -322,6 +352,10 @@ def read_log(path: str | Path) -> FlightLogData:
         raise LogError(f"cannot read flight log {path}: {exc.strerror or exc}") from None
     topics: dict[int, str] = {}
     raw: dict[str, list[bytes]] = {}
+    other: dict[str, list[bytes]] = {}
+    schemas: dict[int, tuple[str, str]] = {}
+    channels: dict[str, tuple[str, str, str]] = {}
+    json_ids: set[int] = set()
     truncated, reason = True, "file ends without the MCAP footer"
     with f:
         strict = _StrictFile(f)
@@ -336,12 +370,18 @@ def read_log(path: str | Path) -> FlightLogData:
                     break
                 if isinstance(record, Channel):
                     topics[record.id] = record.topic
+                    channels[record.topic] = (record.message_encoding,
+                                              *schemas.get(record.schema_id, ("", "")))
+                    if record.message_encoding == "json":
+                        json_ids.add(record.id)
                 elif isinstance(record, Message):
                     topic = topics.get(record.channel_id)
                     if topic is None:
                         raise ValueError(f"message on unknown channel {record.channel_id}")
-                    raw.setdefault(topic, []).append(record.data)
-                elif isinstance(record, (DataEnd, Footer, Schema)):
+                    (raw if record.channel_id in json_ids else other).setdefault(topic, []).append(record.data)
+                elif isinstance(record, Schema):
+                    schemas[record.id] = (record.name, record.encoding)
+                elif isinstance(record, (DataEnd, Footer)):
                     pass
         except InvalidMagic:
             if f.tell() <= 8:
@@ -357,7 +397,7 @@ def read_log(path: str | Path) -> FlightLogData:
                 raise LogError(f"{path} is not an MCAP flight log") from None
             reason = f"damaged record near byte {f.tell()}: {exc}"
     data = FlightLogData(path=path, meta={}, summary=None, truncated=truncated, stop_reason=reason,
-                         raw=raw)
+                         raw=raw, other=other, channels=channels)
     metas = data.messages("/meta")
     if not metas:
         raise LogError(f"{path} is not a cfrace flight log (no /meta message)")

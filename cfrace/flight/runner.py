@@ -27,7 +27,7 @@ import numpy as np
 from cfrace.flight import realtime
 from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
-from cfrace.flight.flightlog import FlightLog
+from cfrace.flight.foxglove_scene import open_sink
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
 from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.progress import FastRaceProgress
@@ -170,10 +170,12 @@ class RaceRun:
             self.links.append(io.open_link(i, uri))
         for link in self.links:
             link.connect(cfg.connect_timeout_s)
-        if cfg.log is not None:
-            self.log = FlightLog(cfg.log, self.meta)
+        # the flight log and/or the live Foxglove server (cfrace.flight.foxglove_scene)
+        self.log = open_sink(cfg.log, self.meta, self.setup.track, self.setup.fence, list(cfg.bodies), cfg.obstacles,
+                             cfg.foxglove_port)
+        server = getattr(self.log, "server", None)
         if self.announce is not None:
-            self.announce(self.meta | {"fence": self.setup.fence})
+            self.announce(self.meta | {"fence": self.setup.fence, "foxglove": server.url if server else None})
         for link in self.links:
             link.setup()
         return self._loop()
@@ -241,7 +243,8 @@ class RaceRun:
         if self.log is not None:
             doc = result.to_json()
             self.log.close({k: v for k, v in doc.items() if k != "loop"} | {"loop": doc.get("loop")})
-            result.log = str(self.setup.cfg.log)
+            if self.setup.cfg.log is not None:
+                result.log = str(self.setup.cfg.log)
 
 
 def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None,

@@ -1,0 +1,98 @@
+"""What every command shares: `--json FILE|-`, the drone-profile rule, exit codes of a race.
+
+Light on purpose (no torch, onnxruntime or matplotlib): every command module imports it before
+its arguments are checked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from rich.console import Console
+
+#: `--json -`: the JSON document goes to stdout, so everything a command prints for people goes to stderr
+STDOUT = "-"
+
+#: the drone profile of `sim serve`, `fly` and `sim dry-run` unless --profile names another:
+#: a Crazyflie 2.1 Brushless, the drone the flight stack is tuned for (docs/drones.md)
+DEFAULT_PROFILE = "cf21bl"
+#: `--profile trained`: the profile the ego policy was trained for (its metadata drone_profile)
+TRAINED = "trained"
+
+#: exit codes of `fly` / `sim dry-run` besides 0 (docs/flight.md, "Exit codes")
+EXIT_ALL_STOPPED = 3      #: every drone was stopped by a safety check: no one finished
+EXIT_ERROR = 1            #: the race raised (the error is in the result)
+
+
+def to_stdout(path: Path | str | None) -> bool:
+    """True when `--json` asks for stdout."""
+    return path is not None and str(path) == STDOUT
+
+
+def human_console(json_path: Path | str | None) -> Console:
+    """Where a command prints its tables: stdout, or stderr when its JSON goes to stdout."""
+    return Console(stderr=to_stdout(json_path))
+
+
+def clean(obj):
+    """JSON-safe copy: NaN/inf -> None, tuples -> lists, numpy scalars -> numbers."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [clean(v) for v in obj]
+    if hasattr(obj, "item") and callable(obj.item):
+        return clean(obj.item())
+    return obj
+
+
+def write_json(doc, path: Path | str | None, said: Console | None = None, *, indent: int = 1) -> None:
+    """Every `--json`: write doc to the file (parents made), or to stdout for "-". ``said``: a
+    console to print "wrote FILE" on."""
+    if path is None:
+        return
+    text = json.dumps(clean(doc), indent=indent, default=str, allow_nan=False) + "\n"
+    if to_stdout(path):
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    if said is not None:
+        said.print(f"wrote {path}", highlight=False)
+
+
+def choose_profile(profile: str | None, track=None, ego: str | None = None, obstacles: bool = False
+                   ) -> tuple[str, str]:
+    """The one rule for the drone profile of `sim serve`, `fly` and `sim dry-run`: --profile NAME
+    if given; ``trained``: the ego policy's training profile; else DEFAULT_PROFILE. Returns
+    (profile name, why: the words the banner and the result show)."""
+    if profile is None:
+        return DEFAULT_PROFILE, "the default (--profile to change)"
+    if profile == TRAINED:
+        if track is None or ego is None:
+            from cfrace.errors import ConfigError
+            raise ConfigError("--profile trained needs a policy (the ego's training profile)")
+        from cfrace.flight.setup import training_profile
+        return training_profile(track, ego, obstacles, default=DEFAULT_PROFILE), "the ego policy's training profile"
+    return profile, "--profile"
+
+
+def race_exit_code(result: dict) -> int:
+    """0 when the race ran to an end someone could win; 130/143 after Ctrl-C / SIGTERM;
+    EXIT_ALL_STOPPED when the safety checks stopped every drone; EXIT_ERROR when it raised."""
+    from cfrace.flight.runner import EXIT_CODES
+
+    end = result.get("end")
+    if end == "operator_kill" or result.get("operator_kill"):
+        return EXIT_CODES.get(result.get("operator_kill") or "", EXIT_ERROR)
+    if end in ("finished", "timeout"):
+        return 0
+    if end == "error":
+        return EXIT_ERROR
+    return EXIT_ALL_STOPPED      # all_stopped, or a safety check that stopped every drone at once
