@@ -3,7 +3,6 @@ each command names). Other CLI modules add commands to `bench_app`."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Optional
@@ -12,6 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cfrace.cli.common import write_json
 from cfrace.errors import ConfigError
 
 bench_app = typer.Typer(help="Benchmarks that print figures (speed, latency).", no_args_is_help=True)
@@ -45,13 +45,14 @@ def _ints(text: str, what: str) -> list[int]:
 
 @bench_app.command("sim")
 def sim_cmd(
-    worlds: str = typer.Option("1,64,1024,2048,4096", help="comma-separated world counts"),
+    worlds: str = typer.Option("1,64,1024,4096", help="comma-separated world counts"),
     drones: int = typer.Option(2, min=1, help="drones per world"),
     steps: int = typer.Option(30, min=1, help="timed policy steps (each `substeps` physics steps)"),
     warmup: int = typer.Option(3, min=1, help="untimed policy steps first (torch.compile compiles here)"),
     repeats: int = typer.Option(3, min=1, help="timed repeats per size and mode; the fastest counts"),
     substeps: int = typer.Option(10, min=1, help="physics steps of 2 ms per policy step"),
-    compile: bool = typer.Option(True, "--compile/--no-compile", help="also measure torch.compile"),
+    compile: bool = typer.Option(False, "--compile/--no-compile", help="also measure torch.compile (minutes of "
+                                                                       "compiling per size on a small machine)"),
     modes_opt: str = typer.Option("", "--modes", help="comma-separated subset of c,eager,compiled "
                                   "(default: c if built, eager, compiled with --compile)"),
     peer: Optional[bool] = typer.Option(None, "--peer/--no-peer",
@@ -79,10 +80,22 @@ def sim_cmd(
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
     modes = bench.choose_modes(compile, modes_opt)
-    console.print(f"modes: {', '.join(modes)}")
-    results, errors = bench.measure_all(sizes, drones, modes, console.print, steps=steps, warmup=warmup,
-                                        substeps=substeps, track=track, profile=profile, repeats=repeats,
-                                        scenario=scenario)
+    n = len(sizes) * len(modes)
+    console.print(f"modes: {', '.join(modes)}; {n} measurements ({len(sizes)} sizes x {len(modes)} modes), "
+                  f"{repeats} x {steps} timed steps each")
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("bench sim"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("sim", total=n)
+
+        def said(text: str) -> None:
+            bar.console.print(text)
+            bar.advance(task)
+
+        results, errors = bench.measure_all(sizes, drones, modes, said, steps=steps, warmup=warmup,
+                                            substeps=substeps, track=track, profile=profile, repeats=repeats,
+                                            scenario=scenario)
     peer_doc = bench.measure_peer(peer, bench.peer_python(peer_python_path), sizes, drones, peer_calls, threads,
                                   console.print)
     machine["loadavg_end"] = list(os.getloadavg())
@@ -92,9 +105,7 @@ def sim_cmd(
         console.print(f"crazyflow {peer_doc['versions'].get('crazyflow')} (jax {peer_doc['versions'].get('jax')}): "
                       "first_principles + attitude control, 500 Hz, sim.step(1000) jitted; no collision checks")
     console.print(f"load average at start {machine['loadavg_start'][0]:.2f}, at end {machine['loadavg_end'][0]:.2f}")
-    if json_out is not None:
-        bench.write_doc(json_out, results, peer_doc, rows, machine, errors)
-        console.print(f"wrote {json_out}")
+    write_json(bench.bench_doc(results, peer_doc, rows, machine, errors), json_out, console, indent=2)
 
 
 @bench_app.command("loop")
@@ -117,21 +128,69 @@ def bench_loop_cmd(
     log: bool = typer.Option(True, "--log/--no-log", help="Write the flight log, as `cfrace fly` does."),
     floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
                                             "on the same CPU and priority (0 = skip)."),
+    foxglove: bool = typer.Option(False, "--foxglove", help="Also fly with the live Foxglove server on (as `fly "
+                                                             "--foxglove`, a free port): the loop without and with it, "
+                                                             "alternating, and their ratios."),
+    rounds: int = typer.Option(2, min=1, help="With --foxglove: runs of each, alternating."),
 ):
     """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
     from cfrace.flight.benchloop import bench_loop
 
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
-    r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log,
-                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+    options = dict(track=track, profile=profile, rt_priority=rt_priority, policies=policies,
+                   prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
+                   latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+    if foxglove:
+        write_json(_foxglove_compare(duration_s, rounds, options), json_out)
+        return
+    r = bench_loop(duration_s, floor_s=floor_s, **options)
     console.print(loop_table(r))
     if r["floor"] is not None:
         console.print(floor_line(r, floor_s), highlight=False)
     console.print(goals_line(r))
-    if json_out is not None:
-        json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")
+    write_json(r, json_out)
+
+
+#: (label, key in the loop figures) compared by `bench loop --foxglove`
+_FOXGLOVE_FIGURES = (("compute p50", "compute_ms", "p50"), ("compute p99", "compute_ms", "p99"),
+                     ("compute CPU p50", "compute_cpu_ms", "p50"), ("period jitter p99", "period_jitter_ms", "p99"),
+                     ("tick start late p99", "late_ms", "p99"))
+
+
+#: the configurations `bench loop --foxglove` compares: (name, Foxglove scene in the log, live server)
+FOXGLOVE_CONFIGS = (("plain log", False, False), ("scene in log", True, False), ("scene + live", True, True))
+
+
+def _foxglove_compare(duration_s: float, rounds: int, options: dict) -> dict:
+    """The loop with the log of JSON records alone (A), with the Foxglove scene in it (B) and with
+    the scene served live too (C), alternating; medians and ratios to A."""
+    import statistics
+
+    from cfrace.flight.benchloop import bench_loop
+
+    runs: dict[str, list] = {name: [] for name, _, _ in FOXGLOVE_CONFIGS}
+    for i in range(rounds):
+        for name, scene, live in FOXGLOVE_CONFIGS:
+            r = bench_loop(duration_s, floor_s=0.0, foxglove=live, scene=scene, **options)
+            runs[name].append(r)
+            console.print(f"round {i + 1}, {name}: compute p99 {r['loop']['compute_ms']['p99']:.3f} ms, "
+                          f"jitter p99 {r['loop']['period_jitter_ms']['p99']:.3f} ms, end {r['end']}",
+                          highlight=False)
+    t = Table(title=f"flight loop and Foxglove: medians of {rounds} alternating runs of {duration_s:g} s each (ms)")
+    names = [n for n, _, _ in FOXGLOVE_CONFIGS]
+    for col in ("figure", *names, *[f"{n} / {names[0]}" for n in names[1:]]):
+        t.add_column(col, justify="right" if col != "figure" else "left")
+    doc = {"rounds": rounds, "duration_s": duration_s, "configs": names, "figures": {}, "runs": runs}
+    for label, key, q in _FOXGLOVE_FIGURES:
+        med = [statistics.median(r["loop"][key][q] for r in runs[n]) for n in names]
+        doc["figures"][label] = {"ms": dict(zip(names, med)),
+                                 "ratio_to_plain": {n: (m / med[0] if med[0] else None) for n, m in zip(names[1:], med[1:])}}
+        t.add_row(label, *[f"{m:.3f}" for m in med], *[f"{m / med[0]:.2f}x" if med[0] else "-" for m in med[1:]])
+    console.print(t)
+    console.print(f"load average {os.getloadavg()[0]:.2f} (the machine is shared: ratios from one run, "
+                  f"alternating, are what to compare)", highlight=False)
+    return doc
 
 
 def loop_table(r: dict) -> Table:

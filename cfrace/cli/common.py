@@ -27,6 +27,21 @@ EXIT_ALL_STOPPED = 3      #: every drone was stopped by a safety check: no one f
 EXIT_ERROR = 1            #: the race raised (the error is in the result)
 
 
+_json_stream = None   #: the real stdout once human output went to stderr (json_to_stdout)
+
+
+def json_to_stdout(args: list[str]) -> bool:
+    """If the command line says `--json -`, send everything printed for people (rich tables,
+    progress, plain prints) to stderr from now on, keeping stdout for the JSON document alone."""
+    global _json_stream
+    wanted = any(a == "--json=-" or (a == "--json" and i + 1 < len(args) and args[i + 1] == STDOUT)
+                 for i, a in enumerate(args))
+    if wanted and _json_stream is None:
+        _json_stream = sys.stdout
+        sys.stdout = sys.stderr
+    return wanted
+
+
 def to_stdout(path: Path | str | None) -> bool:
     """True when `--json` asks for stdout."""
     return path is not None and str(path) == STDOUT
@@ -57,8 +72,9 @@ def write_json(doc, path: Path | str | None, said: Console | None = None, *, ind
         return
     text = json.dumps(clean(doc), indent=indent, default=str, allow_nan=False) + "\n"
     if to_stdout(path):
-        sys.stdout.write(text)
-        sys.stdout.flush()
+        stream = _json_stream or sys.stdout
+        stream.write(text)
+        stream.flush()
         return
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

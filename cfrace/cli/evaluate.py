@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+
+from cfrace.cli.common import write_json
 from rich.console import Console
 from rich.table import Table
 
@@ -25,11 +26,7 @@ _JSON = typer.Option(None, "--json", help="write the results to this JSON file")
 
 
 def _write_json(path: Optional[Path], data: dict) -> None:
-    if path is None:
-        return
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=2) + "\n")
-    console.print(f"wrote {path}")
+    write_json(data, path, console, indent=2)
 
 
 def _f(v, spec: str = ".2f") -> str:

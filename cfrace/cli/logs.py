@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import Optional
 
@@ -10,7 +11,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-log_app = typer.Typer(help="Flight logs (MCAP): summary and plots.", no_args_is_help=True)
+from cfrace.cli.common import human_console, write_json
+
+log_app = typer.Typer(help="Flight logs (MCAP): summary and plots. A truncated log (a killed flight) is "
+                           "read up to the cut and says so; exit code 0.", no_args_is_help=True)
 console = Console()
 
 _META_SHOWN = ("track", "obstacles", "policies", "uris", "bodies", "mocap", "profile",
@@ -24,14 +28,19 @@ def _short(value, width: int = 100) -> str:
 
 
 @log_app.command("info")
-def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written by `cfrace fly`")) -> None:
-    """Meta, duration, messages per topic, safety events, race result, loop timing, and whether
-    the log was closed cleanly or cut off (a killed flight)."""
+def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written by `cfrace fly`"),
+             json_out: Optional[Path] = typer.Option(None, "--json", help="Write the summary as JSON (- : to stdout).")
+             ) -> None:
+    """Meta, duration, messages per topic, safety events, race result, loop timing (the figures the
+    flight printed, computed by the same function), and whether the log was closed cleanly or cut
+    off (a killed flight: read up to the cut, exit code 0)."""
+    from cfrace.cli.flight import loop_table
     from cfrace.flight.flightlog import read_log
     from cfrace.flight.logplot import log_stats
 
     data = read_log(file)
     s = log_stats(data)
+    console = human_console(json_out)
     if s.closed_cleanly:
         state = "[green]closed cleanly[/green]"
     elif s.truncated:
@@ -51,18 +60,14 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
     topics = Table(title="messages per topic")
     topics.add_column("topic")
     topics.add_column("count", justify="right")
+    topics.add_column("encoding (schema)")
     for topic, n in s.counts.items():
-        topics.add_row(topic, str(n))
+        enc, schema, _ = data.channels.get(topic, ("", "", ""))
+        topics.add_row(topic, str(n), f"{enc} ({schema})" if schema else enc)
     console.print(topics)
 
-    if s.timing:
-        timing = Table(title="loop timing (ms)")
-        for col in ("", "p50", "p99", "max", "mean", "ticks"):
-            timing.add_column(col, justify="right")
-        for key, st in s.timing.items():
-            timing.add_row(key.replace("_ms", ""), f"{st['p50']:.2f}", f"{st['p99']:.2f}",
-                           f"{st['max']:.2f}", f"{st['mean']:.2f}", f"{st['n']:.0f}")
-        console.print(timing)
+    if s.loop:
+        console.print(loop_table(s.loop))
 
     if s.safety:
         events = Table(title=f"safety events ({len(s.safety)})")
@@ -87,6 +92,12 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
         console.print("race result: none recorded")
     if data.bad_messages:
         console.print(f"[yellow]{data.bad_messages} messages could not be decoded[/yellow]")
+    write_json({"file": str(file), "closed_cleanly": s.closed_cleanly, "truncated": s.truncated,
+                "stop_reason": s.stop_reason, "duration_s": s.duration_s, "meta": data.meta,
+                "topics": {t: {"count": n, "encoding": data.channels.get(t, ("",))[0],
+                               "schema": data.channels.get(t, ("", ""))[1]} for t, n in s.counts.items()},
+                "loop": s.loop, "safety_events": [asdict(e) for e in s.safety], "race": s.race,
+                "bad_messages": data.bad_messages}, json_out)
 
 
 @log_app.command("plot")

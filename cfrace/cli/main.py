@@ -18,6 +18,7 @@ except ImportError:                             # older typer: click itself
     from click import exceptions as cx
 
 import cfrace
+from cfrace.cli.common import json_to_stdout
 from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
 from cfrace.errors import CfraceError
 
@@ -41,8 +42,9 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version, is
 for module in (tracks, bench, train, evaluate, reproduce, flight, sim, logs, calibrate, sweep):
     module.register(app)
 
-#: options whose value may be left out (`--foxglove` alone = `--foxglove 8765`)
-OPTIONAL_VALUES = {"--foxglove": "8765"}
+#: options whose value may be left out (`fly --foxglove` = `fly --foxglove 8765`): option -> (default,
+#: the commands that take it)
+OPTIONAL_VALUES = {"--foxglove": ("8765", ("fly", "dry-run"))}
 
 
 def fill_optional_values(argv: list[str]) -> list[str]:
@@ -50,10 +52,10 @@ def fill_optional_values(argv: list[str]) -> list[str]:
     out = []
     for i, arg in enumerate(argv):
         out.append(arg)
-        if arg in OPTIONAL_VALUES:
+        if arg in OPTIONAL_VALUES and any(c in argv[:i] for c in OPTIONAL_VALUES[arg][1]):
             nxt = argv[i + 1] if i + 1 < len(argv) else None
             if nxt is None or nxt.startswith("-"):
-                out.append(OPTIONAL_VALUES[arg])
+                out.append(OPTIONAL_VALUES[arg][0])
     return out
 
 
@@ -68,6 +70,7 @@ def _usage_error(exc: cx.UsageError) -> int:
 def main(argv: list[str] | None = None) -> None:
     """Entry point: user-facing errors as one line and exit code 2; Ctrl-C exits 130."""
     args = fill_optional_values(list(sys.argv[1:] if argv is None else argv))
+    json_to_stdout(args)
     try:
         code = app(args=args, prog_name="cfrace", standalone_mode=False)
     except CfraceError as exc:

@@ -28,7 +28,7 @@ def serve_cmd(
     obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Simulate the track's obstacles "
                                                                              "(off by default, as in `fly`)."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, help="Seed of the simulated drones' noise and start positions."),
 ):
     """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
     from cfrace.flight.config import split_list
@@ -53,7 +53,11 @@ def dry_run_cmd(
     profile: Optional[str] = typer.Option(None, help=f"Drone profile, simulated and flown (default {DEFAULT_PROFILE}, "
                                                       "as `fly` and `sim serve`; 'trained': the one the ego "
                                                       "policy was trained for, from its metadata)."),
-    obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
+    obstacles: Optional[bool] = typer.Option(None, "--obstacles/--no-obstacles",
+                                             help="Race with the track's obstacles (default: off, as `fly`)."),
+    config: Optional[Path] = typer.Option(None, help="The flight config YAML of `cfrace fly --config`: the dry-run "
+                                                     "takes its profile, obstacles and safety limits (the room's "
+                                                     "URIs and mocap are not used), so it flies what `fly` will."),
     bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
     log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
@@ -70,7 +74,7 @@ def dry_run_cmd(
                                                      "per-tick reads of the simulated drones)."),
     latency_comp_ms: Optional[float] = typer.Option(None, help="The estimator predicts poses this many ms forward "
                                                                "(as `cfrace fly`; default: the simulated latency)."),
-    seed: int = typer.Option(0),
+    seed: int = typer.Option(0, help="Seed of the simulation (start positions, mocap noise, faults)."),
     rt_priority: str = typer.Option("auto", help="SCHED_FIFO priority of the loop thread: auto (50 where permitted: "
                                                   "root or CAP_SYS_NICE), 0 = off, or 1-99."),
     prewarm_ms: float = typer.Option(3.0, help="Warm-up window: this many ms before each tick the loop runs the "
@@ -85,14 +89,20 @@ def dry_run_cmd(
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
     from cfrace.cli.flight import announce, print_result
-    from cfrace.flight.config import FlightConfig, split_list
+    from cfrace.flight.config import FlightConfig, load_flight_file, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
+    room = load_flight_file(config) if config else {}
+    if obstacles is None:
+        obstacles = bool(room.get("obstacles", False))
     the_track = load_track(track)
-    profile, rule = choose_profile(profile, the_track, ego, obstacles)
+    profile, rule = choose_profile(profile if profile is not None else room.get("profile"), the_track, ego, obstacles)
+    if config and "profile" in room and profile == room["profile"]:
+        rule = f"profile: in {config}"
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
+                       **({"safety": room["safety"]} if "safety" in room else {}),
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,

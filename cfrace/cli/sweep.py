@@ -99,8 +99,8 @@ def _curves(sweep, out_root: Path, plot: Optional[Path]) -> None:
 
 
 def bench_sweep_cmd(
-    method: str = typer.Option("ds", "--method"),
-    track: str = typer.Option("lemniscate", "--track"),
+    method: str = typer.Option("ds", "--method", help="reward scheme of the runs: ours | ds | ss | dm"),
+    track: str = typer.Option("lemniscate", "--track", help="track name or YAML path"),
     envs: Optional[int] = typer.Option(None, "--envs", min=1, help="worlds per run (default: the cpu preset's)"),
     iterations: int = typer.Option(3, "--iterations", min=1, help="timed iterations per run (after one warm-up)"),
     address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: a local instance)"),

@@ -9,12 +9,15 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cfrace.cli.common import write_json
+
 tracks_app = typer.Typer(help="Race tracks: list them, show gates, obstacles and a picture.", no_args_is_help=True)
 console = Console()
 
 
 @tracks_app.command("list")
-def list_cmd() -> None:
+def list_cmd(json_out: Optional[Path] = typer.Option(None, "--json", help="Write the list as JSON (- : to stdout).")
+             ) -> None:
     """List the tracks in tracks/: name, gates, obstacles and arena size."""
     from cfrace.errors import ConfigError
     from cfrace.track import list_tracks, load_track
@@ -23,16 +26,21 @@ def list_cmd() -> None:
     table = Table(title=f"tracks in {TRACKS_DIR}")
     for col in ("name", "gates", "obstacles", "arena x*y*z m", "file"):
         table.add_column(col)
+    doc = []
     for path in list_tracks():
         try:
             t = load_track(path)
         except ConfigError as exc:  # one broken file must not hide the others
             table.add_row(path.stem, "-", "-", f"[red]invalid: {exc}[/red]", path.name)
+            doc.append({"name": path.stem, "file": str(path), "error": str(exc)})
             continue
         a = t.arena
         size = f"{a.x[1] - a.x[0]:g} x {a.y[1] - a.y[0]:g} x {a.z_max:g}"
         table.add_row(t.name, str(t.num_gates), str(len(t.obstacles)), size, path.name)
+        doc.append({"name": t.name, "file": str(path), "gates": t.num_gates, "obstacles": len(t.obstacles),
+                    "arena": {"x": list(a.x), "y": list(a.y), "z_max": a.z_max}})
     console.print(table)
+    write_json(doc, json_out)
 
 
 @tracks_app.command("show")

@@ -14,6 +14,8 @@ from rich.live import Live
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from cfrace.cli.common import write_json
+
 console = Console()
 
 _STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "lap done", "{:.0%}"), ("crash_rate", "crashed", "{:.0%}"),
@@ -74,7 +76,7 @@ def train_cmd(
     envs: Optional[int] = typer.Option(None, "--envs", min=1, help="parallel worlds (default: the preset's)"),
     minutes: Optional[float] = typer.Option(None, "--minutes", min=0.0, help="wall-clock budget of this run"),
     steps: Optional[int] = typer.Option(None, "--steps", min=1, help="total env-step budget (world transitions)"),
-    seed: Optional[int] = typer.Option(None, "--seed"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="random seed (default 0)"),
     out: Optional[Path] = typer.Option(None, "--out", help="output folder (default runs/METHOD_TRACK[_obstacles]_sSEED)"),
     resume: Optional[Path] = typer.Option(None, "--resume", help="continue the run in this folder from its checkpoint"),
     device: Optional[str] = typer.Option(None, "--device", help="cpu | cuda (default: cuda when available)"),
@@ -109,12 +111,16 @@ def train_cmd(
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
 ) -> None:
-    """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG."""
+    """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG. Ctrl-C
+    (or SIGTERM) finishes the iteration, checkpoints and exits 130."""
     from cfrace.errors import ConfigError
     from cfrace.rl.config import parse_overrides
+
+    if resume is None and (method is None or track is None):   # before any heavy import
+        raise ConfigError("--method and --track are required (or --resume DIR)")
+    overrides = parse_overrides(set_ or [])
     from cfrace.rl.train import TrainConfig, resume_config, train
 
-    overrides = parse_overrides(set_ or [])
     if minutes is None and steps is None:
         minutes = 30.0
     if resume is not None:
@@ -125,8 +131,6 @@ def train_cmd(
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
                             precision=precision, keep_checkpoints=keep_checkpoints)
     else:
-        if method is None or track is None:
-            raise ConfigError("--method and --track are required (or --resume DIR)")
         seed = 0 if seed is None else seed
         name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
         cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
@@ -141,6 +145,11 @@ def train_cmd(
                           ground_start_prob=ground_start_prob)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
+    ippo = cfg.ippo()
+    per_it = ippo.num_envs * ippo.rollout
+    if cfg.steps is not None and cfg.steps % per_it:
+        budget += (f" (an iteration is {ippo.num_envs} worlds x {ippo.rollout} steps = {per_it:,} env steps, so it "
+                   f"stops after {-(-cfg.steps // per_it) * per_it:,})")
     console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
                   f"{' with obstacles' if cfg.obstacles else ''}, preset {cfg.preset}, budget {budget}, "
                   f"out {cfg.out}{' (resumed)' if resume else ''}")
@@ -176,6 +185,8 @@ def train_cmd(
     console.print(f"checkpoint {result.checkpoint}\nmetrics {result.out / 'metrics.csv'}  tensorboard {result.out / 'tb'}")
     if result.curve:
         console.print(f"training curve {result.curve}")
+    if result.interrupted:
+        raise typer.Exit(130)      # as every command after Ctrl-C (the checkpoint is written)
 
 
 def export_cmd(
@@ -198,13 +209,13 @@ def export_cmd(
 
 def bench_train_cmd(
     preset: str = typer.Option("cpu", "--preset", help="cpu | paper"),
-    method: str = typer.Option("ours", "--method"),
-    track: str = typer.Option("complex", "--track"),
-    obstacles: bool = typer.Option(False, "--obstacles"),
+    method: str = typer.Option("ours", "--method", help="reward scheme: ours | ds | ss | dm"),
+    track: str = typer.Option("complex", "--track", help="track name or YAML path"),
+    obstacles: bool = typer.Option(False, "--obstacles", help="with the track's obstacles"),
     envs: Optional[int] = typer.Option(None, "--envs", min=1, help="parallel worlds (default: the preset's)"),
     iterations: int = typer.Option(3, "--iterations", min=1, help="timed iterations (after one warm-up)"),
-    device: Optional[str] = typer.Option(None, "--device"),
-    threads: Optional[int] = typer.Option(None, "--threads", min=1),
+    device: Optional[str] = typer.Option(None, "--device", help="cpu | cuda (default: cuda when available)"),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     precision: str = typer.Option("auto", "--precision", help="PPO update in auto | fp32 | bf16"),
     compare: Optional[str] = typer.Option(None, "--compare",
@@ -239,10 +250,7 @@ def bench_train_cmd(
         table.add_row(f"share {k}", f"{r['share_' + k]:.0%}")
     table.add_row("update precision", f"{r['precision']['dtype']} ({r['precision']['reason']})")
     console.print(table)
-    if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(r, indent=2) + "\n")
-        console.print(f"wrote {json_out}")
+    write_json(r, json_out, console, indent=2)
 
 
 def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str], **options) -> None:
@@ -273,10 +281,7 @@ def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str
         table.add_row(label, fmt(spec, res["a"]["median"][f]), fmt(spec, res["b"]["median"][f]),
                       fmt("{:.2f}x", res["ratio_a_over_b"][f]))
     console.print(table)
-    if json_out is not None:
-        json_out.parent.mkdir(parents=True, exist_ok=True)
-        json_out.write_text(json.dumps(res, indent=2) + "\n")
-        console.print(f"wrote {json_out}")
+    write_json(res, json_out, console, indent=2)
 
 
 def register(app: typer.Typer) -> None:

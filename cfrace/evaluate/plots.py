@@ -18,6 +18,13 @@ from cfrace.trackplot import draw_track
 CMAP = "turbo"
 
 
+def _race_name(w: int, races: int) -> str:
+    """Which race world w is: the first `races` worlds race a live opponent, the next ones a
+    crashed one; numbered from 1 within each set."""
+    return f"race {w + 1} of {races} (live opponent)" if w < races else \
+        f"race {w - races + 1} of {races} (crashed opponent)"
+
+
 def _plt():
     import matplotlib
 
@@ -135,7 +142,7 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
         ax.plot(oxyz[:, 0], oxyz[:, 1], "--", color="grey", lw=1.0, zorder=4, label=f"opponent ({opp})")
         _mark_end(ax, oxyz, bool(rec.crashed[-1, w, 1]), "dimgrey")
         ax.legend(loc="lower right", fontsize=7)
-        ax.set_title(f"({tag}) {ego} vs {label}, race {w if w < races else w - races}\n{_lap_text(s, w, 0)}", fontsize=9)
+        ax.set_title(f"({tag}) {ego} vs {label}, {_race_name(w, races)}\n{_lap_text(s, w, 0)}", fontsize=9)
     if lc is not None:
         fig.colorbar(lc, ax=list(axes[0]), label=f"{ego} speed [m/s]", shrink=0.8)
     traj = plot_dir / "race_trajectories.png"
@@ -159,7 +166,7 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
             ax.axvline(rec.t[down[0]], color="red", lw=1.0, ls="--", label="opponent crashed")
             ax.legend(loc="lower right", fontsize=7)
         fmt = lambda x: "–" if x is None else f"{x:.2f}"
-        ax.set_title(f"({tag}) {ego} vs {label}, race {w if w < races else w - races}: this race max "
+        ax.set_title(f"({tag}) {ego} vs {label}, {_race_name(w, races)}: this race max "
                      f"{fmt(st['max_mps'])} / mean {fmt(st['mean_mps'])} m/s; all {agg['races']} such races max "
                      f"{fmt(agg['max_mps'])} / mean {fmt(agg['mean_mps'])} m/s", fontsize=8)
         ax.set_ylabel("speed [m/s]")

@@ -82,7 +82,7 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
 
     from cfrace.flight import realtime
     from cfrace.flight.clock import RealClock
-    from cfrace.flight.runner import ms_stats
+    from cfrace.flight.loopfigures import ms_stats, periods
 
     cpu = realtime.resolve_loop_cpu(loop_cpu)
     pinned = realtime.pin_loop_thread(cpu)
@@ -97,7 +97,7 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
     finally:
         realtime.restore_scheduler(fifo)
         realtime.restore_affinity(pinned)
-    period = np.diff([t.wall for t in ticks])
+    period = periods([t.wall for t in ticks])
     return {"ticks": len(ticks), "late_ms": ms_stats([t.late_s for t in ticks]),
             "period_jitter_ms": ms_stats(np.abs(period - dt)), "loop_cpu": cpu, "rt_fifo": fifo is not None}
 
@@ -105,14 +105,16 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority="auto", policies: str = "paper",
                prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto",
-               floor_s: float = 0.0) -> dict:
+               floor_s: float = 0.0, foxglove: bool = False, scene: bool = True) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
     profile: simulated and flown drone profile; default: the shipped policies' training profile
     (they crash on another one), cf21bl for the paper-size hold controller.
     loop_cpu: as `cfrace fly` (cfrace.flight.realtime); when the loop thread is pinned, the
     simulated drones run on the other CPUs (real drones compute on their own hardware).
     floor_s > 0: first, with the simulated drones already running, the machine's floor
-    (``bare_loop``) for that long, on the same CPU and priority ("floor" in the result)."""
+    (``bare_loop``) for that long, on the same CPU and priority ("floor" in the result).
+    foxglove: serve the flight live to Foxglove (a free port), as `cfrace fly --foxglove`; scene:
+    the Foxglove scene in the log (off: the log of JSON records alone)."""
     pinned = resolve_loop_cpu(loop_cpu)
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-") as tmp:
         work = Path(tmp)
@@ -134,7 +136,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
                                rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s,
-                               loop_cpu=loop_cpu)
+                               loop_cpu=loop_cpu, foxglove_port=0 if foxglove else None, foxglove_scene=scene)
             floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
                 if floor_s > 0 else None
             try:
@@ -152,7 +154,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+    return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "foxglove": foxglove, "scene": scene, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus, "floor": floor,
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -70,6 +70,7 @@ class FlightConfig:
     obstacles: bool = False
     log: Path | None = None                      #: flight log (.mcap); None = no log
     foxglove_port: int | None = None             #: serve the flight live to Foxglove on 127.0.0.1:PORT (0: any free port)
+    foxglove_scene: bool = True                  #: the Foxglove scene in the log (when the SDK is installed); off: `bench loop`'s baseline
     timeout_s: float = 120.0                     #: s, the race ends (draw) after this
     connect_timeout_s: float = 5.0               #: s per link
     mocap_timeout_s: float = 3.0                 #: s to wait for the first frame with every body

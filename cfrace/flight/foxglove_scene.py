@@ -51,11 +51,8 @@ COMMAND_SCHEMA = {
 
 def available() -> bool:
     """Whether the Foxglove SDK is installed (`pip install -e ".[foxglove]"`)."""
-    try:
-        import foxglove  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    import importlib.util
+    return importlib.util.find_spec("foxglove") is not None
 
 
 def _sdk():
@@ -328,17 +325,17 @@ class SceneSink:
 
 
 def open_sink(log_path, meta: dict, track, fence, bodies: list[str], obstacles: bool,
-              foxglove_port: int | None = None):
+              foxglove_port: int | None = None, scene: bool = True):
     """The flight's log sink: a FlightLog at log_path (None: no file), the Foxglove scene in it when
-    the SDK is installed, and the live server with foxglove_port (None: not served). Returns None
-    when there is nothing to write to."""
+    the SDK is installed (and ``scene``), and the live server with foxglove_port (None: not
+    served). Returns None when there is nothing to write to."""
     from cfrace.flight.flightlog import FlightLog
 
     if log_path is None and foxglove_port is None:
         return None
     server = LiveServer(foxglove_port) if foxglove_port is not None else None
     try:
-        scene = FoxgloveScene(track, fence, bodies, obstacles) if available() else None
+        scene = FoxgloveScene(track, fence, bodies, obstacles) if (scene or server) and available() else None
         log = FlightLog(log_path, meta | {"foxglove": scene is not None}) if log_path is not None else None
     except BaseException:
         if server is not None:

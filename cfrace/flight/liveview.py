@@ -27,6 +27,7 @@ class LiveView:
         self._live: Live | None = None
         self._ticks = 0
         self._last_events = 0
+        self._last: tuple | None = None   #: (loop, t, ests) of the newest tick: the final frame
 
     def __enter__(self) -> "LiveView":
         self._live = Live(Text("connecting..."), console=self.console, auto_refresh=False, transient=False)
@@ -34,12 +35,23 @@ class LiveView:
         return self
 
     def __exit__(self, *exc) -> None:
+        """Show the race as it ended (not the last periodic frame), then end the view on a line
+        of its own, also when the output is not a terminal."""
         if self._live is not None:
+            if self._last is not None:
+                loop, _, ests = self._last
+                try:
+                    self._live.update(self.render(loop, loop.t, ests), refresh=True)
+                except Exception:  # noqa: BLE001 - a broken terminal must not hide the result
+                    pass
             self._live.__exit__(*exc)
             self._live = None
+            if not self.console.is_terminal:
+                self.console.print()
 
     def maybe_update(self, loop, t: float, ests) -> None:
         self._ticks += 1
+        self._last = (loop, t, ests)
         if self._live is None or self._ticks % self.every:
             return
         self._live.update(self.render(loop, t, ests), refresh=True)

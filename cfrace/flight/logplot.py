@@ -2,7 +2,8 @@
 
 Readers are lenient about message fields (the log may come from an older or newer cfrace, or a
 truncated flight): a missing field leaves that part of the report empty rather than failing.
-Field names looked for (docs/flight-log.md): /timing period_s (or t + late_s), compute_s, late_s;
+Field names looked for (docs/flight-log.md): /timing t (the tick's start), compute_s, late_s, ...
+(loop figures: cfrace.flight.loopfigures, the one definition the live result uses too);
 /estimate per body pos, vel, valid (fallback: /mocap/pose poses); /safety kind|check, body|drone,
 action, detail (or a list under "violations"); race result from the summary ("race", or end,
 winner, laps, lap_times) or the last /race message.
@@ -18,9 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from cfrace.flight.flightlog import FlightLogData
-
-_PERIOD_KEYS = ("period_s", "dt_s", "dt")
-_COMPUTE_KEYS = ("compute_s", "latency_s", "busy_s")
+from cfrace.flight.loopfigures import log_loop_figures, periods
 
 
 @dataclass
@@ -42,7 +41,7 @@ class LogStats:
     bodies: list[str]
     safety: list[SafetyEvent] = field(default_factory=list)
     race: dict | None = None
-    timing: dict[str, dict[str, float]] = field(default_factory=dict)  #: period/compute/late_ms
+    loop: dict | None = None     #: the loop figures (cfrace.flight.loopfigures.loop_figures) + skipped
 
 
 def _first(msg: dict, keys: tuple[str, ...]):
@@ -54,28 +53,15 @@ def _first(msg: dict, keys: tuple[str, ...]):
 
 
 def timing_series(data: FlightLogData) -> dict[str, np.ndarray]:
-    """{"t", "period_s", "compute_s", "late_s"} arrays (N,) from /timing; NaN where missing.
-    Without a logged period, the period is the spacing of the tick starts t + late_s (t is the
-    tick's scheduled time, late_s how late it started), or of the message times."""
+    """{"t", "period_s", "compute_s", "late_s"} arrays (N,) from /timing; NaN where missing. t is
+    each tick's start on the loop clock, the period the spacing of the starts (loopfigures.periods)."""
     msgs = data.messages("/timing")
     t = np.array([m[0] for m in msgs], dtype=float)
 
-    def column(keys):
-        return np.array([np.nan if (v := _first(m[1], keys)) is None else v for m in msgs])
+    def column(key):
+        return np.array([np.nan if (v := _first(m[1], (key,))) is None else v for m in msgs])
 
-    period, compute, late = column(_PERIOD_KEYS), column(_COMPUTE_KEYS), column(("late_s",))
-    if len(t) > 1 and np.isnan(period).all():
-        start = t + np.nan_to_num(late, nan=0.0)
-        period = np.concatenate([[np.nan], np.diff(start)])
-    return {"t": t, "period_s": period, "compute_s": compute, "late_s": late}
-
-
-def _percentiles(x: np.ndarray) -> dict[str, float]:
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {}
-    return {"n": float(x.size), "p50": float(np.percentile(x, 50)),
-            "p99": float(np.percentile(x, 99)), "max": float(x.max()), "mean": float(x.mean())}
+    return {"t": t, "period_s": periods(t), "compute_s": column("compute_s"), "late_s": column("late_s")}
 
 
 def trajectories(data: FlightLogData) -> dict[str, dict[str, np.ndarray]]:
@@ -152,17 +138,11 @@ def log_stats(data: FlightLogData) -> LogStats:
     bodies = data.meta.get("bodies")
     if not isinstance(bodies, list):
         bodies = sorted(trajectories(data))
-    ts = timing_series(data)
-    timing = {}
-    for key in ("period_s", "compute_s", "late_s"):
-        stats = _percentiles(ts[key] * 1e3)
-        if stats:
-            timing[key.replace("_s", "_ms")] = stats
     return LogStats(duration_s=data.duration_s,
                     counts={topic: data.count(topic) for topic in data.topics},
                     closed_cleanly=data.complete, truncated=data.truncated,
                     stop_reason=data.stop_reason, bodies=[str(b) for b in bodies],
-                    safety=_safety_events(data), race=_race_result(data), timing=timing)
+                    safety=_safety_events(data), race=_race_result(data), loop=log_loop_figures(data))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -211,7 +191,8 @@ def plot_log(data: FlightLogData, out_dir: str | Path, *, dpi: int = 120) -> lis
         written.append(_save(_speed_figure(plt, trajs, colors, title), out / f"{stem}_speed.png", dpi))
     ts = timing_series(data)
     if len(ts["t"]):
-        written.append(_save(_timing_figure(plt, data, ts, title), out / f"{stem}_timing.png", dpi))
+        written.append(_save(_timing_figure(plt, data, ts, log_loop_figures(data), title), out / f"{stem}_timing.png",
+                             dpi))
     return written
 
 
@@ -253,23 +234,24 @@ def _speed_figure(plt, trajs: dict, colors: dict, title: str):
     return fig
 
 
-def _timing_figure(plt, data: FlightLogData, ts: dict, title: str):
-    """The loop's period, compute and lateness per tick, and their histogram."""
+def _timing_figure(plt, data: FlightLogData, ts: dict, loop: dict, title: str):
+    """The loop's period, compute and lateness per tick, and their histogram; the legend's
+    figures are ``loop``'s (loopfigures.loop_figures, as `log info` prints them)."""
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
     both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
     top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
     bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
-    for key, color, label in (("period_s", "C0", "period"), ("compute_s", "C3", "compute"),
-                              ("late_s", "C2", "start late")):
+    for key, fig, color, label in (("period_s", "period_ms", "C0", "period"), ("compute_s", "compute_ms", "C3", "compute"),
+                                   ("late_s", "late_ms", "C2", "start late")):
         ms = ts[key] * 1e3
         ok = np.isfinite(ms)
         if not ok.any():
             continue
-        st = _percentiles(ms)
+        st = loop[fig]
         text = f"{label}: p50 {st['p50']:.2f}, p99 {st['p99']:.2f}, max {st['max']:.2f} ms"
         ax0.plot(ts["t"][ok], ms[ok], ".", ms=2, color=color, label=text)
         ax1.hist(ms[ok], bins=bins, color=color, alpha=0.6, label=label)
-    period = data.meta.get("period_s") or (1.0 / data.meta["rate_hz"] if data.meta.get("rate_hz") else None)
+    period = 1.0 / loop["rate_hz"]
     if isinstance(period, (int, float)):
         for ax in (ax0, ax1):
             (ax.axhline if ax is ax0 else ax.axvline)(period * 1e3, color="black", ls="--", lw=0.8)

@@ -91,15 +91,13 @@ class TickTimes:
     """The per-tick timing figures of a race (LoopResult.timing), appended after each send."""
 
     def __init__(self, n: int):
-        self.late, self.period, self.compute, self.cpu, self.warm, self.warm_n = [], [], [], [], [], []
+        self.late, self.start, self.compute, self.cpu, self.warm, self.warm_n = [], [], [], [], [], []
         self.infer, self.obs = [[] for _ in range(n)], [[] for _ in range(n)]
-        self._prev_wall = None
 
     def add(self, tick, compute: float, cpu: float, warm_s: float, warm_n: int, infer: list, obs_t: list) -> None:
         self.cpu.append(cpu)
         self.late.append(tick.late_s)
-        self.period.append(np.nan if self._prev_wall is None else tick.wall - self._prev_wall)
-        self._prev_wall = tick.wall
+        self.start.append(tick.wall)
         self.compute.append(compute)
         self.warm.append(warm_s if warm_n else np.nan)
         self.warm_n.append(warm_n)
@@ -108,7 +106,9 @@ class TickTimes:
             self.obs[i].append(obs_t[i])
 
     def arrays(self) -> dict:
-        return {"late": np.asarray(self.late), "period": np.asarray(self.period),
+        from cfrace.flight.loopfigures import periods   # the one definition of a period
+
+        return {"late": np.asarray(self.late), "period": periods(self.start),
                 "compute": np.asarray(self.compute), "compute_cpu": np.asarray(self.cpu),
                 "prewarm": np.asarray(self.warm), "prewarm_calls": np.asarray(self.warm_n),
                 "infer": [np.asarray(x) for x in self.infer], "obs": [np.asarray(x) for x in self.obs]}
@@ -133,7 +133,7 @@ class RaceResult:
     loop_cpu: int | None = None
     track: str = ""
     profile: str = ""
-    loop: dict | None = None      #: timing figures (cfrace.flight.runner.timing_summary) plus skipped
+    loop: dict | None = None      #: timing figures (cfrace.flight.loopfigures.loop_figures) plus skipped
     safety_events: list = field(default_factory=list)
     drones: list = field(default_factory=list)       #: per drone: laps, lap times, stop, speeds, link
     estimator: dict = field(default_factory=dict)    #: per body: frames, occluded, outliers, ...

@@ -66,10 +66,11 @@ class SystemSource(SourceBase):
         self._pump_thread.start()
         if not self._connected.wait(timeout_s):
             self._kill()
-            raise MocapError(f"{self.name}: no answer within {timeout_s:.1f} s")
+            raise MocapError(f"{self.name}: no answer within {timeout_s:.1f} s ({self._hint()})")
         if self.error is not None:
             self._kill()
-            raise MocapError(f"{self.name}: {self.error}")
+            raise MocapError(f"{self.name}: could not connect ({self._hint()}; the {self.kind} client said: "
+                             f"{self.error})")
         deadline = time.monotonic() + timeout_s
         while self._missing() and time.monotonic() < deadline and self.error is None:
             with self._cond:
@@ -81,6 +82,11 @@ class SystemSource(SourceBase):
             self._kill()
             raise self._body_error()
         self._opened = True
+
+    def _hint(self) -> str:
+        """What to check when the system does not answer."""
+        return (f"is the {self.kind} server running on '{self.host}' and streaming, and is '{self.host}' its "
+                f"address as seen from this machine?")
 
     def _pump(self) -> None:
         """Reader thread: worker JSON lines -> latest frame."""

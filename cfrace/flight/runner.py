@@ -22,12 +22,12 @@ import threading
 from dataclasses import asdict
 from typing import Callable
 
-import numpy as np
 
 from cfrace.flight import realtime
 from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.foxglove_scene import open_sink
+from cfrace.flight.loopfigures import loop_figures, ms_stats  # noqa: F401 - ms_stats: importers of this module
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
 from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.progress import FastRaceProgress
@@ -36,33 +36,10 @@ from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143}
 
 
-def ms_stats(x) -> dict:
-    """p50 / p99 / max in ms of the finite values of x (s); None where there are none."""
-    x = np.asarray(x, dtype=np.float64)
-    x = x[np.isfinite(x)]
-    if x.size == 0:
-        return {"p50": None, "p99": None, "max": None}
-    return {"p50": round(float(np.percentile(x, 50)) * 1e3, 4), "p99": round(float(np.percentile(x, 99)) * 1e3, 4),
-            "max": round(float(x.max()) * 1e3, 4)}
-
-
 def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
-    """p50 / p99 / max in ms of the loop's per-tick figures."""
-    stats = ms_stats
-    period = np.asarray(timing["period"])
-    jitter = np.abs(period - dt)
-    out = {"rate_hz": round(1.0 / dt, 3), "ticks": int(len(timing["compute"])),
-           "late_ms": stats(timing["late"]), "period_jitter_ms": stats(jitter),
-           "compute_ms": stats(timing["compute"]), "compute_cpu_ms": stats(timing.get("compute_cpu", [])),
-           "prewarm_ms": stats(timing.get("prewarm", [])),
-           "prewarm_calls_mean": (round(float(np.mean(timing["prewarm_calls"])), 2)
-                                  if len(timing.get("prewarm_calls", [])) else None),
-           "inference_ms": {n: stats(x) for n, x in zip(names, timing["infer"])},
-           "observation_ms": {n: stats(x) for n, x in zip(names, timing.get("obs", [[]] * len(names)))}}
-    out["period_jitter_p99_ms"] = out["period_jitter_ms"]["p99"]
-    out["compute_p99_ms"] = out["compute_ms"]["p99"]
-    out["inference_p99_ms"] = max((v["p99"] or 0.0) for v in out["inference_ms"].values())
-    return out
+    """p50 / p99 / max in ms of the loop's per-tick figures (cfrace.flight.loopfigures: the same
+    function `cfrace log info` uses)."""
+    return loop_figures(timing, dt, names)
 
 
 def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int | None = None
@@ -172,7 +149,7 @@ class RaceRun:
             link.connect(cfg.connect_timeout_s)
         # the flight log and/or the live Foxglove server (cfrace.flight.foxglove_scene)
         self.log = open_sink(cfg.log, self.meta, self.setup.track, self.setup.fence, list(cfg.bodies), cfg.obstacles,
-                             cfg.foxglove_port)
+                             cfg.foxglove_port, scene=cfg.foxglove_scene)
         server = getattr(self.log, "server", None)
         if self.announce is not None:
             self.announce(self.meta | {"fence": self.setup.fence, "foxglove": server.url if server else None})

@@ -140,12 +140,12 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
     if rot_ok:
         cos_tilt = max(-1.0, min(1.0, float(d.rot[2][2])))  # world z of the body z axis
         if cos_tilt < math.cos(math.radians(cfg.tilt_max_deg)):
-            bad("tilt", f"tilt {math.degrees(math.acos(cos_tilt)):.0f} deg > {cfg.tilt_max_deg:.0f} deg")
+            bad("tilt", f"tilt {math.degrees(math.acos(cos_tilt)):.1f} deg > {cfg.tilt_max_deg:g} deg")
     if vel_ok:
         vx, vy, vz = float(d.vel[0]), float(d.vel[1]), float(d.vel[2])
         speed = math.sqrt(vx * vx + vy * vy + vz * vz)
         if speed > cfg.speed_max_mps:
-            bad("speed", f"speed {speed:.1f} m/s > {cfg.speed_max_mps:.1f} m/s")
+            bad("speed", f"speed {speed:.2f} m/s > {cfg.speed_max_mps:g} m/s")
     return out
 
 

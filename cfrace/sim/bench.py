@@ -235,8 +235,7 @@ def measure_peer(peer: Optional[bool], python: Optional[Path], sizes: list[int],
         return None
 
 
-def write_doc(path: Path, results: list, peer_doc: Optional[dict], rows: list, machine: dict, errors: dict) -> None:
-    doc = {"results": results, "peer": (peer_doc or {}).get("results", []), "summary": rows, "machine": machine,
-           "errors": errors, "peer_info": {k: v for k, v in (peer_doc or {}).items() if k != "results"}}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(doc, indent=2))
+def bench_doc(results: list, peer_doc: Optional[dict], rows: list, machine: dict, errors: dict) -> dict:
+    """The JSON document of `cfrace bench sim --json`."""
+    return {"results": results, "peer": (peer_doc or {}).get("results", []), "summary": rows, "machine": machine,
+            "errors": errors, "peer_info": {k: v for k, v in (peer_doc or {}).items() if k != "results"}}
