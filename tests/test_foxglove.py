@@ -27,10 +27,13 @@ OLD_LOG = ROOT / "tests" / "data" / "flight_before_foxglove.mcap"   # written by
 
 
 def _run(args: list[str]) -> int:
+    argv, sys.argv = sys.argv, ["cfrace", *args]
     try:
-        main(args)
+        main()
     except SystemExit as exc:
         return int(exc.code or 0)
+    finally:
+        sys.argv = argv
     return 0
 
 

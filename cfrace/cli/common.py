@@ -42,6 +42,13 @@ def json_to_stdout(args: list[str]) -> bool:
     return wanted
 
 
+def restore_stdout() -> None:
+    """Undo json_to_stdout (the end of a command run in-process, e.g. by tests)."""
+    global _json_stream
+    if _json_stream is not None:
+        sys.stdout, _json_stream = _json_stream, None
+
+
 def to_stdout(path: Path | str | None) -> bool:
     """True when `--json` asks for stdout."""
     return path is not None and str(path) == STDOUT

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -184,12 +185,6 @@ def register(app: typer.Typer) -> None:
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
         from_file = load_flight_file(config) if config else {}
-        if mocap is None and "mocap" not in from_file:
-            raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
-        track_name = track or from_file.get("track")
-        profile, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
-                                       _track_or_none(track_name), ego or from_file.get("ego"),
-                                       bool(obstacles if obstacles is not None else from_file.get("obstacles")))
         cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
                           foxglove_port=foxglove,
@@ -197,6 +192,11 @@ def register(app: typer.Typer) -> None:
                           loop_cpu=loop_cpu,
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                           latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+        if mocap is None and "mocap" not in from_file:
+            raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
+        name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
+                                    _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
+        cfg = replace(cfg, profile=name)
         if not cfg.uris:
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
         from cfrace.flight.runner import fly

@@ -18,7 +18,7 @@ except ImportError:                             # older typer: click itself
     from click import exceptions as cx
 
 import cfrace
-from cfrace.cli.common import json_to_stdout
+from cfrace.cli.common import json_to_stdout, restore_stdout
 from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
 from cfrace.errors import CfraceError
 
@@ -59,11 +59,19 @@ def fill_optional_values(argv: list[str]) -> list[str]:
     return out
 
 
-def _usage_error(exc: cx.UsageError) -> int:
+def _usage_error(exc: cx.UsageError, args: list[str]) -> int:
     """One line for an argument error, with the --help hint of the command it belongs to."""
     ctx = exc.ctx
-    where = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
-    print(f"error: {exc.format_message()}{where}", file=sys.stderr)
+    if ctx is not None:
+        path = ctx.command_path
+    else:   # the command words before the first option
+        words = []
+        for a in args:
+            if a.startswith("-"):
+                break
+            words.append(a)
+        path = " ".join(["cfrace", *words])
+    print(f"error: {exc.format_message()} (see `{path} --help`)", file=sys.stderr)
     return 2
 
 
@@ -72,24 +80,33 @@ def main(argv: list[str] | None = None) -> None:
     args = fill_optional_values(list(sys.argv[1:] if argv is None else argv))
     json_to_stdout(args)
     try:
+        code = _run(args)
+    finally:
+        restore_stdout()
+    sys.exit(code)
+
+
+def _run(args: list[str]) -> int:
+    """The command's exit code; every way it can end as main() describes."""
+    try:
         code = app(args=args, prog_name="cfrace", standalone_mode=False)
     except CfraceError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except cx.UsageError as exc:
         if type(exc).__name__ == "NoArgsIsHelpError":    # `cfrace`, `cfrace sim`: the help, as asked
             print(exc.format_message())
-            sys.exit(0)
-        sys.exit(_usage_error(exc))
+            return 0
+        return _usage_error(exc, args)
     except typer.Exit as exc:
-        sys.exit(exc.exit_code)
+        return exc.exit_code
     except typer.Abort:      # click turns Ctrl-C into Abort outside standalone mode
         print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        return 130
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        return 130
     except cx.ClickException as exc:
         print(f"error: {exc.format_message()}", file=sys.stderr)
-        sys.exit(exc.exit_code)
-    sys.exit(code if isinstance(code, int) else 0)
+        return exc.exit_code
+    return code if isinstance(code, int) else 0

@@ -125,11 +125,14 @@ def replay_cmd(
     via_replay_source: bool = typer.Option(False, help="Read the frames through the mocap source "
                                                        "replay://LOG?speed=0 (one frame per tick logs)."),
 ):
-    """Re-run a logged flight lockstep and check that every logged observation is reproduced exactly."""
+    """Re-run a logged flight lockstep and check that every logged observation is reproduced exactly.
+    Exit code 0: identical; 1: an observation differs, or the log holds none; 2: not a flight log."""
     from cfrace.flight.replay import replay_log
 
     r = replay_log(log, via_replay_source=via_replay_source)
-    verdict = "[green]identical[/green]" if r["identical"] else "[red]MISMATCH[/red]"
+    verdict = ("[green]identical[/green]" if r["identical"] else
+               "[red]nothing to compare[/red] (the log ends before the first policy step)" if not r["observations"]
+               else "[red]MISMATCH[/red]")
     human_console(json_out).print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
               f"({r['mismatched']} differ, max |diff| {r['max_abs_diff']:.3g})")
     write_json(r, json_out)
