@@ -241,13 +241,13 @@ def _timing_figure(plt, data: FlightLogData, ts: dict, loop: dict, title: str):
     both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
     top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
     bins = np.linspace(0.0, top * 1.02 + 1e-6, 120)
-    for key, fig, color, label in (("period_s", "period_ms", "C0", "period"), ("compute_s", "compute_ms", "C3", "compute"),
-                                   ("late_s", "late_ms", "C2", "start late")):
+    for key, figure, color, label in (("period_s", "period_ms", "C0", "period"),
+                                      ("compute_s", "compute_ms", "C3", "compute"), ("late_s", "late_ms", "C2", "start late")):
         ms = ts[key] * 1e3
         ok = np.isfinite(ms)
         if not ok.any():
             continue
-        st = loop[fig]
+        st = loop[figure]
         text = f"{label}: p50 {st['p50']:.2f}, p99 {st['p99']:.2f}, max {st['max']:.2f} ms"
         ax0.plot(ts["t"][ok], ms[ok], ".", ms=2, color=color, label=text)
         ax1.hist(ms[ok], bins=bins, color=color, alpha=0.6, label=label)

@@ -1,0 +1,123 @@
+"""docs/walkthrough.md, run step by step with its own commands: serve, dry-run, fly against the
+served drones (with the live Foxglove server), open the log, plot. The default ports are swapped
+for free ones (other tests or a running `sim serve` may hold them); nothing else is changed."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "walkthrough.md"
+BIN = Path(sys.executable).parent
+
+
+def blocks() -> list[list[str]]:
+    """The bash blocks of the walkthrough, in order, as lists of lines."""
+    return [[line for line in b.splitlines() if line.strip()]
+            for b in re.findall(r"```bash\n(.*?)```", DOC.read_text(), re.S)]
+
+
+def _free_ports(n: int, span: int = 3) -> list[int]:
+    """n base ports, each with base-1 .. base+span-1 free (a `sim serve` uses base-1, base, base+1)."""
+    out = []
+    while len(out) < n:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            base = s.getsockname()[1]
+        if not 1025 < base < 65000:
+            continue
+        try:
+            socks = []
+            for p in range(base - 1, base + span):
+                for kind in (socket.SOCK_DGRAM, socket.SOCK_STREAM):
+                    x = socket.socket(socket.AF_INET, kind)
+                    x.bind(("127.0.0.1", p))
+                    socks.append(x)
+        except OSError:
+            continue
+        finally:
+            for x in locals().get("socks", []):
+                x.close()
+        out.append(base)
+    return out
+
+
+def test_install_step_is_the_readme_install():
+    install = blocks()[0][0]
+    readme = (ROOT / "README.md").read_text()
+    assert install + " && .venv/bin/cfrace sim dry-run" in readme
+    assert '".[dev,stand,cluster,envs,examples,foxglove]"' in install
+    ci = (ROOT / ".ci" / "run").read_text()
+    assert '".[dev,stand,cluster,envs,examples,foxglove]"' in ci
+
+
+@pytest.mark.timeout(600)
+def test_walkthrough_step_by_step(tmp_path):
+    pytest.importorskip("foxglove")
+    base, fox = _free_ports(2)
+    swap = {"19850": str(base), "19851": str(base + 1), "19849": str(base - 1), "8765": str(fox)}
+
+    def command(line: str) -> list[str]:
+        for a, b in swap.items():
+            line = line.replace(a, b)
+        args = shlex.split(line)
+        assert args[0] == "cfrace", line
+        return [str(BIN / "cfrace"), *args[1:]]
+
+    env = {**os.environ, "COLUMNS": "160"}
+    assert blocks()[0][1] == ". .venv/bin/activate"
+    steps = blocks()[1:]          # the install step: the environment running this test
+    server = None
+    done = []
+    try:
+        for block in steps:
+            if block and block[0].startswith("# terminal 2"):
+                (line,) = block[1:]
+                server = subprocess.Popen(command(line), cwd=tmp_path, stdout=subprocess.PIPE,
+                                          stderr=subprocess.STDOUT, text=True, env=env)
+                seen = ""
+                while "Ctrl-C" not in seen:       # its banner ends with how to stop it
+                    out = server.stdout.readline()
+                    assert out, f"sim serve ended: {seen}"
+                    seen += out
+                assert f"udp://127.0.0.1:{base}" in seen and "obstacles off" in seen
+                done.append("serve")
+                continue
+            for line in block:
+                if line.startswith("#"):
+                    continue
+                r = subprocess.run(command(line), cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                                   env=env)
+                # 0: the race ran to its end; 3: the safety checks stopped every drone (the policies
+                # may touch each other mid-race on a loaded machine): the stack still ran through
+                assert r.returncode in (0, 3), f"{line}\n{r.stdout[-2000:]}\n{r.stderr[-2000:]}"
+                done.append(line.split()[1] + " " + line.split()[2])
+                if line.split()[1] == "fly":
+                    assert f"ws://127.0.0.1:{fox}" in r.stderr      # the banner says where to connect
+                    server.send_signal(signal.SIGINT)              # "then stop the server"
+                    server.communicate(timeout=30)
+                    server = None
+    finally:
+        if server is not None:
+            server.kill()
+            server.communicate()
+    assert [d for d in done if d != "serve"][0].startswith("tracks")
+    r = json.loads((tmp_path / "dry-run.json").read_text())
+    assert r["profile"] == "cf21bl" and r["end"] in ("finished", "all_stopped")
+    from cfrace.flight.flightlog import read_log
+    log = read_log(tmp_path / "fly.mcap")
+    assert log.complete and log.count("/foxglove/tf") > 50 and log.meta["uris"][0] == f"udp://127.0.0.1:{base}"
+    for name in ("fly_trajectory.png", "fly_speed.png", "fly_timing.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 10_000
+    assert (tmp_path / "lemniscate.png").exists()
