@@ -600,7 +600,8 @@ def test_live_view_renders_every_drone(track):
     with loop.view:
         loop.run()
     text = buf.getvalue()
-    assert "test race" in text and "ego" in text and "opp" in text and "0/3" in text and "flying" in text
+    assert "test race" in text and "ego" in text and "opp" in text and "0/3" in text
+    assert "STOPPED (timeout)" in text and "t =   0.2 s" in text    # the race as it ended
 
 
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])

@@ -43,6 +43,21 @@ def _ints(text: str, what: str) -> list[int]:
     return values
 
 
+def _measure(bench, sizes: list[int], drones: int, modes: list[str], **measure) -> tuple:
+    """bench.measure_all under a progress bar (one step per size and mode)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("bench sim"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("sim", total=len(sizes) * len(modes))
+
+        def said(text: str) -> None:
+            bar.console.print(text)
+            bar.advance(task)
+
+        return bench.measure_all(sizes, drones, modes, said, **measure)
+
+
 @bench_app.command("sim")
 def sim_cmd(
     worlds: str = typer.Option("1,64,1024,4096", help="comma-separated world counts"),
@@ -83,19 +98,8 @@ def sim_cmd(
     n = len(sizes) * len(modes)
     console.print(f"modes: {', '.join(modes)}; {n} measurements ({len(sizes)} sizes x {len(modes)} modes), "
                   f"{repeats} x {steps} timed steps each")
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    with Progress(TextColumn("bench sim"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("sim", total=n)
-
-        def said(text: str) -> None:
-            bar.console.print(text)
-            bar.advance(task)
-
-        results, errors = bench.measure_all(sizes, drones, modes, said, steps=steps, warmup=warmup,
-                                            substeps=substeps, track=track, profile=profile, repeats=repeats,
-                                            scenario=scenario)
+    results, errors = _measure(bench, sizes, drones, modes, steps=steps, warmup=warmup, substeps=substeps,
+                               track=track, profile=profile, repeats=repeats, scenario=scenario)
     peer_doc = bench.measure_peer(peer, bench.peer_python(peer_python_path), sizes, drones, peer_calls, threads,
                                   console.print)
     machine["loadavg_end"] = list(os.getloadavg())

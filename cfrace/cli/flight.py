@@ -115,7 +115,8 @@ def loop_table(loop: dict, title: str | None = None) -> Table:
 
 def announce(meta: dict, con: Console = console) -> None:
     """One line per drone and the limits, printed once everything answered, before arming."""
-    con.print(f"drone profile {meta['profile']}: {meta.get('profile_rule') or '--profile'}", highlight=False)
+    if meta.get("profile"):
+        con.print(f"drone profile {meta['profile']}: {meta.get('profile_rule') or '--profile'}", highlight=False)
     if meta.get("foxglove"):
         con.print(f"Foxglove: open connection {meta['foxglove']} (Foxglove WebSocket)", highlight=False)
     for (name, pol), uri, body in zip(meta["policies"].items(), meta["uris"], meta["bodies"]):
@@ -177,38 +178,51 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
-        from cfrace.errors import ConfigError
-        from cfrace.flight.config import load_flight_file, make_config, split_list
+        from cfrace.flight.config import split_list
 
         safety = {k: v for k, v in (("geofence_margin_m", geofence_margin_m), ("speed_max_mps", speed_max_mps),
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
-        from_file = load_flight_file(config) if config else {}
-        cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
-                          bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
-                          foxglove_port=foxglove,
-                          timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
-                          loop_cpu=loop_cpu,
-                          prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
-        if mocap is None and "mocap" not in from_file:
-            raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
-        name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
-                                    _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
-        cfg = replace(cfg, profile=name)
-        if not cfg.uris:
-            raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+        cfg, rule = fly_config(config, mocap, profile, track=track, ego=ego, opp=opp, uris=split_list(uris),
+                               bodies=split_list(bodies), laps=laps, log=log, obstacles=obstacles,
+                               foxglove_port=foxglove, timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority,
+                               safety_overrides=safety, loop_cpu=loop_cpu,
+                               prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3,
+                               velocity_alpha=velocity_alpha,
+                               latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
 
-        result = fly(resolve_race(cfg), console=console,
-                     announce=lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
-        print_result(result, human_console(json_out))
-        write_json(result, json_out)
-        code = race_exit_code(result)
-        if code:
-            sys.exit(code)
+        race_and_report(lambda say: fly(resolve_race(cfg), console=console, announce=say), rule, json_out)
+
+
+def fly_config(config: Path | None, mocap: str | None, profile: str | None, **options):
+    """`fly`'s FlightConfig (the config file, then the options) and the words of its profile rule.
+    ConfigError for what real drones cannot fly without: --mocap, --uris."""
+    from cfrace.errors import ConfigError
+    from cfrace.flight.config import load_flight_file, make_config
+
+    from_file = load_flight_file(config) if config else {}
+    cfg = make_config(config, mocap=mocap, profile=profile, **options)
+    if mocap is None and "mocap" not in from_file:
+        raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
+    name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
+                                _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
+    if not cfg.uris:
+        raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+    return replace(cfg, profile=name), rule
+
+
+def race_and_report(race, rule: str, json_out: Path | None) -> None:
+    """Fly ``race(announce)`` (`fly`, `sim dry-run`), print its result, write its JSON and exit with
+    its code (cfrace.cli.common.race_exit_code); ``rule``: why this drone profile."""
+    result = race(lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
+    print_result(result, human_console(json_out))
+    write_json(result, json_out)
+    code = race_exit_code(result)
+    if code:
+        sys.exit(code)
 
 
 def _track_or_none(name: str | None):

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.console import Console
 
-from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, write_json
+from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, write_json
 from cfrace.cli.flight import FOXGLOVE_HELP
 
 sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
@@ -88,34 +88,37 @@ def dry_run_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
-    from cfrace.cli.flight import announce, print_result
-    from cfrace.flight.config import FlightConfig, load_flight_file, split_list
+    from cfrace.cli.flight import race_and_report
+    from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
-    room = load_flight_file(config) if config else {}
-    if obstacles is None:
-        obstacles = bool(room.get("obstacles", False))
     the_track = load_track(track)
-    profile, rule = choose_profile(profile if profile is not None else room.get("profile"), the_track, ego, obstacles)
-    if config and "profile" in room and profile == room["profile"]:
-        rule = f"profile: in {config}"
+    room, obstacles, profile, rule = _room(config, profile, obstacles, the_track, ego)
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        **({"safety": room["safety"]} if "safety" in room else {}),
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
-    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
-                     mocap_latency_s=mocap_latency_ms / 1e3, console=console,
-                     setup=resolve_race(cfg, the_track),
-                     announce=lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
-    print_result(result, human_console(json_out))
-    write_json(result, json_out)
-    code = race_exit_code(result)
-    if code:
-        sys.exit(code)
+    race_and_report(lambda say: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
+                                        mocap_latency_s=mocap_latency_ms / 1e3, console=console,
+                                        setup=resolve_race(cfg, the_track), announce=say), rule, json_out)
+
+
+def _room(config: Path | None, profile: str | None, obstacles: bool | None, track, ego: str):
+    """What the dry-run takes from `fly`'s config file: (the file's keys, obstacles, profile, the
+    words of the profile rule); the options win over the file."""
+    from cfrace.flight.config import load_flight_file
+
+    room = load_flight_file(config) if config else {}
+    if obstacles is None:
+        obstacles = bool(room.get("obstacles", False))
+    name, rule = choose_profile(profile if profile is not None else room.get("profile"), track, ego, obstacles)
+    if profile is None and "profile" in room:
+        rule = f"profile: in {config}"
+    return room, obstacles, name, rule
 
 
 @sim_app.command("replay")

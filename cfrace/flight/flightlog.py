@@ -1,12 +1,11 @@
-"""The flight log: one MCAP file per flight, JSON messages with JSON schemas (Foxglove opens it).
+"""The flight log: one MCAP file per flight, JSON messages with JSON schemas, plus the Foxglove
+scene's messages in the SDK's schemas (cfrace.flight.foxglove_scene; Foxglove opens it).
 
 Written as the drones fly: every message goes through to the operating system at once (unchunked
 MCAP records, file flushed per message, fsync'd by a background thread about once a second), so a
 killed process or a power cut leaves a file that `read_log` reads up to the cut. `close(summary)`
 writes /summary and the MCAP summary section and footer; it is idempotent, thread-safe and may be
-called from a signal handler (even one that interrupted `write`). Topics and fields:
-docs/flight-log.md.
-
+called from a signal handler (even one that interrupted `write`). Topics: docs/flight-log.md.
 Every stored message is the caller's dict plus "t" (s, the flight clock given to `write`); a key
 "t" in the caller's dict is stored as "t_msg". numpy arrays become lists, NaN/inf become null.
 The MCAP log_time is wall-clock ns (start time + monotonic elapsed), so Foxglove shows real dates.
@@ -21,19 +20,18 @@ import sys
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from mcap.exceptions import EndOfFile, InvalidMagic, McapError
-from mcap.records import Channel, DataEnd, Footer, Message, Schema
-from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 import cfrace
 from cfrace.errors import LogError
+from cfrace.flight.logread import FlightLogData, read_log
+
+__all__ = ["FlightLog", "FlightLogData", "read_log", "encode", "TOPICS", "PROFILE"]
 
 PROFILE = "cfrace-flight"   #: MCAP header profile
 _OBJ = {"type": "object"}
@@ -145,34 +143,27 @@ class FlightLog:
         payload = {"t": float(t)}
         for key, value in msg.items():
             payload["t_msg" if key == "t" else key] = value
-        data = encode(payload)
-        with self._lock:
-            self._owner = threading.get_ident()
-            try:
-                if not self._closed:
-                    self._append(topic, float(t), data)
-            finally:
-                self._owner = None
-        if self._pending is not None:          # a signal handler asked to close meanwhile
-            self.close(self._pending)
+        self._locked_append(topic, float(t), encode(payload))
 
     def write_encoded(self, topic: str, t: float, data: bytes, schema: tuple[str, str, bytes],
                       message_encoding: str) -> None:
         """Append one message encoded by the caller (the Foxglove scene: cfrace.flight.foxglove_scene)
         on `topic`, whose channel gets ``schema`` = (name, encoding, data) and ``message_encoding``
         when it first appears. Same guarantees as write()."""
-        if self._closed or self.error is not None:
-            return
+        if not (self._closed or self.error is not None):
+            self._locked_append(topic, float(t), data, (*schema, message_encoding))
+
+    def _locked_append(self, topic: str, t: float, data: bytes, channel: tuple | None = None) -> None:
         with self._lock:
             self._owner = threading.get_ident()
             try:
                 if not self._closed:
-                    if topic not in self._channels:
-                        self._register_schema(topic, *schema, message_encoding)
-                    self._append(topic, float(t), data)
+                    if channel is not None and topic not in self._channels:
+                        self._register_schema(topic, *channel)
+                    self._append(topic, t, data)
             finally:
                 self._owner = None
-        if self._pending is not None:
+        if self._pending is not None:          # a signal handler asked to close meanwhile
             self.close(self._pending)
 
     def _append(self, topic: str, t: float, data: bytes) -> None:
@@ -269,139 +260,3 @@ class FlightLog:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-# ----------------------------------------------------------------------------------------------
-# reading
-
-class _StrictFile:
-    """A read-only file whose short reads raise EndOfFile (the mcap reader would accept them)."""
-
-    def __init__(self, f):
-        self._f = f
-        self.clean_eof = False   #: the file ended exactly where a record would start
-
-    def read(self, n: int = -1) -> bytes:
-        data = self._f.read(n)
-        if n is not None and n >= 0 and len(data) < n:
-            self.clean_eof = n == 1 and not data    # only an opcode read asks for 1 byte
-            raise EndOfFile()
-        return data
-
-
-@dataclass
-class FlightLogData:
-    """Everything a flight log holds. messages(topic) -> [(t, dict)], decoded on first use."""
-
-    path: Path
-    meta: dict
-    summary: dict | None
-    truncated: bool
-    stop_reason: str = ""                                   #: why reading stopped early
-    raw: dict[str, list[bytes]] = field(default_factory=dict)   #: topic -> JSON payloads
-    #: topic -> payloads of the channels in other encodings (the Foxglove scene: protobuf)
-    other: dict[str, list[bytes]] = field(default_factory=dict)
-    #: topic -> (message encoding, schema name, schema encoding) of every channel
-    channels: dict[str, tuple[str, str, str]] = field(default_factory=dict)
-    bad_messages: int = 0                                   #: payloads that did not decode
-    _decoded: dict[str, list[tuple[float, dict]]] = field(default_factory=dict, repr=False)
-
-    @property
-    def topics(self) -> list[str]:
-        return list(self.raw) + list(self.other)
-
-    @property
-    def complete(self) -> bool:
-        """True when the writer closed the log cleanly and nothing was cut off."""
-        return self.summary is not None and not self.truncated
-
-    def count(self, topic: str) -> int:
-        return len(self.raw.get(topic, ()) or self.other.get(topic, ()))
-
-    def messages(self, topic: str) -> list[tuple[float, dict]]:
-        if topic not in self._decoded:
-            out = []
-            for data in self.raw.get(topic, ()):
-                try:
-                    msg = json.loads(data)
-                    t = float(msg.pop("t"))
-                except (ValueError, KeyError, TypeError, AttributeError):
-                    self.bad_messages += 1
-                    continue
-                out.append((t, msg))
-            self._decoded[topic] = out
-        return self._decoded[topic]
-
-    @property
-    def duration_s(self) -> float:
-        if self.summary and isinstance(self.summary.get("duration_s"), (int, float)):
-            return float(self.summary["duration_s"])
-        times = [m[0] for topic in self.raw if topic not in ("/meta", "/summary")
-                 for m in self.messages(topic)]
-        return (max(times) - min(times)) if times else 0.0
-
-
-def read_log(path: str | Path) -> FlightLogData:
-    """Read a flight log, also a truncated one (everything before the damage; truncated=True).
-    Raises LogError (one line naming the file) if it is missing, not MCAP or has no /meta."""
-    path = Path(path)
-    try:
-        f = open(path, "rb")
-        size = os.fstat(f.fileno()).st_size
-    except OSError as exc:
-        raise LogError(f"cannot read flight log {path}: {exc.strerror or exc}") from None
-    topics: dict[int, str] = {}
-    raw: dict[str, list[bytes]] = {}
-    other: dict[str, list[bytes]] = {}
-    schemas: dict[int, tuple[str, str]] = {}
-    channels: dict[str, tuple[str, str, str]] = {}
-    json_ids: set[int] = set()
-    truncated, reason = True, "file ends without the MCAP footer"
-    with f:
-        strict = _StrictFile(f)
-        reader = StreamReader(strict, record_size_limit=max(size, 1))
-        records = reader.records
-        try:
-            while True:
-                try:
-                    record = next(records)
-                except StopIteration:
-                    truncated, reason = False, ""
-                    break
-                if isinstance(record, Channel):
-                    topics[record.id] = record.topic
-                    channels[record.topic] = (record.message_encoding,
-                                              *schemas.get(record.schema_id, ("", "")))
-                    if record.message_encoding == "json":
-                        json_ids.add(record.id)
-                elif isinstance(record, Message):
-                    topic = topics.get(record.channel_id)
-                    if topic is None:
-                        raise ValueError(f"message on unknown channel {record.channel_id}")
-                    (raw if record.channel_id in json_ids else other).setdefault(topic, []).append(record.data)
-                elif isinstance(record, Schema):
-                    schemas[record.id] = (record.name, record.encoding)
-                elif isinstance(record, (DataEnd, Footer)):
-                    pass
-        except InvalidMagic:
-            if f.tell() <= 8:
-                raise LogError(f"{path} is not an MCAP flight log (bad magic bytes)") from None
-            reason = "bad magic at the end"
-        except EndOfFile:
-            if size < 8:
-                raise LogError(f"{path} is not an MCAP flight log ({size} bytes)") from None
-            reason = ("ends after a complete record without the MCAP footer (writer stopped)"
-                      if strict.clean_eof else f"cut off inside a record at byte {size}")
-        except (McapError, ValueError, UnicodeDecodeError, OverflowError, MemoryError) as exc:
-            if f.tell() <= 8:
-                raise LogError(f"{path} is not an MCAP flight log") from None
-            reason = f"damaged record near byte {f.tell()}: {exc}"
-    data = FlightLogData(path=path, meta={}, summary=None, truncated=truncated, stop_reason=reason,
-                         raw=raw, other=other, channels=channels)
-    metas = data.messages("/meta")
-    if not metas:
-        raise LogError(f"{path} is not a cfrace flight log (no /meta message)")
-    data.meta = metas[0][1]
-    summaries = data.messages("/summary")
-    data.summary = summaries[-1][1] if summaries else None
-    return data
