@@ -141,7 +141,6 @@ LONG_FUNCTIONS = {
     # landed from other branches during the consolidation; their owners split them when they next change
     "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
     "cli/calibrate.py:thrust_cmd": "the `calibrate thrust` command's option list (typer signature)",
-    "calibrate/plots.py:plot_fits": "the five fit figures one after the other (split when it next changes)",
 }
 
 
