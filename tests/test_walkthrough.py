@@ -106,7 +106,12 @@ def test_walkthrough_step_by_step(tmp_path):
                 if line.split()[1] == "fly":
                     assert f"ws://127.0.0.1:{fox}" in r.stderr      # the banner says where to connect
                     server.send_signal(signal.SIGINT)              # "then stop the server"
-                    server.communicate(timeout=30)
+                    try:
+                        out, _ = server.communicate(timeout=60)
+                    except subprocess.TimeoutExpired:
+                        server.kill()
+                        out, _ = server.communicate()
+                        pytest.fail(f"sim serve did not stop on Ctrl-C within 60 s:\n{out[-2000:]}")
                     server = None
     finally:
         if server is not None:

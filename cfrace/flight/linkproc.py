@@ -183,6 +183,8 @@ class LinkKeeper:
         self.uris = list(uris)
         self.heartbeat_s = float(heartbeat_s)
         self.stop_log = str(stop_log) if stop_log else None
+        if self.stop_log:   # beside the flight log, whose folder (default flights/) may not exist yet
+            Path(self.stop_log).parent.mkdir(parents=True, exist_ok=True)
         self.qualities = [LinkQuality() for _ in self.uris]
         self._proc = None
         self._conn = None
