@@ -84,8 +84,11 @@ def test_walkthrough_step_by_step(tmp_path):
         for block in steps:
             if block and block[0].startswith("# terminal 2"):
                 (line,) = block[1:]
+                # Ctrl-C must reach it as in a terminal: a test run started in the background (`... &`)
+                # hands its children SIGINT ignored, and Python then keeps it ignored
                 server = subprocess.Popen(command(line), cwd=tmp_path, stdout=subprocess.PIPE,
-                                          stderr=subprocess.STDOUT, text=True, env=env)
+                                          stderr=subprocess.STDOUT, text=True, env=env,
+                                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
                 seen = ""
                 while "Ctrl-C" not in seen:       # its banner ends with how to stop it
                     out = server.stdout.readline()
