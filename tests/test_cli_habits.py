@@ -21,6 +21,16 @@ ROOT = Path(__file__).resolve().parents[1]
 RACE = ["--track", "lemniscate", "--ego", "ours", "--opp", "ds"]
 
 
+def main_run(args: list[str]) -> None:
+    """cfrace in this process, exceptions other than SystemExit propagating."""
+    argv, sys.argv = sys.argv, ["cfrace", *args]
+    try:
+        from cfrace.cli.main import app
+        app(args=args, prog_name="cfrace", standalone_mode=False)
+    finally:
+        sys.argv = argv
+
+
 def run(args: list[str], capsys=None) -> tuple[int, str, str]:
     """cfrace in this process: (exit code, stdout, stderr)."""
     argv, sys.argv = sys.argv, ["cfrace", *args]
@@ -236,7 +246,27 @@ def test_bench_sim_defaults_finish_soon():
 
     sim = typer.main.get_command(app).commands["bench"].commands["sim"]
     d = {p.name: p.default for p in sim.params}
-    assert d["compile"] is False and len(d["worlds"].split(",")) <= 4
+    assert d["compile"] is False and len(d["worlds"].split(",")) <= 4 and d["modes_opt"] == ""
+    from cfrace.sim import ckernel
+    if ckernel.available():   # the default measures the C kernel alone (eager at 4096 worlds: minutes)
+        calls = []
+
+        class Stop(Exception):
+            pass
+
+        def measure_all(sizes, drones, modes, say, **kw):
+            calls.append(modes)
+            raise Stop
+
+        import cfrace.sim.bench as sim_bench
+        real = sim_bench.measure_all
+        sim_bench.measure_all = measure_all
+        try:
+            with pytest.raises(Stop):
+                main_run(["bench", "sim", "--no-peer"])
+        finally:
+            sim_bench.measure_all = real
+        assert calls == [["c"]]
 
 
 def test_train_says_how_its_step_budget_rounds(tmp_path, capsys, monkeypatch):

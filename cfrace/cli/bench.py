@@ -69,7 +69,8 @@ def sim_cmd(
     compile: bool = typer.Option(False, "--compile/--no-compile", help="also measure torch.compile (minutes of "
                                                                        "compiling per size on a small machine)"),
     modes_opt: str = typer.Option("", "--modes", help="comma-separated subset of c,eager,compiled "
-                                  "(default: c if built, eager, compiled with --compile)"),
+                                  "(default: c if built, else eager; compiled with --compile). eager at "
+                                  "4096 worlds takes minutes on a small machine"),
     peer: Optional[bool] = typer.Option(None, "--peer/--no-peer",
                                         help="run the crazyflow peer (default: when a peer python is found)"),
     peer_python_path: Optional[Path] = typer.Option(None, "--peer-python", help="python of the crazyflow venv"),
@@ -94,6 +95,9 @@ def sim_cmd(
     console.print(f"[bold]cfrace bench sim[/bold] on {machine['cpu']} ({machine['cores']} cores, torch "
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
+    if not modes_opt:   # about a minute: the C kernel (the one that counts), or eager without it
+        avail = bench.choose_modes(compile)
+        modes_opt = ",".join(["c" if "c" in avail else "eager", *(["compiled"] if "compiled" in avail else [])])
     modes = bench.choose_modes(compile, modes_opt)
     n = len(sizes) * len(modes)
     console.print(f"modes: {', '.join(modes)}; {n} measurements ({len(sizes)} sizes x {len(modes)} modes), "
