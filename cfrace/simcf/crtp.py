@@ -17,6 +17,7 @@ import threading
 import zlib
 from dataclasses import dataclass, field
 
+from cfrace.simcf.controller import ABS, VELOCITY, Setpoint
 from cfrace.simcf.firmware import SimFleet
 from cfrace.simcf.params import PARAM_BY_NAME, PARAM_TYPES, PARAMS
 
@@ -43,7 +44,17 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
     # motor speeds (group rpm, uint16 revolutions per minute, as the firmware logs them where the drone
     # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
     # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
-    + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)])
+    + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
+    # the standard groups of the firmware's stabilizer, estimator, controller and power management
+    + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]
+    + [(f"stabilizer.{n}", _FLOAT) for n in ("roll", "pitch", "yaw")]
+    + [(f"acc.{n}", _FLOAT) for n in "xyz"]
+    + [(f"kalman.{n}", _FLOAT) for n in ("stateX", "stateY", "stateZ", "statePX", "statePY", "statePZ",
+                                         "varX", "varY", "varZ", "varPX", "varPY", "varPZ", "q0", "q1", "q2", "q3")]
+    + [(f"ctrltarget.{n}", _FLOAT) for n in ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw")]
+    + [(f"controller.{n}", _FLOAT) for n in ("cmd_thrust", "roll", "pitch", "yaw", "rollRate", "pitchRate", "yawRate")]
+    + [(f"posCtl.{n}", _FLOAT) for n in ("targetVX", "targetVY", "targetVZ", "targetX", "targetY", "targetZ")]
+    + [("pm.vbatMV", _U16), ("pm.batteryLevel", _U8), ("range.zrange", _U16)])
 
 LOG_MAX_BLOCKS = 16
 LOG_MAX_OPS = 128
@@ -122,10 +133,9 @@ class CrtpEndpoint:
             return self._out([packet(LINK, 3)])        # scan probe: answer anything
         handler = {LINK: self._link, PLATFORM: self._platform, PARAM: self._param, LOG: self._log,
                    MEM: self._mem, COMMANDER: self._commander, GENERIC_COMMANDER: self._generic,
-                   SUPERVISOR: self._supervisor, LOCALIZATION: self._localization}.get(port)
+                   SUPERVISOR: self._supervisor, LOCALIZATION: self._localization,
+                   HL_COMMANDER: self._high_level}.get(port)
         if handler is None:
-            if port == HL_COMMANDER:
-                return self._out(self._warn_once("high-level commander"))
             return []
         return self._out(handler(channel, payload) or [])
 
@@ -318,12 +328,44 @@ class CrtpEndpoint:
         return []
 
     def _generic(self, channel: int, payload: bytes) -> list[bytes]:
-        if channel == 0 and payload:
-            if payload[0] == 0:                            # TYPE_STOP
-                self.fleet.stop_setpoint(self.index)
-                return []
+        if not payload:
+            return []
+        if channel == 1:                                   # meta commands
+            if payload[0] == 0 and len(payload) >= 5:      # notify setpoint stop (remain-valid ms: unused)
+                self.fleet.notify_setpoint_stop(self.index)
+            return []
+        if channel != 0:
+            return []
+        if payload[0] == 0:                                # TYPE_STOP
+            self.fleet.stop_setpoint(self.index)
+            return []
+        try:
+            sp = decode_generic(payload[0], payload[1:])
+        except struct.error:
+            return self._warn_once(f"a generic setpoint of type {payload[0]} with a bad length (dropped)")
+        if sp is None:
             return self._warn_once(f"generic setpoint type {payload[0]}")
-        return []                                          # meta: notify-setpoint-stop, ignored
+        try:
+            self.fleet.low_level_setpoint(self.index, sp)
+        except ValueError:
+            return self._warn_once("a setpoint with NaN/inf values (dropped; later ones too)")
+        self.setpoints += 1
+        return []
+
+    def _high_level(self, channel: int, payload: bytes) -> list[bytes]:
+        if channel != 0 or not payload:
+            return []
+        try:
+            decoded = decode_high_level(payload)
+        except struct.error:
+            return self._warn_once(f"a high-level command {payload[0]} with a bad length (dropped)")
+        if decoded is None:
+            return self._warn_once(f"high-level command {payload[0]} (trajectories, spiral)")
+        command, mask, args = decoded
+        if not all(math.isfinite(v) for v in args.values() if isinstance(v, float)):
+            return self._warn_once("a high-level command with NaN/inf values (dropped)")
+        self.fleet.high_level(self.index, command, mask, **args)
+        return []
 
     def _supervisor(self, channel: int, payload: bytes) -> list[bytes]:
         if not payload:
@@ -351,6 +393,13 @@ class CrtpEndpoint:
         return []
 
     def _localization(self, channel: int, payload: bytes) -> list[bytes]:
+        if channel == 0 and len(payload) >= 12:           # external position x, y, z
+            self.fleet.external_position(self.index, struct.unpack_from("<fff", payload, 0))
+            return []
+        if channel == 1 and payload and payload[0] == EXT_POSE and len(payload) >= 29:
+            x, y, z, qx, qy, qz, qw = struct.unpack_from("<7f", payload, 1)
+            self.fleet.external_position(self.index, (x, y, z), (qw, qx, qy, qz))
+            return []
         if channel == 1 and payload:
             if payload[0] == 3:
                 self.fleet.emergency_stop(self.index, "localization emergency stop")
@@ -380,6 +429,79 @@ class CrtpEndpoint:
                     block.next_due = t + block.period
         self.tx += len(out)
         return out
+
+
+EXT_POSE = 8   #: localization generic channel: external pose x y z qx qy qz qw
+
+#: generic commander setpoint types (crtp_commander_generic.c): type -> name; the legacy ones (1, 2, 5)
+#: carry a negated yaw rate (cflib sends -yawrate for firmware with protocol version <= 8)
+GENERIC_TYPES = {1: "velocity_world_legacy", 2: "zdistance_legacy", 5: "hover_legacy", 7: "position",
+                 8: "velocity_world", 9: "zdistance", 10: "hover", 11: "manual"}
+
+
+def decode_generic(kind: int, data: bytes) -> Setpoint | None:
+    """A generic-commander setpoint (payload after the type byte) -> Setpoint; None if the type is not
+    emulated (cppm 3, alt-hold 4, full state 6). Raises struct.error on a short packet."""
+    name = GENERIC_TYPES.get(kind)
+    if name is None:
+        return None
+    sp = Setpoint(source=name)
+    legacy_yaw = -1.0 if name.endswith("_legacy") else 1.0
+    if name == "manual":
+        roll, pitch, yawrate, thrust, rate = struct.unpack_from("<fffHB", data, 0)
+        mode = VELOCITY if rate else ABS
+        sp.mode_roll = sp.mode_pitch = mode
+        target = sp.rates if rate else sp.attitude
+        target[0], target[1] = math.radians(roll), -math.radians(pitch)
+        sp.mode_yaw, sp.rates[2], sp.thrust = VELOCITY, math.radians(yawrate), float(thrust)
+        return sp
+    a, b, c, d = struct.unpack_from("<ffff", data, 0)
+    if name == "position":
+        sp.mode_x = sp.mode_y = sp.mode_z = sp.mode_yaw = ABS
+        sp.position[:] = (a, b, c)
+        sp.attitude[2] = math.radians(d)
+        return sp
+    sp.mode_yaw = VELOCITY
+    if name.startswith("velocity_world"):
+        sp.mode_x = sp.mode_y = sp.mode_z = VELOCITY
+        sp.velocity[:] = (a, b, c)
+        sp.rates[2] = legacy_yaw * math.radians(d)
+    elif name.startswith("zdistance"):
+        sp.mode_roll = sp.mode_pitch = sp.mode_z = ABS
+        sp.attitude[0], sp.attitude[1] = math.radians(a), -math.radians(b)
+        sp.rates[2], sp.position[2] = legacy_yaw * math.radians(c), d
+    else:                                                   # hover: body-frame vx, vy, height
+        sp.mode_x = sp.mode_y = VELOCITY
+        sp.mode_z = ABS
+        sp.velocity[:2], sp.velocity_body = (a, b), True
+        sp.rates[2], sp.position[2] = legacy_yaw * math.radians(c), d
+    return sp
+
+
+def decode_high_level(payload: bytes) -> tuple[str, int, dict] | None:
+    """A high-level commander packet -> (command, group mask, arguments for SimFleet.high_level);
+    None if not emulated. Layouts: crtp_commander_high_level.c. Raises struct.error when short."""
+    cmd = payload[0]
+    if cmd == 0:                                            # set group mask
+        return "set_group_mask", payload[1] if len(payload) > 1 else 0, {}
+    if cmd == 3:                                            # stop
+        return "stop", struct.unpack_from("<B", payload, 1)[0], {}
+    if cmd in (1, 2):                                       # takeoff / land (v1): mask, height, duration
+        mask, height, duration = struct.unpack_from("<Bff", payload, 1)
+        return ("takeoff" if cmd == 1 else "land"), mask, {"height": height, "yaw": 0.0, "duration": duration}
+    if cmd in (7, 8):                                       # takeoff / land (v2): + yaw, use current yaw
+        mask, height, yaw, current, duration = struct.unpack_from("<Bff?f", payload, 1)
+        return ("takeoff" if cmd == 7 else "land"), mask, {"height": height, "yaw": None if current else yaw,
+                                                            "duration": duration}
+    if cmd in (4, 12):                                      # go to (v1 / v2 with linear)
+        if cmd == 4:
+            mask, relative, x, y, z, yaw, duration = struct.unpack_from("<BBfffff", payload, 1)
+            linear = 0
+        else:
+            mask, relative, linear, x, y, z, yaw, duration = struct.unpack_from("<BBBfffff", payload, 1)
+        return "go_to", mask, {"x": x, "y": y, "z": z, "yaw": yaw, "duration": duration,
+                               "relative": bool(relative), "linear": bool(linear)}
+    return None
 
 
 def console_packets(text: str) -> list[bytes]:

@@ -66,6 +66,6 @@ def _world_view(part: str, name: str) -> property:
                     doc=f"numpy view of the simulator's {part}.{name} of the one world")
 
 
-for _part, _names in (("state", ("pos", "vel", "quat", "omega")), ("race", ("crashed", "reason"))):
+for _part, _names in (("state", ("pos", "vel", "quat", "omega", "motor")), ("race", ("crashed", "reason"))):
     for _name in _names:
         setattr(OneWorld, _name, _world_view(_part, _name))
