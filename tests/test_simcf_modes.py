@@ -195,3 +195,44 @@ def test_high_level_commander_takeoff_go_to_land_and_hand_over():
         assert z[touch] < rest + 0.01 and abs(vz[max(0, touch - 1)]) <= 0.5, (z[touch], vz[touch - 1])
         assert wait_for(lambda: fleet.status(0)["thrust"] == 0.0 and fleet.status(0)["high_level"] == "idle", 1.0)
         assert not fleet.status(0)["crashed"]
+
+
+def test_mocap_example_external_pose_and_high_level_commander():
+    """cflib's mocap example: a drone without positioning deck, its pose streamed as external pose
+    (here: the simulator's ground truth at 100 Hz, as a mocap system would); the estimator follows
+    it; the high-level commander flies; when the stream stops the estimate's variance grows."""
+    fleet, server = serve(decks=())
+    stop = threading.Event()
+    with server, connect(server.uris[0]) as scf:
+        cf = scf.cf
+        scf.wait_for_params()
+        assert cf.param.get_value("deck.bcLighthouse4") == "0" and cf.param.get_value("deck.bcFlow2") == "0"
+
+        def stream():
+            while not stop.is_set():
+                s = fleet.state(0)
+                w, x, y, z = s["quat"]
+                cf.extpos.send_extpose(*s["pos"], x, y, z, w)
+                time.sleep(0.01)
+        streamer = threading.Thread(target=stream, daemon=True)
+        streamer.start()
+        try:
+            reset_estimator(scf)
+            est = fleet.log_values(0)
+            assert est["stateEstimate.x"] == pytest.approx(fleet.state(0)["pos"][0], abs=0.01)
+            cf.supervisor.send_arming_request(True)
+            x0, y0, _ = fleet.state(0)["pos"]
+            cf.high_level_commander.takeoff(0.6, 1.5)
+            time.sleep(2.0)
+            cf.high_level_commander.go_to(x0 - 0.4, y0, 0.6, 0.0, 1.5)
+            time.sleep(2.0)
+            assert np.linalg.norm(fleet.state(0)["pos"] - [x0 - 0.4, y0, 0.6]) < 0.1
+            cf.high_level_commander.land(0.0, 1.5)
+            time.sleep(2.0)
+            assert fleet.state(0)["pos"][2] < 0.02 and fleet.status(0)["thrust"] == 0.0
+        finally:
+            stop.set()
+            streamer.join()
+        var0 = fleet.log_values(0)["kalman.varX"]
+        time.sleep(0.5)
+        assert fleet.log_values(0)["kalman.varX"] > 10 * var0          # no more external position

@@ -25,12 +25,15 @@ def serve_cmd(
     obstacles: bool = typer.Option(True, "--obstacles/--no-obstacles", help="Simulate the track's obstacles."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
     seed: int = typer.Option(0),
+    decks: str = typer.Option("lighthouse", help="Positioning decks each drone carries: lighthouse, flow, "
+                                                 "both comma-separated, or none (external position only)."),
 ):
     """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
     from cfrace.flight.config import split_list
     from cfrace.simcf.server import serve
 
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
+          decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
           out=lambda text: out.print(text, highlight=False))
 
 

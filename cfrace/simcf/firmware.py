@@ -64,7 +64,7 @@ class BatteryModel:
     terminal voltage sags by the internal resistance times the current, which grows with thrust."""
 
     volts_full: float = 4.2          #: V, open circuit when full
-    volts_per_charge: float = 0.9    #: V from full to empty (open circuit)
+    volts_per_charge: float = 1.0    #: V from full to empty (open circuit)
     charge0: float = 0.9             #: state of charge at boot, 0-1
     capacity_mah: float = 250.0
     resistance: float = 0.15         #: ohm, internal
