@@ -234,6 +234,17 @@ class SimFleet:
         fw.estimator.reset((params["kalman.initialX"], params["kalman.initialY"], params["kalman.initialZ"]))
         return fw
 
+    def teleport(self, i: int, pos, vel=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0)) -> None:
+        """Put drone i in flight at pos (3,) m with velocity vel (3,) m/s and attitude quat (wxyz), its
+        estimator reset there (scenarios and tests: e.g. a drone finishing a race at 5 m/s)."""
+        with self.lock:
+            i = self._check(i)
+            self.sim.set_drone(i, pos, vel, quat)
+            self._snapshot()
+            est = self._fw[i].estimator
+            est.reset(self._pos[i])
+            est.vel = self._vel[i].copy()
+
     def reboot(self, i: int) -> None:
         """Power-cycle drone i's firmware: parameters to defaults, thrust locked, disarmed, estimator reset."""
         with self.lock:
