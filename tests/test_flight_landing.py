@@ -109,3 +109,49 @@ def test_brake_hand_over_and_land_from_race_speed(profile):
     assert brake_end < 0.8 and lowest_y > track.arena.y[0] - 0.1         # stopped before the fence (0.3 m)
     fleet.advance(cfg.descent_s)
     assert fleet.status(0)["thrust"] == 0.0 and not fleet.status(0)["crashed"]
+
+
+def test_landing_pilot_flies_the_sequence():
+    """The pilot's steps applied to the simulated firmware: two drones finishing side by side."""
+    from cfrace.flight.landing import LandingPilot
+    track = load_track("lemniscate")
+    fleet = SimFleet(track, "cf2x_paper", 2, arming_required=True, decks=())
+    yaw = -math.pi / 2
+    q = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    for i in range(2):
+        fleet.arm(i, True)
+        for name in ("flightmode.stabModeRoll", "flightmode.stabModePitch"):
+            fleet.set_param(i, name, 0)
+        fleet.handle_setpoint(i, 0, 0, 0, 0)
+        fleet.teleport(i, (-2.2 + 0.4 * i, 3.4, 0.75), (0.0, -4.5, 0.0), q)
+    prof = fleet.profile
+    stops = [stopping_point(fleet.state(i)["pos"], fleet.state(i)["vel"], 12.0) for i in range(2)]
+    spots = choose_landing_spots(track, stops)
+    pilots = [LandingPilot(BrakeController(prof.mass, 0.9 * float(prof.thrust_curve.newtons[-1])), spots[i],
+                           prof.collision_box[2] / 2) for i in range(2)]
+    done = [False, False]
+    for _ in range(600):
+        for i, pilot in enumerate(pilots):
+            s = fleet.state(i)
+            fleet.external_position(i, s["pos"])
+            step = pilot.step(fleet.time, s["pos"], s["vel"], s["quat"])
+            if step.rates_dps is not None:
+                rate_setpoint(fleet, i, step.rates_dps, step.thrust_n)
+            for name, args in step.high_level:
+                assert fleet.high_level(i, name, **args) == 0
+            if step.notify_stop:
+                fleet.notify_setpoint_stop(i)
+            if step.done and not done[i]:
+                fleet.stop_setpoint(i)
+                fleet.arm(i, False)
+                done[i] = True
+        if all(done):
+            break
+        fleet.advance(0.01)
+    assert all(done)
+    for i, pilot in enumerate(pilots):
+        td = pilot.touchdown
+        assert td.t is not None and td.t < 5.0 and abs(td.vz) <= 0.5, td.as_dict()
+        assert np.linalg.norm(fleet.state(i)["pos"][:2] - spots[i]) < 0.15
+        assert not fleet.status(i)["crashed"] and fleet.status(i)["thrust"] == 0.0
+    assert np.linalg.norm(spots[0] - spots[1]) >= LandingConfig().drone_separation_m

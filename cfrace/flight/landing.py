@@ -205,3 +205,62 @@ class Touchdown:
     def as_dict(self) -> dict:
         return {"t": self.t, "place": None if self.place is None else [round(float(v), 4) for v in self.place],
                 "vz_mps": None if self.t is None else round(self.vz, 4)}
+
+
+BRAKE, APPROACH, DESCEND, DOWN = "brake", "approach", "descend", "down"
+
+
+@dataclass
+class LandingStep:
+    """What the loop does for one landing drone on one tick."""
+
+    rates_dps: np.ndarray | None = None    #: a rate setpoint to send (body rates deg/s) ...
+    thrust_n: float = 0.0                  #: ... with this collective thrust (N)
+    high_level: list = field(default_factory=list)   #: high-level commands to send, in order: (name, args)
+    notify_stop: bool = False              #: then hand control to the high-level commander
+    stream_pose: bool = True               #: keep streaming the pose (the firmware's estimator needs it)
+    done: bool = False                     #: down: stop the drone (motors off, disarm)
+
+
+@dataclass
+class LandingPilot:
+    """One drone's landing: brake (rate setpoints from the estimate) -> go-to its spot at
+    ``approach_height_m`` and land (high-level commander; the hand-over is the go-to first, then
+    notify-stop, so the firmware's plan replaces our setpoints without a gap) -> down."""
+
+    brake: BrakeController
+    spot: np.ndarray                  #: (2,) m
+    ground_z: float                   #: m, the body's height resting on the floor
+    cfg: LandingConfig = LandingConfig()
+    phase: str = BRAKE
+    t_start: float | None = None
+    t_phase_end: float = 0.0
+    touchdown: Touchdown | None = None
+
+    def step(self, t: float, pos, vel, quat) -> LandingStep:
+        """The drone's estimate at loop time t -> what to do now."""
+        if self.t_start is None:
+            self.t_start = t
+            self.touchdown = Touchdown(self.ground_z)
+        pos = np.asarray(pos, np.float64)
+        self.touchdown.update(t - self.t_start, pos, vel)
+        if self.phase == BRAKE:
+            speed = float(np.linalg.norm(vel))
+            if speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s:
+                rates, thrust = self.brake.command(pos, vel, quat)
+                return LandingStep(rates_dps=rates, thrust_n=thrust)
+            w, x, y, z = (float(v) for v in quat)
+            yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+            duration = max(1.0, float(np.linalg.norm(self.spot - pos[:2])) / self.cfg.approach_speed_mps)
+            self.phase, self.t_phase_end = APPROACH, t + duration
+            goal = {"x": float(self.spot[0]), "y": float(self.spot[1]), "z": self.cfg.approach_height_m,
+                    "yaw": yaw, "duration": duration}
+            return LandingStep(high_level=[("go_to", goal)], notify_stop=True)
+        if self.phase == APPROACH and t >= self.t_phase_end:
+            self.phase, self.t_phase_end = DESCEND, t + self.cfg.descent_s
+            return LandingStep(high_level=[("land", {"height": self.cfg.land_height_m, "yaw": None,
+                                                     "duration": self.cfg.descent_s})])
+        if self.phase == DESCEND and t >= self.t_phase_end:
+            self.phase = DOWN
+            return LandingStep(done=True)
+        return LandingStep(done=self.phase == DOWN)
