@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cfrace.drone import GRAVITY
+from cfrace.flight.estimator import quat_to_rot
 
 
 @dataclass(frozen=True)
@@ -163,10 +164,7 @@ class BrakeController:
             a[:2] *= self.accel_max / horiz
         f = self.mass * (a + np.array([0.0, 0.0, GRAVITY]))
         f[2] = max(f[2], 0.3 * self.mass * GRAVITY)          # never point the thrust down
-        w, x, y, z = (float(v) for v in quat)
-        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        rot = quat_to_rot(quat)
         z_body = rot[:, 2]
         z_des = f / np.linalg.norm(f)
         err_body = rot.T @ np.cross(z_body, z_des)           # axis * sin(angle), body frame

@@ -87,6 +87,34 @@ class Link(Protocol):
     def close(self) -> None:
         """Stop (if connected) and release the link."""
 
+    # the firmware's own flight modes (take-off, landing, failsafes; docs/flight.md "Landing")
+    def send_pose(self, pos, quat) -> None:
+        """Stream the drone's mocap pose to its estimator: pos (3,) m world, quat (4,) wxyz. Never raises."""
+
+    def high_level(self, command: str, **args) -> None:
+        """A high-level commander command: takeoff / land (height m, yaw rad or None = current,
+        duration s), go_to (x, y, z m, yaw rad, duration s), stop. Never raises."""
+
+    def notify_stop(self) -> None:
+        """Hand control from streamed setpoints to the high-level commander. Never raises."""
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        """For the pre-flight checks: {"protocol": CRTP protocol version, "vbat": V or nan}."""
+
+
+def send_high_level(hlc, command: str, args: dict) -> None:
+    """Call the high-level commander ``hlc`` (cflib's HighLevelCommander or anything with its methods)."""
+    if command == "takeoff":
+        hlc.takeoff(args["height"], args["duration"], yaw=args.get("yaw"))
+    elif command == "land":
+        hlc.land(args["height"], args["duration"], yaw=args.get("yaw"))
+    elif command == "go_to":
+        hlc.go_to(args["x"], args["y"], args["z"], args["yaw"], args["duration"])
+    elif command == "stop":
+        hlc.stop()
+    else:
+        raise ValueError(f"unknown high-level command {command!r}")
+
 
 @dataclass
 class _DirectQuality(LinkQuality):
@@ -167,6 +195,23 @@ class DirectSimLink:
             self.stop()
         self.quality.connected = False
 
+    def send_pose(self, pos, quat) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.external_position(self.index, pos, quat)
+
+    def high_level(self, command: str, **args) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.high_level(self.index, command, **args)
+
+    def notify_stop(self) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.notify_setpoint_stop(self.index)
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        self._need()
+        from cfrace.simcf.crtp import PROTOCOL_VERSION
+        return {"protocol": PROTOCOL_VERSION, "vbat": float(self.fleet.log_values(self.index)["pm.vbat"])}
+
 
 class RecordingLink:
     """A link to nothing that keeps what it was sent (replays and unit tests)."""
@@ -181,6 +226,8 @@ class RecordingLink:
         self.pings = 0
         self.warms = 0
         self.paced = False
+        self.poses: list = []      #: (pos, quat) sent with send_pose
+        self.commands: list = []   #: (high-level command or "notify_stop", args)
 
     def connect(self, timeout_s: float = 5.0) -> None:
         self.quality.connected = True
@@ -208,3 +255,15 @@ class RecordingLink:
 
     def close(self) -> None:
         self.quality.connected = False
+
+    def send_pose(self, pos, quat) -> None:
+        self.poses.append((tuple(float(v) for v in pos), tuple(float(v) for v in quat)))
+
+    def high_level(self, command: str, **args) -> None:
+        self.commands.append((command, dict(args)))
+
+    def notify_stop(self) -> None:
+        self.commands.append(("notify_stop", {}))
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        return {"protocol": 12, "vbat": float("nan")}

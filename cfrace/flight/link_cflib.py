@@ -22,7 +22,7 @@ import time
 import warnings
 
 from cfrace.errors import LinkError
-from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_args
+from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_args, send_high_level
 
 import cflib.crtp  # noqa: E402  (the one place cflib is imported)
 from cflib.crazyflie import Crazyflie  # noqa: E402
@@ -229,6 +229,54 @@ class CflibLink:
     def close(self) -> None:
         self.stop()
         self._shutdown()
+
+    # ------------------------------------------------------------------ the firmware's flight modes
+    def send_pose(self, pos, quat) -> None:
+        """The mocap pose as external pose (localization port): x y z, qx qy qz qw. Never raises."""
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            w, x, y, z = (float(v) for v in quat)
+            cf.extpos.send_extpose(float(pos[0]), float(pos[1]), float(pos[2]), x, y, z, w)
+        except Exception as exc:  # a dying link: the silence check reports it
+            self._note_error(f"send_pose failed: {exc}")
+
+    def high_level(self, command: str, **args) -> None:
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            send_high_level(cf.high_level_commander, command, args)
+        except Exception as exc:
+            self._note_error(f"high-level {command} failed: {exc}")
+
+    def notify_stop(self) -> None:
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            cf.commander.send_notify_setpoint_stop()
+        except Exception as exc:
+            self._note_error(f"notify_stop failed: {exc}")
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        """The CRTP protocol version and one pm.vbat sample (nan if the drone logs none in time)."""
+        cf = self._need()
+        from cflib.crazyflie.log import LogConfig
+        got, vbat = threading.Event(), [float("nan")]
+        conf = LogConfig(name="cfrace_status", period_in_ms=50)
+        try:
+            conf.add_variable("pm.vbat", "float")
+            cf.log.add_config(conf)
+            conf.data_received_cb.add_callback(lambda ts, data, c: (vbat.__setitem__(0, float(data["pm.vbat"])),
+                                                                    got.set()))
+            conf.start()
+            got.wait(timeout_s)
+            conf.delete()
+        except (KeyError, AttributeError) as exc:
+            self._note_error(f"no pm.vbat log: {exc}")
+        return {"protocol": int(cf.platform.get_protocol_version()), "vbat": vbat[0]}
 
     def _shutdown(self) -> None:
         sink, self._sink = self._sink, None

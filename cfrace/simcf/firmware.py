@@ -39,6 +39,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY, DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.flight.estimator import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
@@ -111,15 +112,6 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     pitch = math.asin(max(-1.0, min(1.0, 2.0 * (w * y - z * x))))
     yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
     return roll, pitch, yaw
-
-
-def _rotate_to_body(q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """World vector v (3,) in the body frame of attitude q (wxyz, world-from-body)."""
-    w, x, y, z = (float(c) for c in q)
-    rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
-    return rot.T @ v
 
 
 def _wrap(a: float) -> float:
@@ -626,7 +618,7 @@ class SimFleet:
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
-            body_acc = _rotate_to_body(self._quat[i], self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+            body_acc = quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()
