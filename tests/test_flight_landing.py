@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from cfrace.flight.landing import (BrakeController, LandingConfig, Touchdown, candidate_spots, choose_landing_spots,
+from cfrace.flight.landing import (BrakeController, LandingConfig, LandingSetup, Touchdown, candidate_spots,
+                                   choose_landing_spots,
                                    gate_footprints, stopping_point, _obstacle_dist, _seg_point_dist)
 from cfrace.flight.link import packet_values
 from cfrace.simcf.firmware import SimFleet
@@ -74,7 +75,7 @@ def test_brake_hand_over_and_land_from_race_speed(profile):
     yaw = -math.pi / 2
     fleet.teleport(0, (-2.0, 3.4, 0.75), (0.0, -5.0, 0.0), (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)))
     prof = fleet.profile
-    brake = BrakeController(prof.mass, 0.9 * float(prof.thrust_curve.newtons[-1]))
+    brake = LandingSetup.for_race(track, prof).brake       # what the flight loop brakes with
     cfg = LandingConfig()
     s = fleet.state(0)
     spot = choose_landing_spots(track, [stopping_point(s["pos"], s["vel"], brake.accel_max)], cfg=cfg)[0]
@@ -127,8 +128,8 @@ def test_landing_pilot_flies_the_sequence():
     prof = fleet.profile
     stops = [stopping_point(fleet.state(i)["pos"], fleet.state(i)["vel"], 12.0) for i in range(2)]
     spots = choose_landing_spots(track, stops)
-    pilots = [LandingPilot(BrakeController(prof.mass, 0.9 * float(prof.thrust_curve.newtons[-1])), spots[i],
-                           prof.collision_box[2] / 2) for i in range(2)]
+    setup = LandingSetup.for_race(track, prof)
+    pilots = [LandingPilot(BrakeController(**setup.brake.__dict__), spots[i], setup.ground_z) for i in range(2)]
     done = [False, False]
     for _ in range(600):
         for i, pilot in enumerate(pilots):

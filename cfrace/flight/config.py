@@ -45,6 +45,12 @@ class SafetyConfig:
     mocap_stale_s: float = 0.15      #: s, a pose estimate older than this stops the drone
     link_timeout_s: float = 0.5      #: s without any packet from a drone = link lost
     overrun_stop_s: float = 0.1      #: s, a tick starting later than this past its deadline stops all
+    # soft failsafes: these land the drone (docs/flight.md, "Safety")
+    fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
+    mocap_glitches: float = 3        #: pose dropouts and outliers within 2 s that mean degraded mocap: land
+    opponent_clearance_m: float = 0.7   #: m, a downed drone this close to the path to the next gate: land
+    low_battery_v: float = 3.3       #: V (pm.vbat under load), below it ...
+    low_battery_s: float = 1.0       #: ... for this long: land (sags at full thrust are shorter); 0 V = off
 
     def __post_init__(self):
         for f in fields(self):
@@ -87,8 +93,15 @@ class FlightConfig:
     #: body rates) to make up for the mocap's latency; None: LATENCY_COMP_DEFAULT_S, 0 for `sim`
     latency_comp_s: float | None = None
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    start: str = "ground"                        #: ground (policies take off) or hover (high-level take-off first)
+    landing: bool = True                         #: land at the race's end and on soft failsafes (else motors off)
+    pose_stream: bool = True                     #: stream each drone's mocap pose to it (external position)
 
     def __post_init__(self):
+        if self.start not in ("ground", "hover"):
+            raise ConfigError(f"start: must be ground or hover, got {self.start!r}")
+        if self.start == "hover" and not (self.landing and self.pose_stream):
+            raise ConfigError("start: hover needs landing and pose_stream on (the firmware flies the take-off)")
         if self.laps < 1:
             raise ConfigError(f"laps: must be >= 1, got {self.laps}")
         if len(self.bodies) != len(DRONE_NAMES):

@@ -148,7 +148,7 @@ class BrakeController:
     k_z: float = 4.0                   #: 1/s^2, altitude hold (P on height)
     k_vz: float = 3.0                  #: 1/s, altitude hold (D)
     k_att: float = 15.0                #: 1/s, body rate per rad of tilt error
-    rate_max_dps: float = 600.0
+    rate_max_dps: tuple = (100.0, 100.0, 200.0)   #: deg/s per axis: the profile's (the safety check's limits)
     min_height: float = 0.4            #: m, the altitude held is at least this
     hold_z: float | None = field(default=None, repr=False)
 
@@ -170,7 +170,8 @@ class BrakeController:
         err_body = rot.T @ np.cross(z_body, z_des)           # axis * sin(angle), body frame
         rates = np.degrees(self.k_att * err_body)
         rates[2] = 0.0
-        rates = np.clip(rates, -self.rate_max_dps, self.rate_max_dps)
+        rmax = np.asarray(self.rate_max_dps, np.float64)
+        rates = np.clip(rates, -rmax, rmax)
         thrust = float(np.clip(f @ z_body, 0.0, self.max_thrust))   # the part along the body z axis
         return rates, thrust
 
@@ -206,6 +207,31 @@ class Touchdown:
 
 
 BRAKE, APPROACH, DESCEND, DOWN = "brake", "approach", "descend", "down"
+
+
+@dataclass(frozen=True)
+class LandingSetup:
+    """What the tick needs to land drones: the track (spots), the brake controller's constants,
+    the body's resting height, the manoeuvre's limits and how long a landing may take."""
+
+    track: object
+    gates: np.ndarray               #: (G, 4) the track's gates (x, y, z, yaw), for the opponent_down rule
+    brake: BrakeController
+    ground_z: float
+    cfg: LandingConfig = LandingConfig()
+    timeout_s: float = 8.0          #: s from the landing's start: then the motors are cut
+
+    @classmethod
+    def for_race(cls, track, profile, cfg: LandingConfig = LandingConfig()) -> "LandingSetup":
+        brake = BrakeController(profile.mass, 0.9 * float(profile.thrust_curve.newtons[-1]),
+                                rate_max_dps=LANDING_RATE_FACTOR * np.asarray(profile.max_rates_deg, np.float64))
+        return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg)
+
+
+#: the landing's braking may use this many times the profile's body rates (the racing limit; the
+#: firmware's rate controller takes far more): from race speed a drone must tilt back fast to stop
+#: inside the arena (tests/test_flight_landing.py)
+LANDING_RATE_FACTOR = 3.0
 
 
 @dataclass

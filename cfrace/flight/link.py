@@ -47,13 +47,15 @@ class LinkQuality:
     sent: int = 0                     #: setpoints sent
     errors: int = 0
     error: str = ""                   #: the last error message
+    vbat: float = float("nan")        #: V, the drone's battery (pm.vbat), nan if unknown
 
     def rx_age(self, now: float) -> float:
         return now - self.last_rx if self.last_rx == self.last_rx else float("inf")
 
     def as_dict(self, now: float) -> dict:
         return {"connected": self.connected, "rx_age_s": self.rx_age(now), "latency_ms": self.latency_ms,
-                "link_quality": self.link_quality, "sent": self.sent, "errors": self.errors, "error": self.error}
+                "link_quality": self.link_quality, "sent": self.sent, "errors": self.errors, "error": self.error,
+                "vbat": self.vbat}
 
 
 @runtime_checkable
@@ -161,6 +163,8 @@ class DirectSimLink:
         r, p, y = packet_values(float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps))
         self.fleet.handle_setpoint(self.index, r, p, y, int(thrust_counts))
         self.quality.sent += 1
+        if self.quality.sent % 10 == 1:      # the battery, as the real link logs it (10 Hz)
+            self.quality.vbat = float(self.fleet.log_values(self.index)["pm.vbat"])
         self._heard()
 
     def stop(self) -> None:

@@ -68,7 +68,7 @@ class BatteryModel:
     volts_per_charge: float = 1.0    #: V from full to empty (open circuit)
     charge0: float = 0.9             #: state of charge at boot, 0-1
     capacity_mah: float = 250.0
-    resistance: float = 0.15         #: ohm, internal
+    resistance: float = 0.08         #: ohm, internal
     idle_amps: float = 0.1           #: A with motors off
     full_amps: float = 8.0           #: A at full collective thrust
 
