@@ -152,6 +152,17 @@ def register(app: typer.Typer) -> None:
                                                           "there are two or more), off, or a CPU number; the "
                                                           "process's other threads go to the other CPUs."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+        start: Optional[str] = typer.Option(None, help="ground (default): the policies take off; hover: take-off "
+                                                       "to the start positions on the high-level commander first."),
+        landing: Optional[bool] = typer.Option(None, "--landing/--no-landing",
+                                               help="Land at the race's end and on soft failsafes (default on)."),
+        pose_stream: Optional[bool] = typer.Option(None, "--pose-stream/--no-pose-stream",
+                                                   help="Stream each drone's mocap pose to it (default on)."),
+        check: bool = typer.Option(False, "--check", help="Pre-flight checks only (docs/first-flight.md): firmware, "
+                                                          "battery, link, body and yaw of each drone; exit 2 on a failure."),
+        hover: bool = typer.Option(False, "--hover", help="Hover test only: take off 0.5 m, hold 5 s, land "
+                                                          "(the drones of --hover-drones, one after the other)."),
+        hover_drones: str = typer.Option("0,1", help="--hover: which drones (0 ego, 1 opp)."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
         from cfrace.flight.config import make_config, split_list
@@ -167,10 +178,25 @@ def register(app: typer.Typer) -> None:
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
                           loop_cpu=loop_cpu,
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
+                          start=start, landing=landing, pose_stream=pose_stream)
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+        if check or hover:
+            from cfrace.flight.procedures import first_flight
+            from cfrace.flight.setup import real_io
+            from dataclasses import replace
+            cfg = replace(cfg, log=None)     # no race, no flight log (nor the link keeper's stop log)
+            setup = resolve_race(cfg)
+            report = first_flight(setup, real_io(cfg), check=check,
+                                  hover_drones=[int(v) for v in split_list(hover_drones) or ()] if hover else [])
+            for line in report["lines"]:
+                out.print(line, highlight=False)
+            write_json(report, json_out)
+            if not report["ok"]:
+                sys.exit(2)
+            return
         result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)
         write_json(result, json_out)

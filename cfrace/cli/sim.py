@@ -73,6 +73,12 @@ def dry_run_cmd(
                                               "or more), off, or a CPU number; the other threads (the simulated "
                                               "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+    start: str = typer.Option("ground", help="ground: the policies take off; hover: the drones take off to "
+                                             "their start positions on the high-level commander first."),
+    landing: bool = typer.Option(True, "--landing/--no-landing", help="Land at the race's end and on soft "
+                                                                      "failsafes (off: motors off, they drop)."),
+    pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream",
+                                     help="Stream each drone's mocap pose to it (external position)."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
     from cfrace.cli.flight import exit_code, print_result, write_json
@@ -87,7 +93,8 @@ def dry_run_cmd(
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
+                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
+                       start=start, landing=landing, pose_stream=pose_stream)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                      mocap_latency_s=mocap_latency_ms / 1e3, console=console,
                      setup=resolve_race(cfg, the_track)).to_json()

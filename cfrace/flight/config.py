@@ -158,7 +158,7 @@ def load_flight_file(path: str | Path) -> dict:
             if not all(isinstance(s, str) and s for s in seq):
                 raise r.fail(key, f"expected a list of strings, got {seq!r}")
             out[key] = tuple(seq)
-    for key in ("mocap", "profile", "track", "ego", "opp"):
+    for key in ("mocap", "profile", "track", "ego", "opp", "start"):
         if r.has(key):
             out[key] = r.string(key)
     for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
@@ -178,11 +178,12 @@ def load_flight_file(path: str | Path) -> dict:
                 raise r.fail(key, str(exc).removeprefix(f"{key}: ")) from None
     if r.has("laps"):
         out["laps"] = int(r.number("laps", min=1))
-    if r.has("obstacles"):
-        v = r.raw("obstacles")
-        if not isinstance(v, bool):
-            raise r.fail("obstacles", f"expected true or false, got {v!r}")
-        out["obstacles"] = v
+    for key in ("obstacles", "landing", "pose_stream"):
+        if r.has(key):
+            v = r.raw(key)
+            if not isinstance(v, bool):
+                raise r.fail(key, f"expected true or false, got {v!r}")
+            out[key] = v
     if r.has("safety"):
         s = r.mapping("safety")
         kw = {f.name: s.number(f.name, min=0.0) for f in fields(SafetyConfig) if s.has(f.name)}

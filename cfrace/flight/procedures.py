@@ -149,3 +149,60 @@ def hover_test(link, body: str, poses, wait, height: float = 0.5, hold_s: float 
             worst = max(worst, float(np.linalg.norm(np.asarray(got[body][0]) - target)))
     touchdown = land_in_place([link], [body], poses, wait, ground_z=ground_z, dt=dt)[0]
     return {"hold_error_m": round(worst, 4), "touchdown": touchdown}
+
+
+def mocap_poses(mocap):
+    """A poses() function over an opened mocap source: the newest pose of every body seen so far."""
+    latest: dict = {}
+
+    def poses() -> dict:
+        frame = mocap.read(0.0)
+        if frame is not None:
+            latest.update({b: (p.pos, p.quat) for b, p in frame.poses.items()})
+        return latest
+    return poses
+
+
+def first_flight(setup, io, *, check: bool, hover_drones=()) -> dict:
+    """`cfrace fly --check` / `--hover`: open the mocap and the links of ``io`` (a RaceIO), run the
+    pre-flight checks (cfrace.flight.preflight) and/or the hover test of each drone in
+    ``hover_drones`` (only if the checks, when asked for, passed), and always stop and close
+    everything. -> {"ok", "lines", "checks", "hover"}."""
+    import time
+
+    from cfrace.flight.preflight import run_checks
+    cfg = setup.cfg
+    wait = io.wait or time.sleep
+    mocap = io.open_mocap()
+    links: list = []
+    report = {"ok": True, "lines": [], "checks": [], "hover": []}
+    try:
+        mocap.open(cfg.mocap_timeout_s)
+        poses = mocap_poses(mocap)
+        poses()
+        for i, uri in enumerate(io.uris):
+            links.append(io.open_link(i, uri))
+            links[-1].connect(cfg.connect_timeout_s)
+        if check:
+            checks = run_checks(links, list(cfg.bodies), setup.profile, poses, wait)
+            report["checks"] = [c.__dict__ for c in checks]
+            report["lines"] += [c.line() for c in checks]
+            report["ok"] = all(c.ok for c in checks)
+        for i in hover_drones if report["ok"] else ():
+            links[i].setup()
+            res = hover_test(links[i], cfg.bodies[i], poses, wait, ground_z=setup.profile.collision_box[2] / 2.0)
+            td = res["touchdown"]
+            ok = res["hold_error_m"] <= HoverConfig.tolerance_m and td["t"] is not None and abs(td["vz_mps"]) <= 0.5
+            report["hover"].append({"drone": i, **res, "ok": ok})
+            report["lines"].append(f"{'ok  ' if ok else 'FAIL'} drone {i} hover: held within {res['hold_error_m']:.3f} m, "
+                                   f"touchdown {td['vz_mps']} m/s at {td['place']}")
+            report["ok"] &= ok
+    finally:
+        for link in links:
+            try:
+                link.stop()
+                link.close()
+            except Exception:  # noqa: BLE001 - every link must be closed
+                pass
+        mocap.close()
+    return report

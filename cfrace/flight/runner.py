@@ -227,7 +227,9 @@ class RaceRun:
                 latest.update({b: (p.pos, p.quat) for b, p in frame.poses.items()})
             return latest
         poses()
-        report = hover_start(self.links, list(s.cfg.bodies), poses, self.io.wait or time.sleep, targets, yaw)
+        wait = self.io.wait or time.sleep
+        report = hover_start(self.links, list(s.cfg.bodies), poses, wait, targets, yaw)
+        wait(s.cfg.dt)   # one more period: the race's first tick then reads a frame of its own
         if self.log is not None:
             self.log.write("/event", 0.0, {"kind": "hover_start", "text": f"hovering at the start: {report}"})
         return report
