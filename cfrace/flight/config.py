@@ -100,8 +100,11 @@ class FlightConfig:
     def __post_init__(self):
         if self.start not in ("ground", "hover"):
             raise ConfigError(f"start: must be ground or hover, got {self.start!r}")
-        if self.start == "hover" and not (self.landing and self.pose_stream):
-            raise ConfigError("start: hover needs landing and pose_stream on (the firmware flies the take-off)")
+        if self.start == "hover" and not self.landing:
+            raise ConfigError("start: hover needs landing on (the firmware flies the take-off and the landing)")
+        if self.landing and not self.pose_stream:
+            raise ConfigError("landing needs pose_stream on: the firmware lands from the mocap poses it is sent "
+                              "(use --no-landing with --no-pose-stream)")
         if self.laps < 1:
             raise ConfigError(f"laps: must be >= 1, got {self.laps}")
         if len(self.bodies) != len(DRONE_NAMES):

@@ -62,6 +62,7 @@ class FlightLoop:
                              fence=fence, safety_cfg=safety_cfg, laps=laps, timeout_s=timeout_s, dt=clock.dt,
                              filters=faults, limits=limits, landing=landing, hover_start=hover_start)
         self.pose_stream = bool(pose_stream)   #: send each drone its mocap pose (external position) every frame
+        self.poses_sent = 0                    #: poses sent to the drones (all drones together)
         self.mocap, self.clock, self.log, self.view, self.faults = mocap, clock, log, view, faults
         self.kill = kill or KillSwitch()
         self.link_log_every = link_log_every
@@ -171,6 +172,7 @@ class FlightLoop:
                 pose = frame.poses.get(d.body)
                 if pose is not None and not d.stopped:
                     d.link.send_pose(pose.pos, pose.quat)
+                    self.poses_sent += 1
         t_sent = perf()
         cpu = thread_time() - cpu_start
         # ---------------------------------------------- after the send: bookkeeping

@@ -243,7 +243,9 @@ class RaceRun:
         self.result = RaceResult(
             end=res.end, winner=res.winner, duration_s=round(res.t_end, 3), operator_kill=self.kill.reason,
             rt_fifo=fifo, loop_cpu=loop_cpu, track=s.track.name, profile=s.profile.name,
-            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones]) | {"skipped": res.skipped},
+            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones])
+            | {"skipped": res.skipped, "poses_sent": loop.poses_sent,
+               "setpoints_sent": sum(d.link.quality.sent for d in loop.drones)},
             safety_events=res.safety_events, drones=res.drones,
             estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
             laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones},
