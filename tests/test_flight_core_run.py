@@ -62,13 +62,15 @@ def test_lockstep_dry_run_flies_and_logs(lockstep_run):
     assert data.meta["velocity_alpha"] == 0.7
     for topic in ("/mocap/pose", "/estimate", "/obs", "/action", "/setpoint", "/timing", "/link", "/race"):
         assert data.count(topic) > 0, topic
-    assert data.count("/timing") == 301 and data.count("/obs") == 301        # 100 Hz loop
+    assert data.count("/obs") == 301                                           # 100 Hz loop, 3 s race
+    landing_ticks = data.count("/timing") - 301                                # then both drones land
+    assert 0 < landing_ticks < 500 and {m["drone"] for _, m in data.messages("/landing")} == {"ego", "opp"}
     obs = [m for _, m in data.messages("/obs")]                                # 50 Hz each, staggered
     assert [m["k"] for m in obs if "cf1" in m] == list(range(0, 301, 2))
     assert [m["k"] for m in obs if "cf2" in m] == list(range(1, 301, 2))
     z = [m["cf1"]["pos"][2] for _, m in data.messages("/estimate")]
     assert z[0] < 0.05 and max(z) > 0.6                                        # took off from the floor
-    assert result["loop"]["ticks"] == 301 and result["loop"]["skipped"] == 0
+    assert result["loop"]["ticks"] == 301 + landing_ticks and result["loop"]["skipped"] == 0
     assert data.meta["policies"]["ego"]["obs_layout"] == "race42"
 
 
@@ -353,7 +355,8 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
         flown = poses.get(k + 1 - k0 + min(poses))
         if flown is not None:
             errors.append(float(np.linalg.norm(sim.state.pos[0, 0].numpy() - np.asarray(flown["pos"]))))
-    path = float(np.linalg.norm(np.asarray(poses[max(poses)]["pos"]) - np.asarray(first["pos"])))
+    race_end = min(poses) + 300                        # the race's last frame (then it lands)
+    path = float(np.linalg.norm(np.asarray(poses[race_end]["pos"]) - np.asarray(first["pos"])))
     assert len(errors) > 200 and path > 3.0            # it flew, through the fast part after gate 2
     assert max(errors) < 0.005, max(errors)            # 5 mm over 2.5 s of flight
 

@@ -33,6 +33,7 @@ from cfrace.flight.mocap import frame_to_msg
 FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
 perf = time.perf_counter
+OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
 
 
 class LinkInputs(NamedTuple):
@@ -209,8 +210,11 @@ class TickCore:
                 continue
             p = np.asarray(o.frozen_pos, np.float64)
             seg = gate - pos
-            u = min(1.0, max(0.0, float((p - pos) @ seg) / max(float(seg @ seg), 1e-9)))
-            if float(np.linalg.norm(pos + u * seg - p)) < self.safety_cfg.opponent_clearance_m:
+            length = max(float(np.linalg.norm(seg)), 1e-9)
+            u = min(1.0, max(0.0, float((p - pos) @ seg) / (length * length)))
+            # in the way = near the path AHEAD (not beside the drone: at a ground start both stand there)
+            if u * length >= OPPONENT_AHEAD_M and \
+                    float(np.linalg.norm(pos + u * seg - p)) < self.safety_cfg.opponent_clearance_m:
                 return f"{o.name} down at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
         return ""
 
