@@ -62,3 +62,18 @@ def test_fly_check_against_sim_serve(tmp_path):
     finally:
         serve.terminate()
         serve.wait(10)
+
+
+def test_real_time_race_lands_through_the_link_keeper(tmp_path):
+    """Real time, real cflib over UDP through the link keeper process: the poses, the go-to, the
+    notify-stop and the land reach the simulated drones, which land."""
+    from test_flight_faults import PROFILE
+    from cfrace.flight.holdpolicy import make_hold_policy
+    ego = make_hold_policy(tmp_path / "ego.onnx", "race42", "lemniscate", False)
+    opp = make_hold_policy(tmp_path / "opp.onnx", "solo36", "lemniscate", False)
+    cfg = FlightConfig(track="lemniscate", ego=str(ego), opp=str(opp), profile=PROFILE, quiet=True, timeout_s=2.0,
+                       log=tmp_path / "rt.mcap")
+    result = dry_run(cfg, lockstep=False).to_json()
+    assert result["end"] == "timeout"
+    assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
+    assert result["loop"]["poses_sent"] > 300

@@ -65,6 +65,15 @@ def print_result(result: dict, con: Console = out) -> None:
         con.print(t)
     else:
         con.print("safety events: none")
+    if result.get("hover_start"):
+        con.print(f"hover start: held within {result['hover_start']['hold_error_m']} m of the start positions")
+    for name, land in (result.get("landings") or {}).items():
+        if land is None:
+            continue
+        how = (f"down {land['t']:.2f} s after it began, {abs(land['vz_mps']):.2f} m/s at "
+               f"({land['place'][0]:.2f}, {land['place'][1]:.2f})" if land.get("down") and land.get("t") is not None
+               else f"not down ({land.get('cut') or 'landing timeout'})")
+        con.print(f"landing {name} ({land['reason']}): spot ({land['spot'][0]:.2f}, {land['spot'][1]:.2f}), {how}")
     for d in result.get("drones_final") or []:
         con.print(f"  {d['body']}: motors {'off' if d['motors_off'] else 'ON'}, thrust {d['thrust_counts']} counts, "
                   f"armed {d['armed']}, watchdog {d['watchdog']}")
