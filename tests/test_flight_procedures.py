@@ -55,3 +55,25 @@ def test_hover_test_holds_and_lands_softly():
     assert td["t"] is not None and abs(td["vz_mps"]) <= 0.5
     assert np.linalg.norm(np.array(td["place"][:2]) - x0[:2]) < 0.1
     assert fleet.status(0)["thrust"] == 0.0 and not fleet.status(0)["crashed"] and not fleet.status(0)["armed"]
+
+
+def test_first_flight_checks_then_hovers_each_drone():
+    """`cfrace fly --check --hover` on simulated drones (lockstep I/O of the dry-run)."""
+    from cfrace.flight.config import FlightConfig
+    from cfrace.flight.dryrun import sim_io
+    from cfrace.flight.procedures import first_flight
+    from cfrace.flight.setup import resolve_race
+
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf21bl", quiet=True)
+    setup = resolve_race(cfg)
+    fleet = SimFleet(setup.track, setup.profile, 2, decks=())
+    report = first_flight(setup, sim_io(cfg, fleet, lockstep=True, uris=["sim://0", "sim://1"]), check=True,
+                          hover_drones=[1])
+    assert report["ok"], report["lines"]
+    assert len(report["checks"]) == 10 and [h["drone"] for h in report["hover"]] == [1]
+    assert report["hover"][0]["hold_error_m"] < 0.1 and "hover" in report["lines"][-1]
+    assert all(fleet.status(i)["thrust"] == 0.0 and not fleet.status(i)["armed"] for i in range(2))
+    fleet.set_battery(0, 0.0)
+    report = first_flight(setup, sim_io(cfg, fleet, lockstep=True, uris=["sim://0", "sim://1"]), check=True,
+                          hover_drones=[0, 1])
+    assert not report["ok"] and report["hover"] == []            # a failed check: no hover, nothing armed
