@@ -29,7 +29,7 @@ Soft failsafes land the drone instead (the firmware's high-level commander, cfra
 | kind           | scope     | trigger                                                          |
 |----------------|-----------|------------------------------------------------------------------|
 | fence_near     | one drone | inside the fence but within fence_soft_m of it                   |
-| mocap_degraded | one drone | mocap_glitches pose dropouts / outliers within 2 s               |
+| mocap_degraded | one drone | mocap_glitches pose dropouts (>= 50 ms) / outliers within 2 s    |
 | opponent_down  | one drone | a stopped drone within opponent_clearance_m of its path to its   |
 |                |           | next gate                                                        |
 | low_battery    | one drone | pm.vbat below low_battery_v for low_battery_s                    |

@@ -34,6 +34,7 @@ FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
 perf = time.perf_counter
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
+GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 
 
 class LinkInputs(NamedTuple):
@@ -169,25 +170,25 @@ class TickCore:
                 command=None if d.stopped or d.landing is not None else (*d.rates_dps, d.counts),
                 landing=d.landing is not None or not soft,
                 mocap_glitches=self._recent_glitches(i, t), blocked=self._blocked(i, ests),
-                vbat=float(getattr(links[i], "vbat", math.nan)), vbat_low_s=self._low_battery_s(i, t, links[i]))
+                vbat=float(getattr(links[i], "vbat", math.nan)),
+                vbat_low_s=0.0 if self._vbat_low_since[i] is None else t - self._vbat_low_since[i])
                 for i, (d, e) in enumerate(zip(self.drones, ests))))
 
-    def _low_battery_s(self, i: int, t: float, link) -> float:
-        """How long drone i's battery has been below the low-battery limit without a break (s)."""
-        vbat = float(getattr(link, "vbat", math.nan))
-        if not vbat < self.safety_cfg.low_battery_v:
-            self._vbat_low_since[i] = None
-            return 0.0
-        if self._vbat_low_since[i] is None:
-            self._vbat_low_since[i] = t
-        return t - self._vbat_low_since[i]
+    def _track_battery(self, t: float, links) -> None:
+        """Since when each drone's battery has been below the low-battery limit without a break."""
+        for i, link in enumerate(links):
+            if not float(getattr(link, "vbat", math.nan)) < self.safety_cfg.low_battery_v:
+                self._vbat_low_since[i] = None
+            elif self._vbat_low_since[i] is None:
+                self._vbat_low_since[i] = t
 
     # ------------------------------------------------------------------ soft-failsafe inputs
     def _count_glitches(self, ests: list, t: float) -> None:
-        """Remember when each drone's pose dropped out (start of an episode) or was an outlier."""
+        """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S (start of an episode) or was
+        an outlier."""
         counters = self.estimator.counters
         for i, (d, e) in enumerate(zip(self.drones, ests)):
-            dropping = float(e.age_s) > 2.5 * self.dt
+            dropping = float(e.age_s) > GLITCH_DROPOUT_S
             if dropping and not self._dropping[i]:
                 self._glitches[i].append(t)
             self._dropping[i] = dropping
@@ -276,6 +277,7 @@ class TickCore:
                 computed[i] = True
         if self.landing is not None:
             self._count_glitches(ests, t)
+            self._track_battery(t, links)
         decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill, land),
                             self.fence, self.safety_cfg, self.limits)
         if self.landing is not None and not decision.stop_all:
