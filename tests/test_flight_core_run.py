@@ -108,7 +108,8 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
 
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
     result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False).to_json()
-    assert result["end"] == "timeout"
+    assert result["end"] == "timeout", ([(e["t"], e["kind"], e["detail"]) for e in result["safety_events"]],
+                                        result.get("landings"))
     # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own
     from test_flight_realtime import fifo_permitted
     from cfrace.flight.realtime import resolve_loop_cpu

@@ -123,6 +123,21 @@ def announce(meta: dict, con: Console = console) -> None:
               + f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
 
 
+def first_flight_cmd(cfg, check: bool, hover_drones: list[int], json_out: Path | None) -> None:
+    """`cfrace fly --check` / `--hover`: no race; one line per check, exit 2 on a failure."""
+    from dataclasses import replace
+
+    from cfrace.flight.procedures import first_flight
+    from cfrace.flight.setup import real_io, resolve_race
+    cfg = replace(cfg, log=None)     # no race, no flight log (nor the link keeper's stop log)
+    report = first_flight(resolve_race(cfg), real_io(cfg), check=check, hover_drones=hover_drones)
+    for line in report["lines"]:
+        out.print(line, highlight=False)
+    write_json(report, json_out)
+    if not report["ok"]:
+        sys.exit(2)
+
+
 def register(app: typer.Typer) -> None:
     """Add `cfrace fly` to the top-level app."""
 
@@ -193,19 +208,8 @@ def register(app: typer.Typer) -> None:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
         if check or hover:
-            from cfrace.flight.procedures import first_flight
-            from cfrace.flight.setup import real_io
-            from dataclasses import replace
-            cfg = replace(cfg, log=None)     # no race, no flight log (nor the link keeper's stop log)
-            setup = resolve_race(cfg)
-            report = first_flight(setup, real_io(cfg), check=check,
-                                  hover_drones=[int(v) for v in split_list(hover_drones) or ()] if hover else [])
-            for line in report["lines"]:
-                out.print(line, highlight=False)
-            write_json(report, json_out)
-            if not report["ok"]:
-                sys.exit(2)
-            return
+            return first_flight_cmd(cfg, check, [int(v) for v in split_list(hover_drones) or ()] if hover else [],
+                                    json_out)
         result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)
         write_json(result, json_out)

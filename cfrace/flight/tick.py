@@ -19,9 +19,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight import landing as ld
 from cfrace.flight import safety as sf
+from cfrace.flight.softsafe import SoftState, blocked_by, land_step
 from cfrace.flight.loopstate import Drone, ObservationBuilder
 from cfrace.flight.mocap import frame_to_msg
 
@@ -33,8 +34,6 @@ from cfrace.flight.mocap import frame_to_msg
 FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
 perf = time.perf_counter
-OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
-GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 
 
 class LinkInputs(NamedTuple):
@@ -84,11 +83,7 @@ class TickCore:
         self.landing = landing   #: None: every stop cuts the motors (no landing)
         self.hover_start = hover_start   #: drones hover (high-level commander) until their first inference
         self.race_over: tuple | None = None   #: (end, winner, t) once the race is decided; landings may follow
-        self._glitches = [[] for _ in drones]   # times of pose dropouts / outliers per drone
-        self._dropping = [False] * len(drones)
-        self._glitch_outliers = [0] * len(drones)
-        self._vbat_low_since: list = [None] * len(drones)
-        self._pending_records: list = []   # log records made outside _records (landing starts)
+        self.soft = SoftState(len(drones))   #: what the soft failsafes and the landings remember
         self.drones, self.estimator, self.progress = drones, estimator, progress
         self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
         self.laps, self.timeout_s, self.dt, self.filters = laps, timeout_s, float(dt), filters
@@ -157,6 +152,13 @@ class TickCore:
             out.append((x if math.isfinite(x) else 0.0, y if math.isfinite(y) else 0.0, z if math.isfinite(z) else 0.0))
         return out
 
+    def _blocked(self, i: int, ests: list) -> str:
+        d = self.drones[i]
+        if d.stopped or d.landing is not None or self.landing is None:
+            return ""
+        gate = np.asarray(self.landing.gates[int(self.progress.target[i])][:3], np.float64)
+        return blocked_by(i, self.drones, ests[i].pos, gate, self.safety_cfg.opponent_clearance_m)
+
     def safety_inputs(self, t: float, late_s: float, ests: list, computed: list, hit, links, kill,
                       land: str | None = None) -> sf.SafetyInputs:
         soft = self.landing is not None
@@ -169,94 +171,9 @@ class TickCore:
                 gate_crash=bool(hit[i]),
                 command=None if d.stopped or d.landing is not None else (*d.rates_dps, d.counts),
                 landing=d.landing is not None or not soft,
-                mocap_glitches=self._recent_glitches(i, t), blocked=self._blocked(i, ests),
-                vbat=float(getattr(links[i], "vbat", math.nan)),
-                vbat_low_s=0.0 if self._vbat_low_since[i] is None else t - self._vbat_low_since[i])
+                mocap_glitches=self.soft.recent_glitches(i, t), blocked=self._blocked(i, ests),
+                vbat=float(getattr(links[i], "vbat", math.nan)), vbat_low_s=self.soft.low_battery_s(i, t))
                 for i, (d, e) in enumerate(zip(self.drones, ests))))
-
-    def _track_battery(self, t: float, links) -> None:
-        """Since when each drone's battery has been below the low-battery limit without a break."""
-        for i, link in enumerate(links):
-            if not float(getattr(link, "vbat", math.nan)) < self.safety_cfg.low_battery_v:
-                self._vbat_low_since[i] = None
-            elif self._vbat_low_since[i] is None:
-                self._vbat_low_since[i] = t
-
-    # ------------------------------------------------------------------ soft-failsafe inputs
-    def _count_glitches(self, ests: list, t: float) -> None:
-        """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S (start of an episode) or was
-        an outlier."""
-        counters = self.estimator.counters
-        for i, (d, e) in enumerate(zip(self.drones, ests)):
-            dropping = float(e.age_s) > GLITCH_DROPOUT_S
-            if dropping and not self._dropping[i]:
-                self._glitches[i].append(t)
-            self._dropping[i] = dropping
-            c = counters[d.body]["outliers"]
-            self._glitches[i] += [t] * max(0, c - self._glitch_outliers[i])
-            self._glitch_outliers[i] = c
-
-    def _recent_glitches(self, i: int, t: float) -> int:
-        return sum(1 for g in self._glitches[i] if t - g <= 2.0)
-
-    def _blocked(self, i: int, ests: list) -> str:
-        """A stopped drone near drone i's path to its next gate ("" if none)."""
-        d = self.drones[i]
-        if d.stopped or d.landing is not None or self.landing is None:
-            return ""
-        gate = np.asarray(self.landing.gates[int(self.progress.target[i])][:3], np.float64)
-        pos = np.asarray(ests[i].pos, np.float64)
-        for j, o in enumerate(self.drones):
-            if j == i or not o.stopped or o.frozen_pos is None or not np.all(np.isfinite(pos)):
-                continue
-            p = np.asarray(o.frozen_pos, np.float64)
-            seg = gate - pos
-            length = max(float(np.linalg.norm(seg)), 1e-9)
-            u = min(1.0, max(0.0, float((p - pos) @ seg) / (length * length)))
-            # in the way = near the path AHEAD (not beside the drone: at a ground start both stand there)
-            if u * length >= OPPONENT_AHEAD_M and \
-                    float(np.linalg.norm(pos + u * seg - p)) < self.safety_cfg.opponent_clearance_m:
-                return f"{o.name} down at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
-        return ""
-
-    # ------------------------------------------------------------------ landing
-    def start_landing(self, i: int, ests: list, t: float, reason: str) -> None:
-        """Drone i stops racing and lands (brake, then the firmware's high-level commander)."""
-        d, setup = self.drones[i], self.landing
-        e = ests[i]
-        others = [o.frozen_pos for o in self.drones if o.stopped and o.frozen_pos is not None]
-        others += [o.landing.spot for o in self.drones if o.landing is not None]
-        stop = ld.stopping_point(e.pos, e.vel, setup.brake.accel_max)
-        try:
-            spot = ld.choose_landing_spots(setup.track, [stop], others, setup.cfg)[0]
-        except ValueError:
-            spot = np.asarray(e.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
-        brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
-        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg)
-        d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
-        self._pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
-                                                 "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
-
-    def _land_step(self, i: int, ests: list, t: float, out_commands: list) -> tuple | None:
-        """One tick of landing drone i: its rate setpoint (braking) or None; high-level commands
-        appended to out_commands; when it is down, its result is recorded and it is stopped."""
-        d, e = self.drones[i], ests[i]
-        step = d.landing.step(t, e.pos, e.vel, e.quat)
-        for name, args in step.high_level:
-            out_commands.append((i, name, args))
-        if step.notify_stop:
-            out_commands.append((i, "notify_stop", {}))
-        td = d.landing.touchdown
-        if step.done or (t - d.landing_result["t_start"] > self.landing.timeout_s):
-            d.landing_result.update(td.as_dict() if td is not None else {})
-            d.landing_result["down"] = bool(step.done)
-            return None
-        if step.rates_dps is None:
-            d.counts, d.thrust_n = 0, 0.0
-            return None
-        counts = int(np.clip(thrust_to_counts(step.thrust_n, d.thrust_curve), FLYING_MIN_COUNTS, 60000))
-        d.rates_dps, d.counts, d.thrust_n = tuple(float(r) for r in step.rates_dps), counts, step.thrust_n
-        return (*d.rates_dps, counts)
 
     # ------------------------------------------------------------------ the tick
     def step(self, tick: TickIn, frame, links: list[LinkInputs], kill: str | None = None,
@@ -276,8 +193,8 @@ class TickCore:
                 obs_t[i], infer[i] = self.policy_step(i, ests)
                 computed[i] = True
         if self.landing is not None:
-            self._count_glitches(ests, t)
-            self._track_battery(t, links)
+            self.soft.count_glitches(self.drones, ests, t, self.estimator.counters)
+            self.soft.track_battery(t, links, self.safety_cfg.low_battery_v)
         decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill, land),
                             self.fence, self.safety_cfg, self.limits)
         if self.landing is not None and not decision.stop_all:
@@ -285,7 +202,7 @@ class TickCore:
                 if decision.land[i] and not d.stopped and d.landing is None:
                     kind = next(v.kind for v in decision.violations if v.action in (sf.LAND_DRONE, sf.LAND_ALL)
                                 and v.drone in (i, None))
-                    self.start_landing(i, ests, t, kind)
+                    self.soft.start_landing(self.drones, i, ests[i], t, kind, self.landing)
         commands: list = []
         setpoints, stops = self._setpoints(decision, ests, t, k, commands)
         end, winner = self._end(decision, ests, t)
@@ -304,7 +221,7 @@ class TickCore:
             self.race_over = (end, winner, t)
             for i, d in enumerate(self.drones):
                 if not d.stopped and d.landing is None:
-                    self.start_landing(i, ests, t, "race_end")
+                    self.soft.start_landing(self.drones, i, ests[i], t, "race_end", self.landing)
         if any(d.landing is not None and not d.stopped for d in self.drones):
             return "", "draw"
         return (self.race_over[0], self.race_over[1]) if self.race_over is not None else (end, winner)
@@ -313,7 +230,7 @@ class TickCore:
         setpoints, stops = [None] * len(self.drones), []
         for i, d in enumerate(self.drones):
             if d.landing is not None and not d.stopped and not decision.stop[i]:
-                setpoints[i] = self._land_step(i, ests, t, commands)
+                setpoints[i] = land_step(i, d, ests[i], t, commands, self.landing.timeout_s)
                 if d.landing_result is not None and "down" in d.landing_result:
                     d.frozen_pos = ests[i].pos.copy()
                     d.stop_k = k
@@ -368,8 +285,8 @@ class TickCore:
     def _records(self, out: TickOut, t: float, k: int, frame, computed: list, progressed: bool) -> None:
         """This tick's flight log records (topics: docs/flight-log.md); /timing and /link are the runner's."""
         rec = out.records
-        rec += self._pending_records
-        self._pending_records = []
+        rec += self.soft.pending_records
+        self.soft.pending_records = []
         for ev in out.events:
             rec.append(("/safety", {key: ev[key] for key in ("kind", "drone", "body", "action", "detail")}))
         for i, kind in out.stops:
