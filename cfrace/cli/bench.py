@@ -140,9 +140,13 @@ def bench_loop_cmd(
                                                              "--foxglove`, a free port): the loop without and with it, "
                                                              "alternating, and their ratios."),
     rounds: int = typer.Option(2, min=1, help="With --foxglove: runs of each, alternating."),
+    pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream", help="Stream each drone's mocap pose "
+                                                                                  "to it, as `cfrace fly` does."),
+    compare_pose_stream: int = typer.Option(0, help="N > 0: the loop without and with the pose stream, "
+                                                    "alternating, N runs each of --duration-s, in one run."),
 ):
     """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
-    from cfrace.flight.benchloop import bench_loop
+    from cfrace.flight.benchloop import bench_loop, compare_pose_stream as compare
 
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
@@ -150,9 +154,20 @@ def bench_loop_cmd(
                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
     if foxglove:
-        write_json(_foxglove_compare(duration_s, rounds, options), json_out)
+        write_json(_foxglove_compare(duration_s, rounds, options | {"pose_stream": pose_stream}), json_out)
         return
-    r = bench_loop(duration_s, floor_s=floor_s, **options)
+    if compare_pose_stream > 0:
+        c = compare(duration_s, compare_pose_stream, **options)
+        t = Table(title=f"pose stream: median of {compare_pose_stream} run(s) each, {duration_s:g} s, alternating")
+        for col in ("", "without", "with", "with / without"):
+            t.add_column(col)
+        for k in c["without"]:
+            t.add_row(k, str(c["without"][k]), str(c["with"][k]), str(c["ratio_with_over_without"].get(k, "")))
+        console.print(t)
+        console.print(f"load average {c['load_avg']}")
+        write_json(c, json_out)
+        return
+    r = bench_loop(duration_s, floor_s=floor_s, pose_stream=pose_stream, **options)
     console.print(loop_table(r))
     if r["floor"] is not None:
         console.print(floor_line(r, floor_s), highlight=False)

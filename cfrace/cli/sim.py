@@ -29,6 +29,8 @@ def serve_cmd(
                                                                              "(off by default, as in `fly`)."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
     seed: int = typer.Option(0, help="Seed of the simulated drones' noise and start positions."),
+    decks: str = typer.Option("lighthouse", help="Positioning decks each drone carries: lighthouse, flow, "
+                                                 "both comma-separated, or none (external position only)."),
 ):
     """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
     from cfrace.flight.config import split_list
@@ -41,6 +43,7 @@ def serve_cmd(
     out.print(f"drone profile {profile}: {rule}; obstacles {'on' if obstacles else 'off'} "
               f"(`cfrace fly` must be given the same: --profile, --obstacles)", highlight=False)
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
+          decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
           out=lambda text: out.print(text, highlight=False))
 
 
@@ -86,6 +89,12 @@ def dry_run_cmd(
                                               "or more), off, or a CPU number; the other threads (the simulated "
                                               "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+    start: str = typer.Option("ground", help="ground: the policies take off; hover: the drones take off to "
+                                             "their start positions on the high-level commander first."),
+    landing: bool = typer.Option(True, "--landing/--no-landing", help="Land at the race's end and on soft "
+                                                                      "failsafes (off: motors off, they drop)."),
+    pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream",
+                                     help="Stream each drone's mocap pose to it (external position)."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
     from cfrace.cli.flight import race_and_report
@@ -101,7 +110,8 @@ def dry_run_cmd(
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
+                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
+                       start=start, landing=landing, pose_stream=pose_stream)
     race_and_report(lambda say: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                                         mocap_latency_s=mocap_latency_ms / 1e3, console=console,
                                         setup=resolve_race(cfg, the_track), announce=say), rule, json_out)
