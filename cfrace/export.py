@@ -147,7 +147,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     model.load_state_dict(state["agents"][index])
     meta = {k: meta0[k] for k in META_SCHEMA if k in meta0}
     meta.update(train_steps=int(state["env_steps"]), cfrace_version=__version__,
-                agent=AGENTS[index] if n > 1 else "ego", agent_index=index, num_agents=n,
+                agent=(AGENTS[index] if index < 2 else f"drone{index}") if n > 1 else "ego", agent_index=index,
+                num_agents=n,
                 total_training_reward=totals[index], iterations=int(state["iteration"]),
                 preset=ippo.preset)
     if meta0.get("init_from"):  # warm-started (cfrace/rl/warmstart.py): say from what
@@ -156,6 +157,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
         meta["fixed_opponent"] = Path(meta0["fixed_opponent"]).parent.name or str(meta0["fixed_opponent"])
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
+    if meta0.get("opponent_rule"):  # trained in fields of more than two drones (--drones N)
+        meta["opponent_rule"] = str(meta0["opponent_rule"])
     if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)

@@ -9,6 +9,7 @@ the first 1.0 s, hitting the floor fast, contact longer than ``long_contact_s``.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -191,6 +192,11 @@ class Simulator:
         if backend == "auto":
             fits = self.device.type == "cpu" and drones <= ckernel.MAX_DRONES and ckernel.available()
             backend = "c" if fits else "torch"
+            if self.device.type == "cpu" and not fits:  # the torch path is several times slower on a CPU: say so
+                why = (f"{drones} drones per world (the C kernel takes at most {ckernel.MAX_DRONES})"
+                       if drones > ckernel.MAX_DRONES else f"no C kernel ({ckernel.build_error()})")
+                warnings.warn(f"simulator: {why}; falling back to the slower torch path", RuntimeWarning,
+                              stacklevel=2)
         if backend == "c" and (self.device.type != "cpu" or not ckernel.available()):
             raise RuntimeError(f"the C kernel needs a CPU device and a C compiler ({ckernel.build_error()})")
         if backend == "c" and drones > ckernel.MAX_DRONES:
