@@ -144,7 +144,7 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         raise PolicyError(f"{checkpoint}: checkpoint has no observation layout (trained on a toy env?)")
     ippo = IPPOConfig.from_dict(state["ippo"])
     model = AgentModels(meta0["obs_dim"], meta0["critic_dim"], ippo.actor_hidden, ippo.critic_hidden, ippo.init_std)
-    model.load_state_dict(state["agents"][index])
+    model.load_state_dict(state["agents"][min(index, len(state["agents"]) - 1)])   # shared: one model
     meta = {k: meta0[k] for k in META_SCHEMA if k in meta0}
     meta.update(train_steps=int(state["env_steps"]), cfrace_version=__version__,
                 agent=(AGENTS[index] if index < 2 else f"drone{index}") if n > 1 else "ego", agent_index=index,

@@ -320,11 +320,11 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
                 threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
-                precision: str = "auto") -> dict:
+                precision: str = "auto", drones: int | None = None) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
-                      overrides=tuple(overrides))
+                      overrides=tuple(overrides), drones=drones)
     dev = pick_device(device)
     n_threads = set_threads(threads, dev)
     ippo = cfg.ippo()
@@ -345,7 +345,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     drones = steps * runner.num_agents
     return {"method": method, "track": meta["track"], "obstacles": obstacles, "preset": ippo.preset,
             "device": str(dev), "threads": n_threads, "num_envs": ippo.num_envs, "rollout": ippo.rollout,
-            "num_agents": runner.num_agents, "actor_hidden": list(ippo.actor_hidden),
+            "num_agents": runner.num_agents, "shared": runner.shared, "actor_hidden": list(ippo.actor_hidden),
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
             "iterations": iterations, "setup_s": setup_s,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],

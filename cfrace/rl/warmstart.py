@@ -76,7 +76,7 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         state = saved["runner"]
         totals = state["total_reward"]
         best = int(torch.argmax(totals)) if len(totals) > 1 else 0
-        src = state["agents"][best]
+        src = state["agents"][min(best, len(state["agents"]) - 1)]   # a shared run keeps one model
     src_layout = saved.get("meta", {}).get("obs_layout")
     if src_layout and env_layout and src_layout != env_layout:
         a, b = LAYOUTS[src_layout], LAYOUTS[env_layout]
