@@ -50,6 +50,19 @@ def main() -> None:
                 won = ", ".join(f"{p.replace('_' + args.track, '')} {v:.0%}" for p, v in row["policy_win_rate"].items())
                 print(f"| {lineup} | {rule} | {seed} | {won} | {row['no_winner_rate']:.0%} | {row['crashes']} | "
                       f"{row['crashes_touching']} | {row['contacts']} | {row['cpu_s']} |", flush=True)
+    print("\nover all seeds:\n")
+    print("| lineup | rule | races | first place by policy | no winner | crashes per race | touching a drone |")
+    print("|---|---|---|---|---|---|---|")
+    for lineup in args.lineups.split(";"):
+        for rule in args.rules.split(","):
+            mine = [r for r in rows if r["lineup"] == lineup and r["rule"] == rule]
+            n = sum(r["races"] for r in mine)
+            won = {p: sum(r["policy_win_rate"][p] * r["races"] for r in mine) / n for p in mine[0]["policy_win_rate"]}
+            won_txt = ", ".join(f"{p.replace('_' + args.track, '')} {v:.1%}" for p, v in won.items())
+            nowin = sum(r["no_winner_rate"] * r["races"] for r in mine) / n
+            crashes = sum(r["crashes"] for r in mine)
+            touching = sum(r["crashes_touching"] for r in mine)
+            print(f"| {lineup} | {rule} | {n} | {won_txt} | {nowin:.1%} | {crashes / n:.2f} | {touching / max(crashes, 1):.0%} |")
     doc = {"rows": rows, "load_avg": os.getloadavg(), "track": args.track}
     print(json.dumps(doc))
     if args.json:

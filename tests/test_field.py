@@ -306,3 +306,24 @@ def test_shared_runner_trains_one_model_for_every_drone(tmp_path):
     again = Runner(ToyRaceEnv(32, 2, episode_steps=10, seed=0), cfg, seed=0)
     again.load_state_dict(state)
     assert torch.equal(again.agents[0].actor.mean_net[0].weight, runner.agents[0].actor.mean_net[0].weight)
+
+
+def test_radio_budget_from_bitcraze_figures():
+    from cfrace.errors import ConfigError
+    from cfrace.flight.radio import check_radios, max_drones_per_radio, parse_radio_uri
+
+    assert max_drones_per_radio(100.0) == 4 and max_drones_per_radio(50.0) == 8
+    r = parse_radio_uri("radio://0/80/2M/e7e7e7e7e1")
+    assert (r.device, r.channel, r.datarate, r.address) == (0, 80, "2M", "E7E7E7E7E1")
+    assert parse_radio_uri("udp://127.0.0.1:19850") is None
+    four = [f"radio://0/80/2M/E7E7E7E7E{i}" for i in range(1, 5)]
+    assert len(check_radios(four + ["udp://127.0.0.1:1"])[0]) == 4
+    with pytest.raises(ConfigError, match="carries 5 drones.*at most 4"):
+        check_radios(four + ["radio://0/80/2M/E7E7E7E7E5"])
+    assert len(check_radios(four + ["radio://1/80/2M/E7E7E7E7E5"])) == 2     # a second radio
+    with pytest.raises(ConfigError, match="one channel"):
+        check_radios(["radio://0/80/2M/E7E7E7E7E1", "radio://0/90/2M/E7E7E7E7E2"])
+    with pytest.raises(ConfigError, match="one address"):
+        check_radios(["radio://0/80/2M/E7E7E7E7E1", "radio://0/80/2M/e7e7e7e7e1?safelink=0"])
+    with pytest.raises(ConfigError, match="not a Crazyradio URI"):
+        parse_radio_uri("radio://0/200/2M")
