@@ -48,10 +48,10 @@ def probed(seconds: float, rt_priority, loop_cpu) -> None:
     rec = []
     orig = ck.RealClock.wait_next
 
-    def wait_next(self, before=None, lead_s=0.0, final=None):
+    def wait_next(self, before=None, lead_s=0.0):
         r0, q0 = _schedstat()
         p0 = time.perf_counter()
-        tick = orig(self, before, lead_s, final)
+        tick = orig(self, before, lead_s)
         r1, q1 = _schedstat()
         rec.append((tick.k, tick.late_s, time.perf_counter() - p0, r1 - r0, q1 - q0))
         return tick

@@ -80,14 +80,19 @@ def test_direct_link_gives_the_drone_the_body_rates_asked_for(track, axis):
     assert fleet.status(1)["setpoints_received"] == 0       # the other drone got nothing
 
 
-@pytest.fixture()
-def udp_fleet(track):
+def served_fleet(track, realtime: bool):
+    """(fleet, server): airborne simulated drones served over UDP, stopped after the test."""
     from cfrace.simcf.server import SimCrazyflieServer
 
     fleet = airborne_fleet(track)
-    server = SimCrazyflieServer(fleet, base_port=0, realtime=False).start()
+    server = SimCrazyflieServer(fleet, base_port=0, realtime=realtime).start()
     yield fleet, server
     server.stop()
+
+
+@pytest.fixture()
+def udp_fleet(track):
+    yield from served_fleet(track, False)
 
 
 def _wait(cond, timeout=3.0):
@@ -126,29 +131,6 @@ def test_cflib_link_over_udp_flies_the_rates_asked_for(udp_fleet):
     link.close()
     assert not link.quality.connected
     assert fleet.status(1)["setpoints_received"] == 0
-
-
-def test_cflib_link_paced_pings_come_only_from_ping_and_are_answered(udp_fleet):
-    """pace_pings() stops cflib's own 100-ms ping timer (its answers landed at random phases of the
-    tick, holding the GIL); after it, the drone hears echo requests only when the loop calls
-    ping(), and their answers still update last_rx (link-silence detection) and the latency."""
-    fleet, server = udp_fleet
-    link = open_link(server.uris[0])
-    link.connect(10.0)
-    assert _wait(lambda: link.quality.rx_age(time.monotonic()) < 0.2)     # cflib's timer pings
-    link.pace_pings()
-    assert link._cf.link_statistics.latency._ping_thread_instance is None
-    rx = server.stats()[0]["rx"]
-    time.sleep(0.35)                                      # cflib would have pinged 3 times
-    assert server.stats()[0]["rx"] == rx
-    last = link.quality.last_rx
-    for _ in range(3):
-        link.ping()
-    assert _wait(lambda: server.stats()[0]["rx"] == rx + 3)
-    assert _wait(lambda: link.quality.last_rx > last) and 0.0 < link.quality.latency_ms < 100.0
-    link.close()
-    link.ping()                                           # on a closed link: nothing, no error
-    assert link.quality.errors == 0
 
 
 def _free_udp_port() -> int:
@@ -487,14 +469,6 @@ def test_loop_ends_in_a_draw_when_both_drones_are_stopped(track):
     assert all(d["stopped"] and d["stop_kind"] == "geofence" for d in res.drones)
     # after its stop a drone gets no more setpoints
     assert len(loop.drones[0].link.sent) < len(loop.drones[1].link.sent)
-
-
-def test_loop_pings_every_drone_every_100_ms_after_its_setpoints(track):
-    hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
-    loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.5)
-    loop.run()                                 # ticks 0..50: pings at 0, 10, .., 50
-    for d in loop.drones:
-        assert d.link.paced and d.link.pings == 6
 
 
 def test_prewarm_runs_only_the_policy_due_next_tick_on_the_newest_estimates(track):

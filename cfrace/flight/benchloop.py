@@ -75,7 +75,7 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
               dt: float = 0.01) -> dict:
     """The machine's floor: a 100 Hz loop with no work at all, on the CPU and at the priority the
     flight loop gets, waiting exactly as the flight loop waits (RealClock.wait_next with an empty
-    warm-up and final step). Its tick lateness and period jitter are what any Python loop gets
+    warm-up). Its tick lateness and period jitter are what any Python loop gets
     here; `cfrace bench loop` prints the flight loop's beside them. Returns late_ms and
     period_jitter_ms (as timing_summary) plus loop_cpu and rt_fifo."""
     import numpy as np
@@ -93,7 +93,7 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
     try:
         clock.start()
         while len(ticks) < int(round(seconds / dt)):
-            ticks.append(clock.wait_next(nothing, prewarm_s, nothing))
+            ticks.append(clock.wait_next(nothing, prewarm_s))
     finally:
         realtime.restore_scheduler(fifo)
         realtime.restore_affinity(pinned)

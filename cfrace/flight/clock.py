@@ -4,10 +4,9 @@ RealClock: tick k is due at t0 + k dt (absolute deadlines: no drift, no accumula
 overshoot). A tick that starts late never causes a burst: when the previous tick overran one or
 more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest due tick once,
 with fresh mocap data. Without a warm-up, waiting is a plain sleep.
-``wait_next(before, lead_s, final)`` sleeps until ``lead_s`` ahead of the deadline, then calls
-``before()`` again and again while one more call still ends ``WARM_GUARD_S`` (plus the time the
-last ``final()`` took) before the deadline (at most ``WARM_MAX_CALLS`` times), then ``final()``
-once, then waits out the rest without sleeping (``sleep(0)`` in a loop: it yields the GIL but
+``wait_next(before, lead_s)`` sleeps until ``lead_s`` ahead of the deadline, then calls
+``before()`` again and again while one more call still ends ``WARM_GUARD_S`` before the deadline
+(at most ``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``sleep(0)`` in a loop: it yields the GIL but
 keeps the CPU): the flight loop keeps its code and data warm with it
 (FlightLoop.prewarm). On this VM anything the loop does after a real sleep, even one of 0.1 ms,
 runs several times slower (docs/benchmarks.md, "Warm-up window").
@@ -43,7 +42,6 @@ class RealClock:
         self._k_next = 0
         self.skipped = 0
         self.realtime = True
-        self._final_s = 0.0   #: s the last final() took (the warm-up calls leave room for it)
 
     def start(self) -> None:
         self.t0 = self._perf()
@@ -58,9 +56,8 @@ class RealClock:
         """Index of the tick the next wait_next() is due for (before any skip)."""
         return self._k_next
 
-    def wait_next(self, before=None, lead_s: float = 0.0, final=None) -> Tick:
-        """Wait for the next deadline (see the module doc); ``final()`` runs once after the warm-up
-        calls, just before the last stretch of waiting."""
+    def wait_next(self, before=None, lead_s: float = 0.0) -> Tick:
+        """Wait for the next deadline (see the module doc)."""
         k = self._k_next
         deadline = self.t0 + k * self.dt
         now = self._perf()
@@ -68,7 +65,7 @@ class RealClock:
             self._sleep(deadline - lead_s - now)
             # repeat while the next call (no longer than the last one: they get faster as the caches
             # fill) still ends WARM_GUARD_S before the deadline
-            end = deadline - WARM_GUARD_S - self._final_s   # room for final() as long as it took last time
+            end = deadline - WARM_GUARD_S
             a = self._perf()
             for _ in range(WARM_MAX_CALLS):
                 before()
@@ -76,10 +73,6 @@ class RealClock:
                 if b + (b - a) > end:
                     break
                 a = b
-            if final is not None:
-                t = self._perf()
-                final()
-                self._final_s = self._perf() - t
             now = self._perf()
             while now < deadline:    # stay on the CPU: a real sleep here undoes the warm-up
                 self._sleep(0)       # lets cflib's and the mocap's threads take the GIL meanwhile
@@ -124,10 +117,10 @@ class LockstepClock:
     def next_k(self) -> int:
         return self._k + 1
 
-    def wait_next(self, before=None, lead_s: float = 0.0, final=None) -> Tick:
+    def wait_next(self, before=None, lead_s: float = 0.0) -> Tick:
         """One tick on. ``before`` is called ``warm_calls`` times (0 by default: no wall-clock wait
         to use) after the world moved and with now() at the new tick, as the real-time warm-up
-        runs just before the deadline, and then ``final`` once."""
+        runs just before the deadline."""
         late, skipped = 0.0, 0
         if self._k >= 0:
             if self._stall > 0.0:
@@ -141,8 +134,6 @@ class LockstepClock:
             if before is not None and skipped == 0 and self.warm_calls:
                 for _ in range(self.warm_calls):
                     before()
-                if final is not None:
-                    final()
         self._k += 1 + skipped
         self._now_k = self._k
         self.skipped += skipped

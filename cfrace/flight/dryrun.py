@@ -23,7 +23,7 @@ from cfrace.flight.clock import LockstepClock, RealClock
 from cfrace.flight.config import DRONE_NAMES, FlightConfig
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
 from cfrace.flight.link import DirectSimLink
-from cfrace.flight.links import open_link
+from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.runner import run_race
@@ -76,6 +76,9 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
         source = open_mocap("sim", bodies=list(cfg.bodies), sim=fleet, **(mocap_options or {}))
         return injector.wrap_mocap(source) if injector is not None else source
 
+    keeper_links = link_factory(uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
+                                clock=link_clock)
+
     def link(i: int, uri: str):
         if uri.startswith("sim://"):
             try:
@@ -83,7 +86,7 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
             except ValueError:
                 raise LinkError(f"{uri}: expected sim://INDEX") from None
         else:
-            made = open_link(uri)
+            made = keeper_links(i, uri)
         if injector is not None:
             injector.cutters.setdefault(DRONE_NAMES[i], getattr(made, "cut_link", None))
         return made

@@ -73,17 +73,6 @@ class Link(Protocol):
     def stop(self) -> None:
         """Zero setpoint + stop: motors off. Safe to call many times and on a dead link."""
 
-    def pace_pings(self) -> None:
-        """From now on the drone is pinged only by ping() (the loop calls it right after its
-        setpoints), not by a background timer at a random phase of the tick. Never raises."""
-
-    def ping(self) -> None:
-        """Ask the drone for an echo (link-silence detection, latency). Never raises."""
-
-    def warm(self) -> None:
-        """Called over and over in the loop's warm-up window: exercise the send path without
-        sending anything to the drone, so that the tick's send runs warm. Never raises."""
-
     def close(self) -> None:
         """Stop (if connected) and release the link."""
 
@@ -146,15 +135,6 @@ class DirectSimLink:
         self.quality.sent += 1
         self._heard()
 
-    def pace_pings(self) -> None:
-        pass                          # no pings: every send is "heard" at once
-
-    def ping(self) -> None:
-        pass
-
-    def warm(self) -> None:
-        pass                          # a function call: nothing to warm
-
     def stop(self) -> None:
         if self.cut or not self.quality.connected:
             return
@@ -178,9 +158,6 @@ class RecordingLink:
         self.sent: list[tuple[float, float, float, int]] = []
         self.stops = 0
         self.setups = 0
-        self.pings = 0
-        self.warms = 0
-        self.paced = False
 
     def connect(self, timeout_s: float = 5.0) -> None:
         self.quality.connected = True
@@ -196,15 +173,6 @@ class RecordingLink:
 
     def stop(self) -> None:
         self.stops += 1
-
-    def pace_pings(self) -> None:
-        self.paced = True
-
-    def ping(self) -> None:
-        self.pings += 1
-
-    def warm(self) -> None:
-        self.warms += 1
 
     def close(self) -> None:
         self.quality.connected = False

@@ -7,16 +7,14 @@ at 100 Hz are ~220-420 packets/s, too many for one radio; docs/flight.md).
 
 Link loss is detected three ways, whichever comes first: cflib's connection_lost / disconnected
 callbacks (radio: too many lost packets; udp: socket errors), and silence: the drone is pinged
-every 100 ms (by cflib's link statistics until the race starts, then by the flight loop itself,
-see ``pace_pings``), so ``quality.last_rx`` older than safety.link_timeout_s means the drone no
+every 100 ms by cflib's link statistics (in the link keeper's process, cfrace.flight.linkproc:
+its threads do not share the flight loop's GIL), so ``quality.last_rx`` older than safety.link_timeout_s means the drone no
 longer answers.
 """
 
 from __future__ import annotations
 
 import logging
-import socket
-import struct
 import threading
 import time
 import warnings
@@ -26,8 +24,6 @@ from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_arg
 
 import cflib.crtp  # noqa: E402  (the one place cflib is imported)
 from cflib.crazyflie import Crazyflie  # noqa: E402
-from cflib.crtp.crtpstack import CRTPPacket, CRTPPort  # noqa: E402
-from cflib.crtp.udpdriver import UdpDriver  # noqa: E402
 
 _log = logging.getLogger("cflib")
 _log.addHandler(logging.NullHandler())
@@ -68,7 +64,6 @@ class CflibLink:
         self._ready = threading.Event()
         self._failed: str | None = None
         self._params: dict[str, threading.Event] = {}
-        self._sink: tuple | None = None   #: warm(): (our receiving socket, a UdpDriver sending to it)
 
     # ------------------------------------------------------------------ callbacks (cflib threads)
     def _on_connected(self, uri):
@@ -163,55 +158,6 @@ class CflibLink:
         cf.commander.send_setpoint(r, p, y, int(thrust_counts))
         self.quality.sent += 1
 
-    def pace_pings(self) -> None:
-        """Stop cflib's ping thread (an echo request every 100 ms from its own timer; each answer
-        runs its p95 over the last 100 round trips on cflib's packet thread, holding the GIL): the
-        flight loop sends the same pings itself, right after its setpoints every 10th tick, so that
-        the answers are handled in the idle part of the period instead of inside a tick."""
-        cf = self._cf
-        if cf is None:
-            return
-        try:
-            cf.link_statistics.latency.stop()   # joins the thread: up to one 100-ms sleep
-        except Exception as exc:  # never raises: cflib's pings then simply go on
-            self._note_error(f"pace_pings failed: {exc}")
-
-    def ping(self) -> None:
-        cf = self._cf
-        if cf is None or cf.link is None:
-            return
-        try:
-            cf.link_statistics.latency.ping()   # the answer updates quality.last_rx and latency_ms
-        except Exception as exc:  # a dying link: the silence check reports it
-            self._note_error(f"ping failed: {exc}")
-
-    def warm(self) -> None:
-        """udp:// links: send one zero setpoint through cflib's own packet and UDP driver code to a
-        socket of our own on 127.0.0.1 and read it back: the same Python and kernel path as the
-        tick's send, nothing to the drone. On this VM a UDP send every 10 ms costs ~55 us of CPU
-        against ~10 us when the path was used just before (benchmarks/udp_cold.py), and the loop
-        sends two per tick. radio:// links: nothing (cflib hands their packets to its radio
-        thread). Never raises."""
-        if not self.uri.startswith("udp://"):
-            return
-        try:
-            if self._sink is None:
-                sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                sink.bind(("127.0.0.1", 0))
-                sink.setblocking(False)
-                driver = UdpDriver()     # never connected (no thread): its socket is ours, to the sink
-                driver.socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                driver.socket.connect(sink.getsockname())
-                self._sink = (sink, driver)
-            sink, driver = self._sink
-            pk = CRTPPacket()
-            pk.port = CRTPPort.COMMANDER
-            pk.data = struct.pack("<fffH", 0.0, -0.0, 0.0, 0)   # as Commander.send_setpoint packs it
-            driver.send_packet(pk)
-            sink.recv(64)
-        except (OSError, AttributeError):
-            pass   # warming is optional: the tick's send reports real link errors
-
     def stop(self) -> None:
         """Zero thrust, the generic STOP setpoint (motors off), then disarm. Never raises."""
         cf = self._cf
@@ -231,10 +177,6 @@ class CflibLink:
         self._shutdown()
 
     def _shutdown(self) -> None:
-        sink, self._sink = self._sink, None
-        if sink is not None:
-            sink[0].close()
-            sink[1].close()
         cf, self._cf = self._cf, None
         self.quality.connected = False
         if cf is not None:

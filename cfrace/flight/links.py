@@ -3,15 +3,21 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
+from typing import Callable
 
 from cfrace.errors import LinkError
 from cfrace.flight.link import Link, RecordingLink
 
+CFLIB_SCHEMES = ("radio://", "udp://", "usb://")
+
 
 def open_link(uri: str, *, clock=time.monotonic) -> Link:
-    """A Link for ``uri``: radio:// and udp:// go through cflib (link_cflib.py); null:// records
-    only. sim://N (a drone of an in-process simulator) is made by cfrace.flight.dryrun, which has it."""
-    if uri.startswith(("radio://", "udp://", "usb://")):
+    """A Link for ``uri`` in this process: radio:// and udp:// go through cflib (link_cflib.py);
+    null:// records only. sim://N (a drone of an in-process simulator) is made by
+    cfrace.flight.dryrun, which has it. Races hold their cflib links in the link keeper
+    (``link_factory``); this in-process form is for tools and tests."""
+    if uri.startswith(CFLIB_SCHEMES):
         from cfrace.flight.link_cflib import CflibLink
 
         return CflibLink(uri)
@@ -20,3 +26,27 @@ def open_link(uri: str, *, clock=time.monotonic) -> Link:
     if uri.startswith("null://"):
         return RecordingLink(uri, clock=clock)
     raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N)")
+
+
+def stop_log_path(log: Path | None) -> Path | None:
+    """Where the link keeper records its stops: beside the flight log (FLIGHT.stops.jsonl)."""
+    return None if log is None else Path(log).with_suffix(".stops.jsonl")
+
+
+def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None,
+                 clock=time.monotonic) -> Callable[[int, str], Link]:
+    """open_link(i, uri) for a race: every cflib URI's link lives in ONE link keeper process
+    (cfrace.flight.linkproc: it stops every drone when the loop's process dies or goes silent for
+    heartbeat_s); other URIs as ``open_link``."""
+    from cfrace.flight.linkproc import LinkKeeper
+
+    keeper = LinkKeeper(uris, heartbeat_s=heartbeat_s, stop_log=stop_log)
+
+    def make(i: int, uri: str) -> Link:
+        if uri.startswith(CFLIB_SCHEMES):
+            if uri != keeper.uris[i]:
+                raise LinkError(f"{uri}: not the URI the link keeper holds for drone {i}")
+            return keeper.link(i)
+        return open_link(uri, clock=clock)
+
+    return make

@@ -201,7 +201,7 @@ class RaceRun:
                           obs_builder=ObservationBuilder(s.track.gate_corners()), clock=io.clock, fence=s.fence,
                           safety_cfg=cfg.safety, laps=cfg.laps, timeout_s=cfg.timeout_s, log=self.log,
                           view=self.view, faults=io.hooks, kill=self.kill, link_clock=io.link_clock,
-                          prewarm_s=io.prewarm_s)
+                          prewarm_s=io.prewarm_s, limits=s.limits)
         self.loop_ref.append(loop)
         return loop
 

@@ -15,6 +15,8 @@ Which event stops what (docs/flight.md explains why):
 | speed         | one drone | estimated speed > speed_max_mps                                   |
 | mocap_stale   | one drone | its pose estimate is invalid or older than mocap_stale_s          |
 | non_finite    | one drone | NaN/inf in its estimate, observation or action                    |
+| command       | one drone | the setpoint about to be sent is non-finite or beyond the drone   |
+|               |           | profile's body rates / the uint16 thrust counts (CommandLimits)   |
 | link_lost     | one drone | its link reports disconnected or silent for link_timeout_s        |
 | gate_crash    | one drone | it crossed its target gate's plane in the frame (a crash)         |
 | loop_overrun  | all       | a tick started later than overrun_stop_s after its deadline       |
@@ -35,6 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cfrace.env.actions import THRUST_MAX_COUNTS
 from cfrace.flight.config import SafetyConfig
 
 STOP_DRONE, STOP_ALL, NONE = "stop_drone", "stop_all", "none"
@@ -57,6 +60,29 @@ class Fence:
         return all(lo <= float(p) <= hi for lo, p, hi in zip(self.lo, pos, self.hi))
 
 
+@dataclass(frozen=True)
+class CommandLimits:
+    """What a setpoint sent to a drone may hold: body rates within the drone profile's (deg/s,
+    each axis) and thrust counts within the CRTP packet's uint16."""
+
+    max_rates_dps: tuple[float, float, float]
+    max_counts: int = THRUST_MAX_COUNTS
+
+    @classmethod
+    def from_profile(cls, profile) -> "CommandLimits":
+        return cls(tuple(float(v) for v in profile.max_rates_deg))
+
+    def problem(self, command) -> str | None:
+        """None if the command (p, q, r deg/s, thrust counts) may be sent, else what is wrong."""
+        *rates, counts = command
+        if not all(math.isfinite(float(r)) and abs(float(r)) <= m * (1 + 1e-9) for r, m in zip(rates, self.max_rates_dps)):
+            return (f"body rates ({', '.join(f'{float(r):g}' for r in rates)}) deg/s beyond the drone's "
+                    f"({', '.join(f'{m:g}' for m in self.max_rates_dps)})")
+        if not (isinstance(counts, int) and 0 <= counts <= self.max_counts):
+            return f"thrust {counts!r} counts outside 0..{self.max_counts}"
+        return None
+
+
 class DroneInputs(NamedTuple):
     """What the safety check sees of one drone this tick (SI units, world frame). A NamedTuple:
     immutable like a frozen dataclass, and built every tick at a fraction of its cost."""
@@ -71,6 +97,7 @@ class DroneInputs(NamedTuple):
     link_connected: bool
     link_rx_age_s: float       #: s since the last packet from the drone
     gate_crash: bool = False   #: crossed the target gate plane inside the frame this tick
+    command: tuple | None = None   #: (p, q, r deg/s, thrust counts) about to be sent, None if none
 
 
 class SafetyInputs(NamedTuple):
@@ -107,7 +134,8 @@ def _finite(x) -> bool:
     return math.isfinite(float(x.sum() if isinstance(x, np.ndarray) else np.sum(x)))
 
 
-def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: SafetyConfig) -> list[Violation]:
+def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: SafetyConfig,
+                limits: CommandLimits | None = None) -> list[Violation]:
     """All violations of drone i (pure)."""
     out: list[Violation] = []
 
@@ -119,6 +147,10 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
         parts = [name for name, x in (("estimate", d.pos), ("velocity", d.vel), ("attitude", d.rot),
                                       ("observation", d.obs), ("action", d.action)) if not _finite(x)]
         bad("non_finite", f"NaN/inf in {', '.join(parts)}")
+    if limits is not None and d.command is not None:
+        problem = limits.problem(d.command)
+        if problem is not None:
+            bad("command", f"setpoint not sent: {problem}")
     if not d.est_valid or not (d.est_age_s <= cfg.mocap_stale_s):
         bad("mocap_stale", f"no valid pose for {d.est_age_s * 1e3:.0f} ms (limit {cfg.mocap_stale_s * 1e3:.0f} ms)")
     elif d.est_age_s > 2.5 * dt:
@@ -149,7 +181,7 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
     return out
 
 
-def check(inputs: SafetyInputs, fence: Fence, cfg: SafetyConfig) -> Decision:
+def check(inputs: SafetyInputs, fence: Fence, cfg: SafetyConfig, limits: CommandLimits | None = None) -> Decision:
     """The per-tick safety decision (pure: same inputs, same decision)."""
     violations: list[Violation] = []
     if inputs.operator_kill:
@@ -162,7 +194,7 @@ def check(inputs: SafetyInputs, fence: Fence, cfg: SafetyConfig) -> Decision:
                                     f"tick {inputs.tick_late_s * 1e3:.1f} ms late: "
                                     f"{int(inputs.tick_late_s / inputs.dt)} tick(s) skipped"))
     for i, d in enumerate(inputs.drones):
-        violations += check_drone(i, d, inputs.t, inputs.dt, fence, cfg)
+        violations += check_drone(i, d, inputs.t, inputs.dt, fence, cfg, limits)
     stop_all = any(v.action == STOP_ALL for v in violations)
     n = len(inputs.drones)
     stop = tuple(stop_all or any(v.drone == i and v.action == STOP_DRONE for v in violations) for i in range(n))

@@ -19,9 +19,9 @@ from cfrace.env.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
 from cfrace.flight.clock import RealClock
 from cfrace.flight.config import DRONE_NAMES, FlightConfig
-from cfrace.flight.links import open_link
+from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.mocap import open_mocap
-from cfrace.flight.safety import Fence
+from cfrace.flight.safety import CommandLimits, Fence
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.track import Track, load_track
 
@@ -45,14 +45,22 @@ class RaceSetup:
     profile: DroneProfile
     policies: tuple[CheckedPolicy, ...]   #: ego first
     fence: Fence
+    limits: CommandLimits                 #: what a sent setpoint may hold (the profile's)
 
 
-def check_policy(cfg: FlightConfig, track: Track, spec: str) -> CheckedPolicy:
-    """One policy, loaded and checked BEFORE anything flies (PolicyError naming the file)."""
+def check_policy(cfg: FlightConfig, track: Track, spec: str, profile: DroneProfile | None = None) -> CheckedPolicy:
+    """One policy, loaded and checked BEFORE anything flies (PolicyError naming the file); with a
+    profile, its action map must stay within the profile's body rates and thrust."""
     path = resolve_policy(spec, track.name, cfg.obstacles)
     pol = OnnxPolicy(path)
     pol.check(track.name, cfg.obstacles)
     meta = pol.meta
+    if profile is not None:
+        for key, mine, most in (("max_rates_deg", meta["max_rates_deg"], profile.max_rates_deg),
+                                ("max_thrust_weights", [meta["max_thrust_weights"]], [profile.max_thrust_weights])):
+            if any(not v <= m * (1 + 1e-9) for v, m in zip(mine, most)):
+                raise PolicyError(f"{path}: metadata {key}={meta[key]!r} exceeds drone profile "
+                                  f"{profile.name}'s {list(most) if len(most) > 1 else most[0]!r}")
     layout = LAYOUTS[meta["obs_layout"]]
     dec = cfg.rate_hz / meta["policy_hz"]
     if abs(dec - round(dec)) > 1e-6 or round(dec) < 1:
@@ -67,8 +75,9 @@ def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
     """Load the track (unless given), the profile and both policies and check them together."""
     track = track if track is not None else load_track(cfg.track)
     profile = load_profile(cfg.profile)
-    policies = tuple(check_policy(cfg, track, spec) for spec in (cfg.ego, cfg.opp))
-    return RaceSetup(cfg, track, profile, policies, Fence.from_track(track, cfg.safety.geofence_margin_m))
+    policies = tuple(check_policy(cfg, track, spec, profile) for spec in (cfg.ego, cfg.opp))
+    return RaceSetup(cfg, track, profile, policies, Fence.from_track(track, cfg.safety.geofence_margin_m),
+                     CommandLimits.from_profile(profile))
 
 
 def training_profile(track: Track, ego: str, obstacles: bool, default: str = "cf21bl") -> str:
@@ -103,9 +112,11 @@ class RaceIO:
 
 
 def real_io(cfg: FlightConfig) -> RaceIO:
-    """Real drones: cflib links to cfg.uris, the mocap source cfg.mocap, the wall clock."""
+    """Real drones: cflib links to cfg.uris held by the link keeper process, the mocap source
+    cfg.mocap, the wall clock."""
     if len(cfg.uris) != len(DRONE_NAMES):
         raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {list(cfg.uris)}")
+    links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log))
     return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
-                  open_link=lambda i, uri: open_link(uri), clock=RealClock(cfg.dt), link_clock=time.monotonic,
+                  open_link=links, clock=RealClock(cfg.dt), link_clock=time.monotonic,
                   prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris))

@@ -1,0 +1,312 @@
+"""Links held by a process of their own (the link keeper), so that no drone flies on when the
+flight loop's process dies or hangs.
+
+The keeper is a small child process: it opens the cflib links (CflibLink), forwards each setpoint
+the loop sends through a pipe, keeps cflib's pings and threads (they no longer share the loop's
+GIL) and reports every link's figures back. It stops every flying drone (zero setpoint, STOP
+setpoint, disarm) the moment
+
+- the pipe closes (the loop's process exited or was killed, even by ``kill -9``: the kernel closes
+  its end), or
+- no setpoint came for ``heartbeat_s`` while a drone flies (a hung loop; the loop's own
+  ``loop_overrun`` rule stops every drone at the same lateness), or
+- it gets SIGTERM (SIGINT is ignored: a Ctrl-C reaches the whole process group and is the loop's
+  to handle).
+
+A drone stopped by the keeper stays stopped: later setpoints for it are dropped and its link
+reports disconnected, so the loop's safety check stops it too. Every stop is timestamped where it
+is sent (time.monotonic and the wall clock, in the keeper) and appended to ``stop_log`` (JSON
+lines) when one is given; a stop because the loop is gone is also one line on stderr.
+
+Messages on the pipe (bytes; first byte the kind): loop -> keeper ``s`` setpoint, ``x`` stop,
+``c`` connect, ``u`` set up, ``q`` quit; keeper -> loop ``r`` reply (JSON), ``l`` link figures (JSON,
+every REPORT_S and on every change of connection or stop).
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from multiprocessing.connection import Connection
+from pathlib import Path
+
+from cfrace.errors import LinkError
+from cfrace.flight.link import LinkQuality
+
+REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
+SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
+_SETPOINT = struct.Struct("<cBfffH")    # b"s", drone, p, q, r (deg/s), thrust counts
+
+
+# ---------------------------------------------------------------------------------- keeper side
+class _Keeper:
+    """The child's state: its links, which drones fly, when the loop was last heard."""
+
+    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None):
+        from cfrace.flight.link_cflib import CflibLink   # cflib only in the keeper
+
+        self.conn, self.heartbeat_s = conn, float(heartbeat_s)
+        self.links = [CflibLink(u) for u in uris]
+        self.flying = [False] * len(uris)
+        self.dead = [False] * len(uris)       #: stopped by the keeper: setpoints for it are dropped
+        self.stop_log = open(stop_log, "a", buffering=1) if stop_log else None   # noqa: SIM115
+        self.last_heard = time.monotonic()
+        self.last_report = 0.0
+        self.changed = False
+
+    def stop(self, i: int, why: str) -> None:
+        """Stop drone i now and record where and when the stop was sent."""
+        t_mono, t_wall = time.monotonic(), time.time()
+        self.links[i].stop()
+        was_flying, self.flying[i] = self.flying[i], False
+        if why != "loop":
+            self.dead[i] = True
+        self.changed = True
+        rec = {"drone": i, "uri": self.links[i].uri, "why": why, "was_flying": was_flying,
+               "t_mono": t_mono, "t_wall": t_wall, "stop_sent_s": time.monotonic() - t_mono}
+        if self.stop_log is not None:
+            self.stop_log.write(json.dumps(rec) + "\n")
+        if why != "loop" and was_flying:
+            print(f"link keeper: stopped {self.links[i].uri} ({why})", file=sys.stderr, flush=True)
+
+    def stop_all(self, why: str) -> None:
+        for i in range(len(self.links)):
+            if self.flying[i] or why != "loop":
+                self.stop(i, why)
+
+    def report(self, now: float) -> None:
+        figures = {}
+        for i, link in enumerate(self.links):
+            q = link.quality
+            figures[i] = {"connected": q.connected and not self.dead[i], "last_rx": q.last_rx,
+                          "latency_ms": q.latency_ms, "link_quality": q.link_quality, "sent": q.sent,
+                          "errors": q.errors, "error": q.error if not self.dead[i] else "stopped by the link keeper"}
+        self.conn.send_bytes(b"l" + json.dumps(figures).encode())
+        self.last_report, self.changed = now, False
+
+    def request(self, kind: bytes, body: dict) -> None:
+        """c / u: connect or set up one link; the reply says ok or the LinkError's line."""
+        i = int(body["drone"])
+        try:
+            if kind == b"c":
+                self.links[i].connect(float(body["timeout_s"]))
+            else:
+                self.links[i].setup()
+            reply = {"ok": True}
+        except LinkError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        self.report(time.monotonic())    # the figures first: the loop reads them once the reply is in
+        self.conn.send_bytes(b"r" + json.dumps(reply).encode())
+
+    def handle(self, msg: bytes) -> bool:
+        """One message from the loop; False once the keeper must end."""
+        kind = msg[:1]
+        if kind == b"s":
+            _, i, p, q, r, counts = _SETPOINT.unpack(msg)
+            if not self.dead[i]:
+                self.links[i].send(p, q, r, counts)
+                self.flying[i] = True
+        elif kind == b"x":
+            self.stop(msg[1], "loop")
+        elif kind in (b"c", b"u"):
+            self.request(kind, json.loads(msg[1:]))
+        elif kind == b"q":
+            return False
+        return True
+
+    def run(self) -> None:
+        while True:
+            now = time.monotonic()
+            wait = REPORT_S - (now - self.last_report)
+            if any(self.flying):
+                wait = min(wait, self.heartbeat_s - (now - self.last_heard))
+            try:
+                ready = self.conn.poll(max(0.0, wait))
+                if ready:
+                    msg = self.conn.recv_bytes()
+            except (EOFError, OSError):
+                self.stop_all("loop_gone")
+                return
+            now = time.monotonic()
+            if ready:
+                self.last_heard = now
+                if not self.handle(msg):
+                    self.stop_all("quit")
+                    return
+            elif any(self.flying) and now - self.last_heard > self.heartbeat_s:
+                self.stop_all("heartbeat")
+            if self.changed or now - self.last_report >= REPORT_S:
+                try:
+                    self.report(now)
+                except OSError:
+                    pass
+
+    def close(self) -> None:
+        for link in self.links:
+            try:
+                link.close()
+            except Exception:  # noqa: BLE001 - every link must be closed
+                pass
+        if self.stop_log is not None:
+            self.stop_log.close()
+
+
+def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None) -> None:
+    """The keeper process's entry point."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    keeper = _Keeper(conn, uris, heartbeat_s, stop_log)
+
+    def on_term(signum, frame):
+        keeper.stop_all("sigterm")
+        keeper.close()
+        sys.exit(0)
+
+    signal.signal(signal.SIGTERM, on_term)
+    try:
+        keeper.run()
+    finally:
+        keeper.close()
+
+
+# ------------------------------------------------------------------------------------ loop side
+class LinkKeeper:
+    """The loop's end: spawns the keeper on the first connect; ``link(i)`` is drone i's Link."""
+
+    def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None):
+        self.uris = list(uris)
+        self.heartbeat_s = float(heartbeat_s)
+        self.stop_log = str(stop_log) if stop_log else None
+        self.qualities = [LinkQuality() for _ in self.uris]
+        self._proc = None
+        self._conn = None
+        self._replies: queue.Queue = queue.Queue()
+        self._reader: threading.Thread | None = None
+        self._send_lock = threading.Lock()
+        self._open_links = 0
+
+    def link(self, i: int) -> "KeptLink":
+        self._open_links += 1
+        return KeptLink(self, i)
+
+    def start(self) -> None:
+        if self._proc is not None:
+            return
+        # a plain child process (not multiprocessing's spawn, which re-imports the parent's main
+        # script): `python -m cfrace.flight.linkproc FD` with one end of a socket pair
+        here, there = socket.socketpair()
+        args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log})
+        self._proc = subprocess.Popen([sys.executable, "-m", "cfrace.flight.linkproc", str(there.fileno()), args],
+                                      pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL)
+        there.close()
+        self._conn = Connection(here.detach())
+        self._reader = threading.Thread(target=self._read, name="link-keeper-reader", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        conn = self._conn
+        while True:
+            try:
+                msg = conn.recv_bytes()
+            except (EOFError, OSError):
+                for q in self.qualities:
+                    q.connected = False
+                    q.error = q.error or "link keeper process ended"
+                self._replies.put({"ok": False, "error": "the link keeper process ended"})
+                return
+            if msg[:1] == b"r":
+                self._replies.put(json.loads(msg[1:]))
+            elif msg[:1] == b"l":
+                for i, f in json.loads(msg[1:]).items():
+                    q = self.qualities[int(i)]
+                    for k, v in f.items():
+                        setattr(q, k, v)
+
+    def _post(self, msg: bytes) -> None:
+        conn = self._conn
+        if conn is None:
+            return
+        with self._send_lock:
+            conn.send_bytes(msg)
+
+    def request(self, kind: bytes, i: int, wait_s: float, **body) -> None:
+        self.start()
+        try:
+            self._post(kind + json.dumps({"drone": i, **body}).encode())
+        except OSError:
+            raise LinkError(f"{self.uris[i]}: the link keeper process is gone") from None
+        try:
+            reply = self._replies.get(timeout=wait_s + SPAWN_TIMEOUT_S)
+        except queue.Empty:
+            raise LinkError(f"{self.uris[i]}: the link keeper did not answer") from None
+        if not reply.get("ok"):
+            raise LinkError(reply.get("error", f"{self.uris[i]}: link failed"))
+
+    def send(self, i: int, p: float, q: float, r: float, counts: int) -> None:
+        try:
+            self._post(_SETPOINT.pack(b"s", i, p, q, r, counts))
+        except (OSError, struct.error):
+            self.qualities[i].connected = False
+
+    def stop(self, i: int) -> None:
+        try:
+            self._post(b"x" + bytes([i]))
+        except OSError:
+            pass
+
+    def release(self) -> None:
+        """One link closed; after the last, the keeper stops everything and ends."""
+        self._open_links -= 1
+        if self._open_links > 0 or self._proc is None:
+            return
+        try:
+            self._post(b"q")
+        except OSError:
+            pass
+        try:
+            self._proc.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self._proc.terminate()
+            self._proc.wait(2.0)
+        self._conn.close()
+        self._conn, self._proc = None, None
+
+
+class KeptLink:
+    """A Link (cfrace.flight.link) to drone i through the link keeper."""
+
+    def __init__(self, keeper: LinkKeeper, i: int):
+        self.keeper, self.i = keeper, int(i)
+        self.uri = keeper.uris[i]
+        self.quality = keeper.qualities[i]
+        self._closed = False
+
+    def connect(self, timeout_s: float) -> None:
+        self.keeper.request(b"c", self.i, timeout_s, timeout_s=timeout_s)
+
+    def setup(self) -> None:
+        self.keeper.request(b"u", self.i, 5.0)
+
+    def send(self, roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts) -> None:
+        self.keeper.send(self.i, float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps), int(thrust_counts))
+        self.quality.sent += 1
+
+    def stop(self) -> None:
+        self.keeper.stop(self.i)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            self.stop()
+            self.keeper.release()
+
+
+if __name__ == "__main__":
+    _opts = json.loads(sys.argv[2])
+    keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"])

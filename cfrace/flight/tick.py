@@ -1,0 +1,299 @@
+"""The tick: (state, newest poses, link figures) -> (setpoints, safety decision, log records).
+
+``TickCore.step`` is everything a tick decides, with no I/O: it reads no clock, no mocap, no link
+and writes no log. Its inputs are the tick (index, race time, lateness), the newest mocap frame,
+the time the estimator predicts to, each link's figures (LinkInputs) and the operator's kill
+request; its state is the race's own (estimator, race progress, the drones' last actions and
+stops, which safety violations are active). It returns a TickOut: the setpoint to send to each
+drone (or None), the drones to stop now, the safety decision, the new safety events and the log
+records of the tick. The runner (cfrace.flight.loop.FlightLoop) owns the clock, the mocap source,
+the links and the log and does the I/O around it.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+from cfrace.flight import safety as sf
+from cfrace.flight.loopstate import Drone, ObservationBuilder
+from cfrace.flight.mocap import frame_to_msg
+
+#: thrust counts sent at least while a drone races: the Crazyflie firmware turns a legacy setpoint
+#: below 1000 counts (MIN_THRUST, crtp_commander_rpyt.c) into zero thrust, and at zero thrust its
+#: controller resets and stops controlling the body rates (motors idle). The training simulator
+#: keeps the rate control at zero collective thrust (rotor forces clamped at >= 0), and the
+#: policies use it (full rates at zero thrust in sharp turns). 1000 counts is 2-4 % of the weight.
+FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
+
+perf = time.perf_counter
+
+
+class LinkInputs(NamedTuple):
+    """What the tick needs of one drone's link (its figures, read by the runner)."""
+
+    connected: bool
+    rx_age_s: float       #: s since the last packet from the drone
+
+
+class TickIn(NamedTuple):
+    k: int
+    t: float              #: s, race time
+    late_s: float         #: s the tick started after its deadline
+    now: float            #: s, the time the estimator predicts the poses to
+
+
+@dataclass
+class TickOut:
+    """What one tick decided (TickCore.step)."""
+
+    setpoints: list       #: per drone (p, q, r deg/s, thrust counts) to send, or None
+    stops: list           #: (drone index, kind) of the drones to stop now
+    decision: sf.Decision
+    events: list          #: the safety events new this tick (dicts, as in the result)
+    records: list         #: (topic, payload) of the flight log, this tick's
+    obs_s: list           #: per drone: s the observation took (nan when it did not infer)
+    infer_s: list         #: per drone: s the ONNX run took
+    est_map: dict
+    ests: list
+    end: str = ""         #: "" while the race goes on
+    winner: str = "draw"
+
+
+class TickCore:
+    """The race state and the pure tick over it (module doc)."""
+
+    def __init__(self, *, drones: list[Drone], estimator, progress, obs_builder: ObservationBuilder,
+                 fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, dt: float, filters=None,
+                 limits: sf.CommandLimits | None = None):
+        self.drones, self.estimator, self.progress = drones, estimator, progress
+        self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
+        self.laps, self.timeout_s, self.dt, self.filters = laps, timeout_s, float(dt), filters
+        self.limits = limits   #: what a sent setpoint may hold (None: not checked)
+        self.events: list[dict] = []
+        self._active: set = set()        # (kind, drone) of violations currently present
+        self._outliers = {d.body: 0 for d in drones}
+        self.t = 0.0
+        self.last_ests: list | None = None
+        self.last_frame = None
+
+    # ------------------------------------------------------------------ pieces
+    def event(self, t: float, v: sf.Violation) -> dict:
+        ev = {"t": round(t, 4), "kind": v.kind, "drone": None if v.drone is None else self.drones[v.drone].name,
+              "body": None if v.drone is None else self.drones[v.drone].body, "action": v.action, "detail": v.detail}
+        self.events.append(ev)
+        return ev
+
+    def mark_stopped(self, i: int, t: float, kind: str) -> bool:
+        """Drone i stops for good (sticky); True if it was flying until now."""
+        d = self.drones[i]
+        if d.stopped:
+            return False
+        d.stopped, d.stop_kind, d.stop_t = True, kind, t
+        d.counts, d.thrust_n = 0, 0.0
+        return True
+
+    @staticmethod
+    def due(d: Drone, k: int) -> bool:
+        """Drone d infers on tick k (its policy rate, staggered by its phase)."""
+        return not d.stopped and k % d.decimation == d.phase % d.decimation
+
+    def observation(self, i: int, ests: list) -> np.ndarray:
+        opp = ests[1 - i] if len(ests) == 2 else None
+        return self.obs_builder(self.drones[i].layout, ests[i], int(self.progress.target[i]), opp)
+
+    def policy_step(self, i: int, ests: list) -> tuple[float, float]:
+        """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
+        d = self.drones[i]
+        t0 = perf()
+        obs = self.observation(i, ests)
+        if self.filters is not None:
+            obs = self.filters.filter_obs(d, obs)
+        t1 = perf()
+        act = np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4)
+        t2 = perf()
+        if self.filters is not None:
+            act = self.filters.filter_action(d, act, self.t)
+        thrust, rates, counts = d.setpoint_map(act)
+        d.obs, d.action = obs, act
+        d.thrust_n = thrust
+        d.rates_dps = rates
+        # FLYING_MIN_COUNTS, not 0: a zero-thrust setpoint makes the firmware reset its rate
+        # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
+        # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
+        d.counts = max(FLYING_MIN_COUNTS, counts) if math.isfinite(thrust) else 0
+        return t1 - t0, t2 - t1
+
+    def positions(self, ests: list) -> list[tuple[float, float, float]]:
+        """Per drone, the position for race progress on floats: a stopped drone stays where it
+        stopped; non-finite values are 0."""
+        out = []
+        for d, e in zip(self.drones, ests):
+            p = d.frozen_pos if d.stopped and d.frozen_pos is not None else e.pos
+            x, y, z = float(p[0]), float(p[1]), float(p[2])
+            out.append((x if math.isfinite(x) else 0.0, y if math.isfinite(y) else 0.0, z if math.isfinite(z) else 0.0))
+        return out
+
+    def safety_inputs(self, t: float, late_s: float, ests: list, computed: list, hit, links, kill
+                      ) -> sf.SafetyInputs:
+        return sf.SafetyInputs(
+            t=t, dt=self.dt, tick_late_s=late_s, operator_kill=kill,
+            drones=tuple(sf.DroneInputs(
+                pos=e.pos, vel=e.vel, rot=e.rot, est_valid=bool(e.valid), est_age_s=float(e.age_s),
+                obs=d.obs if computed[i] else None, action=d.action,
+                link_connected=links[i].connected, link_rx_age_s=links[i].rx_age_s,
+                gate_crash=bool(hit[i]), command=None if d.stopped else (*d.rates_dps, d.counts))
+                for i, (d, e) in enumerate(zip(self.drones, ests))))
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, tick: TickIn, frame, links: list[LinkInputs], kill: str | None = None) -> TickOut:
+        """One tick on the newest frame (None: no new one); see the module doc."""
+        k, t = tick.k, tick.t
+        self.t = t
+        if frame is not None:
+            self.last_frame = frame
+        est_map = self.estimator.update(frame, tick.now)
+        ests = self.last_ests = [est_map[d.body] for d in self.drones]
+        passed, lap_done, hit = self.progress.update(t, self.positions(ests))
+        n = len(self.drones)
+        infer, obs_t, computed = [np.nan] * n, [np.nan] * n, [False] * n
+        for i, d in enumerate(self.drones):
+            if self.due(d, k):
+                obs_t[i], infer[i] = self.policy_step(i, ests)
+                computed[i] = True
+        decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill),
+                            self.fence, self.safety_cfg, self.limits)
+        setpoints, stops = self._setpoints(decision, ests, t, k)
+        end, winner = self.race_end(decision, t)
+        out = TickOut(setpoints, stops, decision, [], [], obs_t, infer, est_map, ests, end, winner)
+        self._events(out, t, k)
+        self._records(out, t, k, frame, computed, passed.any() or lap_done.any())
+        return out
+
+    def _setpoints(self, decision, ests: list, t: float, k: int) -> tuple[list, list]:
+        setpoints, stops = [None] * len(self.drones), []
+        for i, d in enumerate(self.drones):
+            if decision.stop[i]:
+                kinds = [v.kind for v in decision.violations
+                         if v.action != sf.NONE and (v.drone == i or v.drone is None)]
+                if not d.stopped:
+                    d.frozen_pos = ests[i].pos.copy()
+                    d.stop_k = k
+                kind = kinds[0] if kinds else "safety"
+                if self.mark_stopped(i, t, kind):
+                    stops.append((i, kind))
+            elif not d.stopped:
+                r = d.rates_dps
+                setpoints[i] = (r[0], r[1], r[2], d.counts)
+        return setpoints, stops
+
+    def _events(self, out: TickOut, t: float, k: int) -> None:
+        """Each violation once per episode (it re-arms when it clears), pose outliers, speeds."""
+        present = set()
+        for v in out.decision.violations:
+            key = (v.kind, v.drone)
+            present.add(key)
+            if v.drone is not None and self.drones[v.drone].stopped and self.drones[v.drone].stop_k != k:
+                continue   # a stopped drone's later state (falling, on the floor) is no news
+            if key not in self._active:
+                out.events.append(self.event(t, v))
+        self._active = present
+        counters = self.estimator.counters
+        for i, d in enumerate(self.drones):
+            c = counters[d.body]["outliers"]
+            if c > self._outliers[d.body]:
+                self._outliers[d.body] = c
+                out.events.append(self.event(t, sf.Violation(
+                    "pose_outlier", i, sf.NONE, f"mocap pose of {d.body} rejected as an outlier ({c} so far)")))
+            e = out.ests[i]
+            if not d.stopped and e.valid:
+                s = float(np.linalg.norm(e.vel))
+                d.speed_max = max(d.speed_max, s)
+                d.speed_sum += s
+                d.speed_n += 1
+
+    def _records(self, out: TickOut, t: float, k: int, frame, computed: list, progressed: bool) -> None:
+        """This tick's flight log records (topics: docs/flight-log.md); /timing and /link are the runner's."""
+        rec = out.records
+        for ev in out.events:
+            rec.append(("/safety", {key: ev[key] for key in ("kind", "drone", "body", "action", "detail")}))
+        for i, kind in out.stops:
+            d = self.drones[i]
+            rec.append(("/event", {"kind": "stop", "drone": d.name, "body": d.body, "text": f"stopped: {kind}"}))
+        if frame is not None:
+            rec.append(("/mocap/pose", {**frame_to_msg(frame), "k": k}))
+        rec.append(("/estimate", {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
+                                      "valid": e.valid} for b, e in out.est_map.items()}))
+        if any(computed):
+            done = [d for c, d in zip(computed, self.drones) if c]
+            rec.append(("/obs", {"k": k, **{d.body: d.obs for d in done}}))
+            rec.append(("/action", {"k": k, **{d.body: d.action for d in done}}))
+        rec.append(("/setpoint", {d.body: {"stopped": d.stopped, "thrust_n": d.thrust_n, "thrust_counts": d.counts,
+                                           "rates_dps": np.array(d.rates_dps)} for d in self.drones}))
+        if progressed:
+            rec.append(("/race", self.race_state()))
+
+    def race_end(self, decision, t: float) -> tuple[str, str]:
+        """(end, winner) after this tick; end "" while the race goes on."""
+        if decision.stop_all:   # includes the operator kill (a signal seen by this tick's check)
+            return next(v.kind for v in decision.violations if v.action == sf.STOP_ALL), "draw"
+        n = len(self.drones)
+        done = [i for i in range(n) if self.progress.laps[i] >= self.laps and not self.drones[i].stopped]
+        if done:
+            return "finished", (self.drones[done[0]].name if len(done) == 1 else "draw")
+        if all(d.stopped for d in self.drones):
+            return "all_stopped", "draw"
+        if t >= self.timeout_s:
+            return "timeout", "draw"
+        return "", "draw"
+
+    # ------------------------------------------------------------------ warm-up (outputs discarded)
+    def peek(self, k: int, now: float, links: list[LinkInputs]) -> None:
+        """What tick k will compute, on copies of the state and the newest frame, outputs
+        discarded: the observation, policy and action map of every drone due on it and the safety
+        check (the clock's warm-up, cfrace.flight.clock). Raises what the tick would raise."""
+        ests = self.last_ests
+        if ests is not None:
+            est_map = self.estimator.peek(self.last_frame, now)
+            ests = [est_map[d.body] for d in self.drones]
+            self.progress.peek(self.positions(ests))
+        for i, d in enumerate(self.drones):
+            if not self.due(d, k):
+                continue
+            obs = self.observation(i, ests) if ests is not None else np.zeros(d.layout.dim, np.float32)
+            d.setpoint_map(np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4))
+        if ests is not None:
+            n = len(ests)
+            sf.check(self.safety_inputs(self.t, 0.0, ests, [True] * n, [False] * n, links, None),
+                     self.fence, self.safety_cfg, self.limits)
+
+    def warm_policies(self, calls: int) -> None:
+        """Every drone's policy and action map ``calls`` times on a zero observation, outputs discarded."""
+        for d in self.drones:
+            obs = np.zeros((1, d.layout.dim), np.float32)
+            for _ in range(calls):
+                d.setpoint_map(np.asarray(d.policy(obs), dtype=np.float32).reshape(4))
+
+    # ------------------------------------------------------------------ results
+    def race_state(self) -> dict:
+        p = self.progress
+        return {d.body: {"drone": d.name, "gates_passed": int(p.gates_passed[i]), "laps": int(p.laps[i]),
+                         "target": int(p.target[i]), "lap_times": list(p.lap_times[i]), "stopped": d.stopped,
+                         "stop_kind": d.stop_kind} for i, d in enumerate(self.drones)}
+
+    def drone_results(self) -> list[dict]:
+        p = self.progress
+        out = []
+        for i, d in enumerate(self.drones):
+            out.append({"name": d.name, "body": d.body, "policy": str(d.meta.get("path", "")),
+                        "method": d.meta.get("method"), "laps": int(p.laps[i]), "gates_passed": int(p.gates_passed[i]),
+                        "lap_times": [round(x, 3) for x in p.lap_times[i]], "stopped": d.stopped,
+                        "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
+                        "speed_max": round(d.speed_max, 3),
+                        "speed_mean": round(d.speed_sum / d.speed_n, 3) if d.speed_n else None})
+        return out

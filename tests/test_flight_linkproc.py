@@ -1,0 +1,81 @@
+"""The link keeper (cfrace.flight.linkproc): the drones' links live in a process of their own that
+stops every flying drone when the flight loop's process dies (kill -9) or goes silent. Real cflib
+over UDP against the simulated Crazyflies; the "loop" is a real subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from test_flight_core import _wait, hover_counts, served_fleet, track  # noqa: F401 (fixture)
+
+LOOP = textwrap.dedent("""
+    import sys, time
+    from cfrace.flight.links import link_factory
+    uris, heartbeat, stop_log, counts = sys.argv[1].split(","), float(sys.argv[2]), sys.argv[3], int(sys.argv[4])
+    make = link_factory(uris, heartbeat_s=heartbeat, stop_log=stop_log)
+    links = [make(i, u) for i, u in enumerate(uris)]
+    for link in links:
+        link.connect(10.0)
+        link.setup()
+    print("flying", flush=True)
+    while True:                      # a 100 Hz loop streaming setpoints until it is killed
+        for link in links:
+            link.send(0.0, 0.0, 0.0, counts)
+        time.sleep(0.01)
+""")
+
+
+@pytest.fixture()
+def served(track):
+    yield from served_fleet(track, True)
+
+
+def _start_loop(server, fleet, tmp_path, heartbeat_s: float = 0.1):
+    stop_log = tmp_path / "stops.jsonl"
+    proc = subprocess.Popen([sys.executable, "-c", LOOP, ",".join(server.uris), str(heartbeat_s), str(stop_log),
+                             str(hover_counts(fleet))], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "flying", proc.stderr.read()
+    assert _wait(lambda: all(fleet.status(i)["thrust"] > 0.0 for i in range(2)), 5.0)
+    return proc, stop_log
+
+
+def _stops(path, timeout=3.0) -> list[dict]:
+    assert _wait(lambda: path.exists() and len(path.read_text().splitlines()) >= 2, timeout)
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_kill_9_of_the_loop_stops_every_drone_within_50_ms(served, tmp_path):
+    fleet, server = served
+    proc, stop_log = _start_loop(server, fleet, tmp_path)
+    t_kill = time.monotonic()
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    stops = _stops(stop_log)
+    assert sorted(s["drone"] for s in stops) == [0, 1]
+    for s in stops:
+        assert s["why"] == "loop_gone" and s["was_flying"]
+        assert 0.0 <= s["t_mono"] - t_kill < 0.05, s          # timestamped where sent
+    assert _wait(lambda: all(fleet.status(i)["thrust"] == 0.0 and not fleet.status(i)["armed"] for i in range(2)))
+
+
+def test_a_hung_loop_is_stopped_after_the_heartbeat(served, tmp_path):
+    fleet, server = served
+    proc, stop_log = _start_loop(server, fleet, tmp_path, heartbeat_s=0.1)
+    try:
+        t_hang = time.monotonic()
+        os.kill(proc.pid, signal.SIGSTOP)                     # alive, pipe open, silent
+        stops = _stops(stop_log)
+        for s in stops:
+            assert s["why"] == "heartbeat" and 0.08 <= s["t_mono"] - t_hang < 0.15, s   # the last setpoint came <= 1 period before
+        assert _wait(lambda: all(fleet.status(i)["thrust"] == 0.0 for i in range(2)))
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
