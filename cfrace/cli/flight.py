@@ -98,6 +98,33 @@ def exit_code(result: dict) -> int:
     return EXIT_CODES.get(result.get("operator_kill") or "", 0) if result.get("end") == "operator_kill" else 0
 
 
+def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:
+    """The policy of every drone from --ego/--opp (two), or --policies P1,...,PN, or one policy and
+    --drones N (every drone flies it). ConfigError (one line) on a mix that does not add up."""
+    from cfrace.errors import ConfigError
+    from cfrace.flight.config import MAX_DRONES, split_list
+
+    if policies is not None:
+        if ego is not None or opp is not None:
+            raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
+        specs = split_list(policies) or ()
+        if len(specs) == 1 and drones:
+            specs = specs * drones
+    elif ego is not None and opp is not None:
+        specs = (ego, opp)
+        if drones not in (None, 2):
+            raise ConfigError(f"--drones {drones} with --ego/--opp: give --policies P1,...,P{drones} instead")
+    elif ego is not None and drones:
+        specs = (ego,) * drones
+    else:
+        raise ConfigError("give --ego and --opp (two drones) or --policies P1,...,PN")
+    if drones is not None and len(specs) != drones:
+        raise ConfigError(f"--drones {drones} but {len(specs)} policies given ({','.join(specs)})")
+    if not 2 <= len(specs) <= MAX_DRONES:
+        raise ConfigError(f"a race needs 2 to {MAX_DRONES} drones, got {len(specs)}")
+    return tuple(specs)
+
+
 def announce(meta: dict, con: Console = console) -> None:
     """One line per drone and the limits, printed once everything answered, before arming."""
     for (name, pol), uri, body in zip(meta["policies"].items(), meta["uris"], meta["bodies"]):
@@ -122,8 +149,11 @@ def register(app: typer.Typer) -> None:
         track: Optional[str] = typer.Option(None, help="Track name or YAML path."),
         ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path (flies uris[0])."),
         opp: Optional[str] = typer.Option(None, help="Opponent policy (flies uris[1])."),
-        uris: Optional[str] = typer.Option(None, help="Link URIs ego,opp: radio://0/80/2M/E7E7E7E7E1,radio://1/90/2M/E7E7E7E7E2 "
-                                                      "(one Crazyradio per drone), udp://127.0.0.1:19850,..."),
+        uris: Optional[str] = typer.Option(None, help="Link URIs, one per drone: radio://0/80/2M/E7E7E7E7E1,"
+                                                      "radio://0/80/2M/E7E7E7E7E2 (at most 4 per Crazyradio at "
+                                                      "100 Hz, one channel, own addresses), udp://127.0.0.1:19850,..."),
+        policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one policy "
+                                                          "per URI (repeats run in one batched inference)."),
         mocap: Optional[str] = typer.Option(None, help="vicon://HOST, optitrack://HOST, replay://LOG.mcap, sim://HOST:PORT."),
         bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
         laps: Optional[int] = typer.Option(None, help="Laps to win (default 3)."),
@@ -153,7 +183,8 @@ def register(app: typer.Typer) -> None:
                                                           "process's other threads go to the other CPUs."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
-        """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
+        """Race Crazyflies from motion capture with ONNX policies at 100 Hz, safely: two (--ego/--opp)
+        or N (--policies)."""
         from cfrace.flight.config import make_config, split_list
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
@@ -162,7 +193,11 @@ def register(app: typer.Typer) -> None:
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
-        cfg = make_config(config, track=track, ego=ego, opp=opp, uris=split_list(uris), mocap=mocap,
+        if policies is not None and (ego is not None or opp is not None):
+            from cfrace.errors import ConfigError
+            raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
+        cfg = make_config(config, track=track, ego=ego, opp=opp, policies=split_list(policies), uris=split_list(uris),
+                          mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
                           loop_cpu=loop_cpu,
@@ -170,7 +205,7 @@ def register(app: typer.Typer) -> None:
                           latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         if not cfg.uris:
             from cfrace.errors import ConfigError
-            raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+            raise ConfigError("missing --uris (one link URI per drone)")
         result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)
         write_json(result, json_out)

@@ -37,16 +37,20 @@ def serve_cmd(
 @sim_app.command("dry-run")
 def dry_run_cmd(
     track: str = typer.Option(..., help="Track name or YAML path."),
-    ego: str = typer.Option(..., help="Ego policy: ours/ds/ss/dm or an .onnx path."),
-    opp: str = typer.Option(..., help="Opponent policy."),
+    ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path."),
+    opp: Optional[str] = typer.Option(None, help="Opponent policy."),
+    policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one policy per "
+                                                      "drone (repeats allowed), from the track's start grid."),
+    drones: Optional[int] = typer.Option(None, min=2, help="N drones: with one --policies entry (or --ego) every "
+                                                           "drone flies it; else must match --policies."),
     laps: int = typer.Option(3, help="Laps to win."),
     profile: Optional[str] = typer.Option(None, help="Drone profile, simulated and flown (default: the one "
                                                       "the ego policy was trained for, from its metadata)."),
     obstacles: bool = typer.Option(False, "--obstacles/--no-obstacles", help="Race with the track's obstacles."),
-    bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
+    bodies: Optional[str] = typer.Option(None, help="Mocap body names, one per drone (default cf1,...,cfN)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON."),
     log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
-    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp],...: mocap_dropout_short, mocap_dropout_long, "
+    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp|dK],...: mocap_dropout_short, mocap_dropout_long, "
                                                     "pose_outlier, geofence, nan_policy, link_loss, stall_50ms, "
                                                     "stall_200ms, sigterm, sigint."),
     lockstep: bool = typer.Option(False, "--lockstep", help="No wall clock, no cflib: the sim advances one tick "
@@ -71,18 +75,22 @@ def dry_run_cmd(
                                               "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
-    """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
-    from cfrace.cli.flight import exit_code, print_result, write_json
+    """Race policies on simulated Crazyflies through the whole flight stack (real cflib over UDP):
+    two (--ego/--opp) or N (--policies, --drones)."""
+    from cfrace.cli.flight import exit_code, print_result, race_policies, write_json
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race, training_profile
     from cfrace.track import load_track
 
+    specs = race_policies(ego, opp, policies, drones)
     the_track = load_track(track)
     if profile is None:
-        profile = training_profile(the_track, ego, obstacles)
-    cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
-                       bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
+        profile = training_profile(the_track, specs[0], obstacles)
+    cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (),
+                       laps=laps, profile=profile, obstacles=obstacles,
+                       bodies=split_list(bodies) or ("cf1", "cf2"), log=log, timeout_s=timeout_s,
+                       quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,

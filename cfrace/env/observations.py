@@ -87,6 +87,36 @@ def build_observation(pos, vel, rot, target, gate_corners, layout: ObsLayout, op
     return xp.concatenate(parts, -1)
 
 
+def _norm(x):
+    """|x| over the last axis (torch or numpy)."""
+    if array_module(x) is np:
+        return np.linalg.norm(x, axis=-1)
+    import torch
+
+    return torch.linalg.vector_norm(x, dim=-1)
+
+
+def polyline(gates):
+    """The race line through the gate centres of gates (G, 4): (cum (G,) m from gate 0 to gate g,
+    lap length m). Torch or numpy."""
+    xp = array_module(gates)
+    seg = _norm(gates[:, :3] - xp.roll(gates, 1, 0)[:, :3])
+    zero = gates[:1, 0] * 0
+    return xp.concatenate([zero, seg[1:].cumsum(0)]) if xp is np else xp.cat([zero, seg[1:].cumsum(0)]), float(seg.sum())
+
+
+def track_position(gates, cum, lap_len: float, start_gate, gates_passed, target, pos):
+    """(..., D) m flown along the race line since the start gate: the gates passed along the line,
+    less the straight distance still to the target gate. start_gate (...,), gates_passed and target
+    (..., D), pos (..., D, 3); torch or numpy (the flight loop: one race, numpy)."""
+    xp = array_module(pos)
+    g = gates.shape[0]
+    absolute = start_gate[..., None] + gates_passed     # index of the target gate
+    laps = (absolute // g).astype(np.float64) if xp is np else (absolute // g).float()
+    coord = laps * lap_len + cum[absolute % g]
+    return coord - cum[start_gate][..., None] - _norm(pos - gates[target][..., :3])
+
+
 #: rules for which one opponent each drone observes in a field of N > 2 drones (with 2 drones
 #: every rule gives the other drone). Keys between candidates j of drone i, smallest wins:
 #:   nearest  the nearest drone in space, |p_j - p_i|

@@ -18,32 +18,13 @@ from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
-                                     critic_observations, layout_for)
+                                     critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import Track, start_grid
 
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
-
-
-def polyline(gates: torch.Tensor) -> tuple[torch.Tensor, float]:
-    """The race line through the gate centres: (cum (G,) m from gate 0 to gate g, lap length m)."""
-    seg = torch.linalg.vector_norm(gates[:, :3] - gates.roll(1, 0)[:, :3], dim=-1)
-    seg[0] = torch.linalg.vector_norm(gates[0, :3] - gates[-1, :3])
-    return torch.cat([torch.zeros(1, device=gates.device), seg[1:].cumsum(0)]), float(seg.sum())
-
-
-def track_position(gates: torch.Tensor, cum: torch.Tensor, lap_len: float, start_gate: torch.Tensor,
-                   gates_passed: torch.Tensor, target: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
-    """(W, D) m flown along the gate polyline since the start gate: the gates passed along the line,
-    less the straight distance still to the target gate. start_gate (W,), gates_passed and target
-    (W, D), pos (W, D, 3)."""
-    g = gates.shape[0]
-    absolute = start_gate.unsqueeze(-1) + gates_passed     # index of the target gate
-    coord = (absolute // g).float() * lap_len + cum[absolute % g]
-    start = cum[start_gate].unsqueeze(-1)
-    return coord - start - torch.linalg.vector_norm(pos - gates[target][..., :3], dim=-1)
 
 
 @dataclass

@@ -24,8 +24,8 @@ import torch
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import action_to_command
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents
-from cfrace.env.race_env import RaceEnv, polyline, track_position
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
+from cfrace.env.race_env import RaceEnv
 from cfrace.sim.collisions import CONTACT_MARGIN
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant

@@ -25,7 +25,6 @@ from typing import Callable
 import numpy as np
 
 from cfrace.flight import realtime
-from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
@@ -124,6 +123,19 @@ def _quietly(call: Callable[[], object]) -> None:
         pass
 
 
+def inference_phases(policies) -> list[int]:
+    """The tick phase of each drone's inference (it infers on ticks k with k % decimation == phase).
+    Two drones: 0 and 1, staggered (each tick runs one policy). More: one phase per distinct policy
+    in order of appearance, so the drones flying the same policy infer on the same tick in one
+    batched call and the distinct policies share the ticks out (ours, ours, ds, ds: 0, 0, 1, 1)."""
+    if len(policies) == 2:
+        return [0, 1]
+    order: dict[int, int] = {}
+    for p in policies:
+        order.setdefault(id(p), len(order))
+    return [order[id(p)] for p in policies]
+
+
 class RaceRun:
     """One race from a resolved set-up and its I/O: open, fly, always stop and close."""
 
@@ -144,7 +156,7 @@ class RaceRun:
                      "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
                      "latency_comp_s": cfg.latency_comp, "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
                      "policies": {n: {"path": str(p.path), **p.policy.meta}
-                                  for n, p in zip(DRONE_NAMES, setup.policies)},
+                                  for n, p in zip(cfg.names, setup.policies)},
                      **(extra_meta or {})}
 
     def run(self) -> RaceResult:
@@ -182,8 +194,8 @@ class RaceRun:
         s = self.setup
         return [Drone(name=name, body=s.cfg.bodies[i], policy=p.policy, layout=p.layout,
                       link=self.links[i], meta=dict(p.policy.meta, path=str(p.path)), mass=s.profile.mass,
-                      thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=i)
-                for i, (name, p) in enumerate(zip(DRONE_NAMES, s.policies))]
+                      thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=phase)
+                for i, (name, p, phase) in enumerate(zip(s.cfg.names, s.policies, inference_phases(s.policies)))]
 
     def _loop(self) -> FlightLoop:
         s, cfg, io = self.setup, self.setup.cfg, self.io
@@ -192,8 +204,8 @@ class RaceRun:
                                   alpha=cfg.velocity_alpha, lead_s=cfg.latency_comp)
         if not cfg.quiet:
             from cfrace.flight.liveview import LiveView
-            self.view = LiveView(title=f"cfrace {s.track.name}: {drones[0].meta['method']} vs "
-                                       f"{drones[1].meta['method']}", laps=cfg.laps,
+            self.view = LiveView(title=f"cfrace {s.track.name}: " + " vs ".join(d.meta["method"] for d in drones),
+                                 laps=cfg.laps,
                                  every_ticks=int(round(cfg.rate_hz / cfg.view_hz)), console=self.console)
             self.view.__enter__()
         loop = FlightLoop(drones=drones, mocap=self.mocap, estimator=estimator,

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
 from cfrace.flight import safety as sf
 from cfrace.flight.loopstate import Drone, ObservationBuilder
 from cfrace.flight.mocap import frame_to_msg
@@ -81,6 +82,13 @@ class TickCore:
         self.t = 0.0
         self.last_ests: list | None = None
         self.last_frame = None
+        # more than two drones: each observes the one its opponent rule picks (its metadata's, else
+        # the default), from the race line of cfrace.env.observations (the training's rule)
+        self._rules = {d.meta.get("opponent_rule", DEFAULT_OPPONENT_RULE) for d in drones if d.layout.opponent}
+        self._gates = np.asarray(progress.gates, dtype=np.float64)
+        self._cum, self._lap_len = polyline(self._gates)
+        self._opp_for: list | None = None
+        self._opp: dict = {}
 
     # ------------------------------------------------------------------ pieces
     def event(self, t: float, v: sf.Violation) -> dict:
@@ -103,20 +111,59 @@ class TickCore:
         """Drone d infers on tick k (its policy rate, staggered by its phase)."""
         return not d.stopped and k % d.decimation == d.phase % d.decimation
 
+    def opponents(self, ests: list) -> dict:
+        """{rule: (N,) index of the drone each one observes} for these estimates (cached per list)."""
+        if self._opp_for is not ests:
+            pos = np.nan_to_num(np.array([e.pos for e in ests], dtype=np.float64))
+            p = self.progress
+            tpos = track_position(self._gates, self._cum, self._lap_len, np.asarray(p.start_gate),
+                                  np.asarray(p.gates_passed), np.asarray(p.target), pos)
+            alive = np.array([not d.stopped for d in self.drones])
+            self._opp = {rule: choose_opponents(pos, tpos, alive, rule) for rule in self._rules}
+            self._opp_for = ests
+        return self._opp
+
     def observation(self, i: int, ests: list) -> np.ndarray:
-        opp = ests[1 - i] if len(ests) == 2 else None
-        return self.obs_builder(self.drones[i].layout, ests[i], int(self.progress.target[i]), opp)
+        d = self.drones[i]
+        opp = None
+        if len(ests) == 2:
+            opp = ests[1 - i]
+        elif d.layout.opponent:
+            opp = ests[int(self.opponents(ests)[d.meta.get("opponent_rule", DEFAULT_OPPONENT_RULE)][i])]
+        return self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
+
+    def _observe(self, i: int, ests: list) -> np.ndarray:
+        obs = self.observation(i, ests)
+        return self.filters.filter_obs(self.drones[i], obs) if self.filters is not None else obs
 
     def policy_step(self, i: int, ests: list) -> tuple[float, float]:
         """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
-        d = self.drones[i]
         t0 = perf()
-        obs = self.observation(i, ests)
-        if self.filters is not None:
-            obs = self.filters.filter_obs(d, obs)
+        obs = self._observe(i, ests)
         t1 = perf()
-        act = np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4)
+        act = np.asarray(self.drones[i].policy(obs[None]), dtype=np.float32).reshape(4)
         t2 = perf()
+        self._act(i, obs, act)
+        return t1 - t0, t2 - t1
+
+    def batched_step(self, group: list[int], ests: list) -> tuple[list[float], float]:
+        """policy_step for drones flying one policy, with ONE inference call on their stacked
+        observations; returns (observation s per drone, the call's s)."""
+        obs_s, obs = [], []
+        for i in group:
+            t0 = perf()
+            obs.append(self._observe(i, ests))
+            obs_s.append(perf() - t0)
+        t1 = perf()
+        acts = np.asarray(self.drones[group[0]].policy(np.stack(obs)), dtype=np.float32).reshape(len(group), 4)
+        infer = perf() - t1
+        for i, o, a in zip(group, obs, acts):
+            self._act(i, o, a.copy())
+        return obs_s, infer
+
+    def _act(self, i: int, obs: np.ndarray, act: np.ndarray) -> None:
+        """Drone i's action (filtered) through its action map into its next setpoint."""
+        d = self.drones[i]
         if self.filters is not None:
             act = self.filters.filter_action(d, act, self.t)
         thrust, rates, counts = d.setpoint_map(act)
@@ -127,7 +174,6 @@ class TickCore:
         # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
         # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
         d.counts = max(FLYING_MIN_COUNTS, counts) if math.isfinite(thrust) else 0
-        return t1 - t0, t2 - t1
 
     def positions(self, ests: list) -> list[tuple[float, float, float]]:
         """Per drone, the position for race progress on floats: a stopped drone stays where it
@@ -162,10 +208,18 @@ class TickCore:
         passed, lap_done, hit = self.progress.update(t, self.positions(ests))
         n = len(self.drones)
         infer, obs_t, computed = [np.nan] * n, [np.nan] * n, [False] * n
+        groups: dict[int, list[int]] = {}
         for i, d in enumerate(self.drones):
             if self.due(d, k):
-                obs_t[i], infer[i] = self.policy_step(i, ests)
+                groups.setdefault(id(d.policy), []).append(i)
                 computed[i] = True
+        for group in groups.values():
+            if len(group) == 1:
+                obs_t[group[0]], infer[group[0]] = self.policy_step(group[0], ests)
+            else:
+                times, call_s = self.batched_step(group, ests)
+                for i, o in zip(group, times):
+                    obs_t[i], infer[i] = o, call_s
         decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill),
                             self.fence, self.safety_cfg, self.limits)
         setpoints, stops = self._setpoints(decision, ests, t, k)
