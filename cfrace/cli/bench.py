@@ -117,27 +117,60 @@ def bench_loop_cmd(
     log: bool = typer.Option(True, "--log/--no-log", help="Write the flight log, as `cfrace fly` does."),
     floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
                                             "on the same CPU and priority (0 = skip)."),
+    drones: str = typer.Option("2", help="Drones per run; a list (2,4,8) runs each in turn and prints the "
+                                         "compute figures as ratios to the first."),
 ):
-    """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
+    """Flight-loop timing for N drones (2 by default) at 100 Hz, real time against the simulated Crazyflies."""
     from cfrace.flight.benchloop import bench_loop
 
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
-    r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log,
-                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
-    console.print(loop_table(r))
-    if r["floor"] is not None:
-        console.print(floor_line(r, floor_s), highlight=False)
-    console.print(goals_line(r))
+    try:
+        counts = [int(x) for x in drones.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--drones: numbers like 2,4,8, got {drones!r}") from None
+    if not counts or any(not 2 <= n <= 16 for n in counts):
+        raise ConfigError(f"--drones: 2 to 16 drones per run, got {drones!r}")
+    runs = []
+    for n in counts:
+        r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
+                       prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s if not runs else 0.0,
+                       log=log, latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3, drones=n)
+        runs.append(r)
+        console.print(loop_table(r))
+        if r["floor"] is not None:
+            console.print(floor_line(r, floor_s), highlight=False)
+        console.print(goals_line(r))
+    if len(runs) > 1:
+        console.print(ratio_line(runs), highlight=False)
     if json_out is not None:
-        json_out.write_text(json.dumps(r, indent=1, default=str) + "\n")
+        doc = runs[0] if len(runs) == 1 else {"runs": runs, "ratios": loop_ratios(runs)}
+        json_out.write_text(json.dumps(doc, indent=1, default=str) + "\n")
+
+
+def loop_ratios(runs: list[dict]) -> list[dict]:
+    """Per run: drones and compute p50 / p99 and skipped ticks, with compute as a ratio to the first run."""
+    base = runs[0]["loop"]["compute_ms"]
+    out = []
+    for r in runs:
+        c = r["loop"]["compute_ms"]
+        out.append({"drones": r["drones"], "compute_p50_ms": c["p50"], "compute_p99_ms": c["p99"],
+                    "p50_ratio": round(c["p50"] / base["p50"], 2) if c["p50"] and base["p50"] else None,
+                    "p99_ratio": round(c["p99"] / base["p99"], 2) if c["p99"] and base["p99"] else None,
+                    "skipped": r["loop"].get("skipped"), "end": r["end"]})
+    return out
+
+
+def ratio_line(runs: list[dict]) -> str:
+    parts = [f"{x['drones']} drones: compute p50 {x['compute_p50_ms']} ms (x{x['p50_ratio']}), p99 "
+             f"{x['compute_p99_ms']} ms (x{x['p99_ratio']}), skipped {x['skipped']}" for x in loop_ratios(runs)]
+    return "one run, ratios to the first: " + "; ".join(parts)
 
 
 def loop_table(r: dict) -> Table:
     """The figures of a bench_loop result as a table (ms)."""
     loop = r["loop"]
-    t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
+    t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, {r.get('drones', 2)} drones "
                     f"({r['policies']}), ms")
     for col in ("figure", "p50", "p99", "max", "goal (p99)"):
         t.add_column(col)
