@@ -8,22 +8,15 @@ import pytest
 
 from cfrace.errors import ConfigError
 from cfrace.flight.config import FlightConfig, drone_names
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.flightlog import read_log
 
-from test_flight_faults import PROFILE, pols  # noqa: F401  (the hold-controller policies, a fixture)
+from test_flight_faults import PROFILE, checked_dry_run, pols  # noqa: F401  (pols: the hold-controller policies)
 
 
 def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5):
     specs = tuple(pols["ego"] if i % 2 == 0 else pols["opp"] for i in range(n))
     cfg = FlightConfig(track="lemniscate", ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
                        timeout_s=timeout_s, log=tmp_path / "f.mcap")
-    result = dry_run(cfg, lockstep=lockstep, faults=faults).to_json()
-    for d in result["drones_final"]:
-        assert d["motors_off"] and d["thrust_n"] == 0.0, d
-    data = read_log(tmp_path / "f.mcap")
-    assert data.complete and data.summary["end"] == result["end"]
-    return result, data
+    return checked_dry_run(cfg, faults, lockstep)
 
 
 def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
@@ -102,3 +95,25 @@ def test_config_and_cli_lists():
             race_policies(*args)
     a, b = object(), object()
     assert inference_phases([a, b]) == [0, 1] and inference_phases([a, a, b, b]) == [0, 0, 1, 1]
+
+
+def test_separation_rule(pols, tmp_path):
+    from cfrace.flight import safety as sf
+    from cfrace.flight.config import SafetyConfig
+
+    assert sf.too_close({"a": [0, 0, 0], "b": [0.1, 0, 0], "c": [1, 0, 0], "d": [np.nan, 0, 0]}, 0.2) == \
+        [("a", "b", 0.1)]
+    result, _ = run(pols, tmp_path, 4, timeout_s=1.0)
+    assert result["separation_at_stop"] == []   # 0.4 m grid, hovering apart: nobody too close
+    # drones placed closer than the rule allows: refused before any link is touched
+    specs = (pols["ego"], pols["opp"]) * 2
+    cfg = FlightConfig(track="lemniscate", ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
+                       timeout_s=1.0, safety=SafetyConfig(min_separation_m=0.5))
+    with pytest.raises(ConfigError, match="too close to take off.*cf1-cf2 0.40 m"):
+        dry_run_plain(cfg)
+
+
+def dry_run_plain(cfg):
+    from cfrace.flight.dryrun import dry_run
+
+    return dry_run(cfg, lockstep=True)

@@ -116,7 +116,7 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "separation_at_stop")
 
 
 @dataclass
@@ -145,6 +145,8 @@ class RaceResult:
     faults: list | None = None                       #: what the fault injection did (dry-run)
     log: str | None = None                           #: the flight log's path
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
+    #: pairs closer than safety.min_separation_m when every drone was stopped (cfrace.flight.safety)
+    separation_at_stop: list | None = None
 
     def to_json(self) -> dict:
         out = {"end": self.end, "winner": self.winner}

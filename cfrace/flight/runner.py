@@ -16,6 +16,7 @@ block that stops every drone, closes the links and the mocap source and closes t
 from __future__ import annotations
 
 import gc
+import time
 import signal
 import sys
 import threading
@@ -24,7 +25,9 @@ from typing import Callable
 
 import numpy as np
 
+from cfrace.errors import ConfigError
 from cfrace.flight import realtime
+from cfrace.flight import safety as sf
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
@@ -136,6 +139,25 @@ def inference_phases(policies) -> list[int]:
     return [order[id(p)] for p in policies]
 
 
+class _Unread:
+    """A mocap source with one frame handed back: the loop's first read gets the source's newest
+    frame, or this one when the source has nothing newer (a lockstep source makes one per tick)."""
+
+    def __init__(self, source, frame):
+        self.source, self.frame = source, frame
+
+    def read(self, timeout_s: float = 0.02):
+        if self.frame is None:
+            return self.source.read(timeout_s)
+        newer = self.source.read(0.0)
+        out = newer if newer is not None else self.frame
+        self.frame = None
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+
 class RaceRun:
     """One race from a resolved set-up and its I/O: open, fly, always stop and close."""
 
@@ -178,6 +200,7 @@ class RaceRun:
         cfg, io = self.setup.cfg, self.io
         self.mocap = io.open_mocap()
         self.mocap.open(cfg.mocap_timeout_s)
+        self._check_separation()
         for i, uri in enumerate(io.uris):
             self.links.append(io.open_link(i, uri))
         for link in self.links:
@@ -189,6 +212,24 @@ class RaceRun:
         for link in self.links:
             link.setup()
         return self._loop()
+
+    def _check_separation(self) -> None:
+        """Take-off rule of the swarm (cfrace.flight.safety): every pair at least min_separation_m
+        apart on the first frame that shows every body, else ConfigError; nothing was sent yet."""
+        cfg = self.setup.cfg
+        if len(cfg.bodies) < 2 or cfg.safety.min_separation_m <= 0:
+            return
+        t_end = time.monotonic() + cfg.mocap_timeout_s
+        while time.monotonic() < t_end:
+            frame = self.mocap.read(0.05)
+            if frame is not None and all(b in frame.poses for b in cfg.bodies):
+                close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m)
+                if close:
+                    pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
+                    raise ConfigError(f"drones too close to take off ({pairs}; at least "
+                                      f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
+                self.mocap = _Unread(self.mocap, frame)
+                return
 
     def _drones(self) -> list[Drone]:
         s = self.setup
@@ -229,6 +270,11 @@ class RaceRun:
             safety_events=res.safety_events, drones=res.drones,
             estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
             laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones})
+        ests = loop.core.last_ests if hasattr(loop, "core") else None
+        if ests is not None:   # landing: who was too close when every drone was stopped
+            close = sf.too_close({d.body: e.pos for d, e in zip(loop.drones, ests) if e.valid},
+                                 s.cfg.safety.min_separation_m)
+            self.result.separation_at_stop = [{"bodies": [a, b], "distance_m": d} for a, b, d in close]
         if log is not None:
             log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
 
