@@ -1,7 +1,7 @@
 """Choose a checkpoint of an N-drone training run on validation races in N-drone fields.
 
     .venv/bin/python benchmarks/swarm_select.py RUN [--against '*,*,ds,ds'] [--races 50] [--seed 100]
-                                                [--track lemniscate] [--agent best] [--max-points 8]
+                                                [--track lemniscate] [--agent best] [--max-points 8] [--min-iteration 41]
 
 Every kept checkpoint (``cfrace train --keep-checkpoints``) is exported and raced in the field
 ``--against`` (``*`` = the checkpoint; cfrace.evaluate.select); prints one row per checkpoint and
@@ -27,6 +27,7 @@ def main() -> None:
     ap.add_argument("--track", default="lemniscate")
     ap.add_argument("--agent", default="best")
     ap.add_argument("--max-points", type=int, default=None)
+    ap.add_argument("--min-iteration", type=int, default=0, help="skip the critic warm-up's checkpoints")
     args = ap.parse_args()
     torch.set_num_threads(1)
     print("| iteration | env steps | min | first place (a * drone) | other winner |")
@@ -34,7 +35,7 @@ def main() -> None:
     scored = score_run(args.run, args.track, False, args.against, args.races, 3, args.seed, args.agent,
                        on_row=lambda r: print(f"| {r['iteration']} | {r['env_steps']:,} | {r['wall_min']} | "
                                               f"{r['win_rate']:.0%} | {r['loss_rate']:.0%} |", flush=True),
-                       max_points=args.max_points)
+                       max_points=args.max_points, min_iteration=args.min_iteration)
     c = scored.chosen
     print(f"chosen: iteration {c['iteration']} ({c['onnx']}), first place {c['win_rate']:.0%} on seed {args.seed}")
 

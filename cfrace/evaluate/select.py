@@ -89,10 +89,14 @@ def choose(rows: list[dict]) -> dict:
 
 
 def score_run(run: Path, track: str, obstacles: bool = False, opp: str | None = None, runs: int = 50,
-              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None, max_points: int | None = None) -> Scored:
+              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None, max_points: int | None = None,
+              min_iteration: int = 0) -> Scored:
     """Score every kept checkpoint of ``run`` (see the module docstring) and choose one; with
-    ``max_points`` only that many, evenly spaced, the last one included."""
-    ckpts = kept_checkpoints(Path(run))
+    ``max_points`` only that many, evenly spaced, the last one included; ``min_iteration``: only
+    checkpoints from that iteration on (e.g. after a critic warm-up, whose actors are the source's)."""
+    ckpts = [c for c in kept_checkpoints(Path(run)) if int(re.sub(r"\D", "", c.stem) or 0) >= min_iteration]
+    if not ckpts:
+        raise ConfigError(f"{run}: no kept checkpoint from iteration {min_iteration} on")
     if max_points is not None and len(ckpts) > max_points:
         ckpts = [ckpts[i] for i in np.unique(np.linspace(0, len(ckpts) - 1, max_points).round().astype(int))]
     rows = []
