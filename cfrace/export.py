@@ -122,6 +122,13 @@ def parity_check(path: str | Path, actor_module: torch.nn.Module, normalizer, n:
 AGENTS = ("ego", "adversary", "best")
 
 
+def _source_name(path: str) -> str:
+    """A warm start's or fixed opponent's name for the metadata: the run folder of a checkpoint,
+    the file name of an exported policy."""
+    p = Path(path)
+    return p.name if p.suffix == ".onnx" else (p.parent.name or str(path))
+
+
 def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "best") -> tuple[Path, dict, float]:
     """Export one actor of a training checkpoint (cfrace/rl/train.py) to ONNX, then check parity.
 
@@ -152,10 +159,10 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
                 total_training_reward=totals[index], iterations=int(state["iteration"]),
                 preset=ippo.preset)
     if meta0.get("init_from"):  # warm-started (cfrace/rl/warmstart.py): say from what
-        meta["init_from"] = Path(meta0["init_from"]).parent.name or str(meta0["init_from"])
+        meta["init_from"] = _source_name(meta0["init_from"])
         meta["init_env_steps"] = int(meta0.get("init_env_steps", 0))
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
-        meta["fixed_opponent"] = Path(meta0["fixed_opponent"]).parent.name or str(meta0["fixed_opponent"])
+        meta["fixed_opponent"] = _source_name(meta0["fixed_opponent"])
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
     if meta0.get("opponent_rule"):  # trained in fields of more than two drones (--drones N)
         meta["opponent_rule"] = str(meta0["opponent_rule"])
