@@ -36,6 +36,11 @@ def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
     # repeated policies ran in one call: d1 and d3 (the same file) infer on the same ticks
     obs = [m for _, m in data.messages("/obs")]
     assert obs and all(("cf1" in m) == ("cf3" in m) and ("cf2" in m) == ("cf4" in m) for m in obs)
+    # the 4-drone log replays bit for bit (opponent rule, batched calls and phases included)
+    from cfrace.flight.replay import replay_log
+
+    rep = replay_log(tmp_path / "f.mcap")
+    assert rep["identical"] and rep["observations"] > 400, rep
 
 
 @pytest.mark.parametrize("fault, stopped, end", [
@@ -78,7 +83,7 @@ def test_batched_inference_equals_one_call_per_drone(pols):
 
 def test_config_and_cli_lists():
     from cfrace.cli.flight import race_policies
-    from cfrace.flight.runner import inference_phases
+    from cfrace.flight.loopstate import inference_phases
 
     assert drone_names(2) == ("ego", "opp") and drone_names(3) == ("d1", "d2", "d3")
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours"))

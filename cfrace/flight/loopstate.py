@@ -156,3 +156,16 @@ class RaceResult:
             out["operator_kill"] = self.operator_kill
         out.update({k: getattr(self, k) for k in _WAY_OUT_FIELDS if getattr(self, k) is not None})
         return out
+
+
+def inference_phases(policies) -> list[int]:
+    """The tick phase of each drone's inference (it infers on ticks k with k % decimation == phase).
+    Two drones: 0 and 1, staggered (each tick runs one policy). More: one phase per distinct policy
+    in order of appearance, so the drones flying the same policy infer on the same tick in one
+    batched call and the distinct policies share the ticks out (ours, ours, ds, ds: 0, 0, 1, 1)."""
+    if len(policies) == 2:
+        return [0, 1]
+    order: dict[int, int] = {}
+    for p in policies:
+        order.setdefault(id(p), len(order))
+    return [order[id(p)] for p in policies]

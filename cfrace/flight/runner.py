@@ -31,7 +31,7 @@ from cfrace.flight import safety as sf
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
-from cfrace.flight.loopstate import RaceResult
+from cfrace.flight.loopstate import RaceResult, inference_phases
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
@@ -124,19 +124,6 @@ def _quietly(call: Callable[[], object]) -> None:
         call()
     except Exception:  # noqa: BLE001
         pass
-
-
-def inference_phases(policies) -> list[int]:
-    """The tick phase of each drone's inference (it infers on ticks k with k % decimation == phase).
-    Two drones: 0 and 1, staggered (each tick runs one policy). More: one phase per distinct policy
-    in order of appearance, so the drones flying the same policy infer on the same tick in one
-    batched call and the distinct policies share the ticks out (ours, ours, ds, ds: 0, 0, 1, 1)."""
-    if len(policies) == 2:
-        return [0, 1]
-    order: dict[int, int] = {}
-    for p in policies:
-        order.setdefault(id(p), len(order))
-    return [order[id(p)] for p in policies]
 
 
 class _Unread:
