@@ -127,8 +127,9 @@ def _quietly(call: Callable[[], object]) -> None:
 
 
 class _Unread:
-    """A mocap source with one frame handed back: the loop's first read gets the source's newest
-    frame, or this one when the source has nothing newer (a lockstep source makes one per tick)."""
+    """A lockstep mocap source with one frame handed back: the loop's first read gets the source's
+    newest frame, or this one when the source has nothing newer (it makes one per tick). Not for
+    real time: there new frames keep coming and a handed-back one would be old (a stale pose)."""
 
     def __init__(self, source, frame):
         self.source, self.frame = source, frame
@@ -215,7 +216,8 @@ class RaceRun:
                     pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
                     raise ConfigError(f"drones too close to take off ({pairs}; at least "
                                       f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
-                self.mocap = _Unread(self.mocap, frame)
+                if not self.io.clock.realtime:   # a lockstep source makes one frame per tick: hand it back
+                    self.mocap = _Unread(self.mocap, frame)
                 return
 
     def _drones(self) -> list[Drone]:
