@@ -101,8 +101,9 @@ def polyline(gates):
     lap length m). Torch or numpy."""
     xp = array_module(gates)
     seg = _norm(gates[:, :3] - xp.roll(gates, 1, 0)[:, :3])
-    zero = gates[:1, 0] * 0
-    return xp.concatenate([zero, seg[1:].cumsum(0)]) if xp is np else xp.cat([zero, seg[1:].cumsum(0)]), float(seg.sum())
+    parts = [gates[:1, 0] * 0, seg[1:].cumsum(0)]                     # 0 m at gate 0, then the sums
+    cum = np.concatenate(parts) if xp is np else xp.cat(parts)
+    return cum, float(seg.sum())
 
 
 def track_position(gates, cum, lap_len: float, start_gate, gates_passed, target, pos):
