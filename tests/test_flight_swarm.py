@@ -122,3 +122,25 @@ def dry_run_plain(cfg):
     from cfrace.flight.dryrun import dry_run
 
     return dry_run(cfg, lockstep=True)
+
+
+def test_fly_refuses_a_fifth_drone_on_one_radio_before_opening_anything(monkeypatch):
+    from cfrace.flight import setup as fs
+
+    opened = []
+    monkeypatch.setattr(fs, "link_factory", lambda *a, **k: opened.append(a) or (lambda i, u: None))
+    uris = tuple(f"radio://0/80/2M/E7E7E7E7E{i}" for i in range(1, 6))
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds") * 2 + ("ours",), uris=uris,
+                       mocap="vicon://127.0.0.1")
+    with pytest.raises(ConfigError, match="Crazyradio 0 carries 5 drones"):
+        fs.real_io(cfg)
+    assert not opened
+    ok = replace_uris(cfg, uris[:4] + ("radio://1/80/2M/E7E7E7E7E5",))
+    fs.real_io(ok)
+    assert len(opened) == 1
+
+
+def replace_uris(cfg, uris):
+    from dataclasses import replace
+
+    return replace(cfg, uris=uris)
