@@ -13,6 +13,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from cfrace.errors import ConfigError
+
 console = Console(stderr=True)
 out = Console()
 
@@ -101,7 +103,6 @@ def exit_code(result: dict) -> int:
 def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:
     """The policy of every drone from --ego/--opp (two), or --policies P1,...,PN, or one policy and
     --drones N (every drone flies it). ConfigError (one line) on a mix that does not add up."""
-    from cfrace.errors import ConfigError
     from cfrace.flight.config import MAX_DRONES, split_list
 
     if policies is not None:
@@ -149,11 +150,9 @@ def register(app: typer.Typer) -> None:
         track: Optional[str] = typer.Option(None, help="Track name or YAML path."),
         ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path (flies uris[0])."),
         opp: Optional[str] = typer.Option(None, help="Opponent policy (flies uris[1])."),
-        uris: Optional[str] = typer.Option(None, help="Link URIs, one per drone: radio://0/80/2M/E7E7E7E7E1,"
-                                                      "radio://0/80/2M/E7E7E7E7E2 (at most 4 per Crazyradio at "
-                                                      "100 Hz, one channel, own addresses), udp://127.0.0.1:19850,..."),
-        policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one policy "
-                                                          "per URI (repeats run in one batched inference)."),
+        uris: Optional[str] = typer.Option(None, help="Link URIs, one per drone: radio://0/80/2M/E7E7E7E7E1,... "
+                                                      "(at most 4 per Crazyradio at 100 Hz), udp://127.0.0.1:19850,..."),
+        policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one per URI."),
         mocap: Optional[str] = typer.Option(None, help="vicon://HOST, optitrack://HOST, replay://LOG.mcap, sim://HOST:PORT."),
         bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
         laps: Optional[int] = typer.Option(None, help="Laps to win (default 3)."),
@@ -183,8 +182,7 @@ def register(app: typer.Typer) -> None:
                                                           "process's other threads go to the other CPUs."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
     ):
-        """Race Crazyflies from motion capture with ONNX policies at 100 Hz, safely: two (--ego/--opp)
-        or N (--policies)."""
+        """Race 2 (--ego/--opp) or N (--policies) Crazyflies from motion capture with ONNX policies at 100 Hz."""
         from cfrace.flight.config import make_config, split_list
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
@@ -193,9 +191,6 @@ def register(app: typer.Typer) -> None:
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
-        if policies is not None and (ego is not None or opp is not None):
-            from cfrace.errors import ConfigError
-            raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
         cfg = make_config(config, track=track, ego=ego, opp=opp, policies=split_list(policies), uris=split_list(uris),
                           mocap=mocap,
                           bodies=split_list(bodies), laps=laps, profile=profile, log=log, obstacles=obstacles,
@@ -204,7 +199,6 @@ def register(app: typer.Typer) -> None:
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                           latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
         if not cfg.uris:
-            from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone)")
         result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
         print_result(result)

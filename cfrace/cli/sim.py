@@ -39,10 +39,8 @@ def dry_run_cmd(
     track: str = typer.Option(..., help="Track name or YAML path."),
     ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path."),
     opp: Optional[str] = typer.Option(None, help="Opponent policy."),
-    policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one policy per "
-                                                      "drone (repeats allowed), from the track's start grid."),
-    drones: Optional[int] = typer.Option(None, min=2, help="N drones: with one --policies entry (or --ego) every "
-                                                           "drone flies it; else must match --policies."),
+    policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN (repeats allowed)."),
+    drones: Optional[int] = typer.Option(None, min=2, help="N drones; one --policies entry (or --ego): all fly it."),
     laps: int = typer.Option(3, help="Laps to win."),
     profile: Optional[str] = typer.Option(None, help="Drone profile, simulated and flown (default: the one "
                                                       "the ego policy was trained for, from its metadata)."),
@@ -75,23 +73,18 @@ def dry_run_cmd(
                                               "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
-    """Race policies on simulated Crazyflies through the whole flight stack (real cflib over UDP):
-    two (--ego/--opp) or N (--policies, --drones)."""
+    """Race 2 (--ego/--opp) or N (--policies, --drones) simulated Crazyflies through the whole flight stack."""
     from cfrace.cli.flight import exit_code, print_result, race_policies, write_json
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race, training_profile
     from cfrace.track import load_track
 
-    specs = race_policies(ego, opp, policies, drones)
-    the_track = load_track(track)
-    if profile is None:
-        profile = training_profile(the_track, specs[0], obstacles)
-    cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (),
-                       laps=laps, profile=profile, obstacles=obstacles,
-                       bodies=split_list(bodies) or ("cf1", "cf2"), log=log, timeout_s=timeout_s,
-                       quiet=quiet or lockstep,
-                       rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
+    specs, the_track = race_policies(ego, opp, policies, drones), load_track(track)
+    profile = profile or training_profile(the_track, specs[0], obstacles)
+    cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (), laps=laps,
+                       profile=profile, obstacles=obstacles, bodies=split_list(bodies) or ("cf1", "cf2"), log=log,
+                       timeout_s=timeout_s, quiet=quiet or lockstep, rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
     result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                      mocap_latency_s=mocap_latency_ms / 1e3, console=console,

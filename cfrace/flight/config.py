@@ -211,6 +211,8 @@ def make_config(file: str | Path | None = None, **options) -> FlightConfig:
     kw.update({k: v for k, v in options.items() if v is not None})
     if safety_over:
         kw["safety"] = replace(kw.get("safety", SafetyConfig()), **safety_over)
+    if options.get("policies") and (options.get("ego") or options.get("opp")):
+        raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
     if kw.get("policies"):   # N drones: ego and opp are the first two
         pols = tuple(kw["policies"])
         if len(pols) < 2:
