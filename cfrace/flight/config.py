@@ -54,6 +54,12 @@ class SafetyConfig:
     #: m, least distance between two drones' centres before take-off (checked on the first mocap frame)
     #: and while the take-off grace lasts (floor_grace_s); closer stops both (cfrace.flight.safety)
     min_separation_m: float = 0.2
+    # soft failsafes: these land the drone (docs/flight.md, "Safety")
+    fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
+    mocap_glitches: float = 3        #: pose dropouts and outliers within 2 s that mean degraded mocap: land
+    opponent_clearance_m: float = 0.7   #: m, a downed drone this close to the path to the next gate: land
+    low_battery_v: float = 3.3       #: V (pm.vbat under load), below it ...
+    low_battery_s: float = 1.0       #: ... for this long: land (sags at full thrust are shorter); 0 V = off
 
     def __post_init__(self):
         for f in fields(self):
@@ -98,8 +104,18 @@ class FlightConfig:
     #: body rates) to make up for the mocap's latency; None: LATENCY_COMP_DEFAULT_S, 0 for `sim`
     latency_comp_s: float | None = None
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    start: str = "ground"                        #: ground (policies take off) or hover (high-level take-off first)
+    landing: bool = True                         #: land at the race's end and on soft failsafes (else motors off)
+    pose_stream: bool = True                     #: stream each drone's mocap pose to it (external position)
 
     def __post_init__(self):
+        if self.start not in ("ground", "hover"):
+            raise ConfigError(f"start: must be ground or hover, got {self.start!r}")
+        if self.start == "hover" and not self.landing:
+            raise ConfigError("start: hover needs landing on (the firmware flies the take-off and the landing)")
+        if self.landing and not self.pose_stream:
+            raise ConfigError("landing needs pose_stream on: the firmware lands from the mocap poses it is sent "
+                              "(use --no-landing with --no-pose-stream)")
         if self.laps < 1:
             raise ConfigError(f"laps: must be >= 1, got {self.laps}")
         n = len(self.specs)
@@ -170,7 +186,7 @@ def load_flight_file(path: str | Path) -> dict:
             if not all(isinstance(s, str) and s for s in seq):
                 raise r.fail(key, f"expected a list of strings, got {seq!r}")
             out[key] = tuple(seq)
-    for key in ("mocap", "profile", "track", "ego", "opp"):
+    for key in ("mocap", "profile", "track", "ego", "opp", "start"):
         if r.has(key):
             out[key] = r.string(key)
     for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
@@ -190,11 +206,12 @@ def load_flight_file(path: str | Path) -> dict:
                 raise r.fail(key, str(exc).removeprefix(f"{key}: ")) from None
     if r.has("laps"):
         out["laps"] = int(r.number("laps", min=1))
-    if r.has("obstacles"):
-        v = r.raw("obstacles")
-        if not isinstance(v, bool):
-            raise r.fail("obstacles", f"expected true or false, got {v!r}")
-        out["obstacles"] = v
+    for key in ("obstacles", "landing", "pose_stream"):
+        if r.has(key):
+            v = r.raw(key)
+            if not isinstance(v, bool):
+                raise r.fail(key, f"expected true or false, got {v!r}")
+            out[key] = v
     if r.has("safety"):
         s = r.mapping("safety")
         kw = {f.name: s.number(f.name, min=0.0) for f in fields(SafetyConfig) if s.has(f.name)}

@@ -16,10 +16,15 @@ class KillSwitch:
 
     def __init__(self):
         self.reason: str | None = None
+        self.land: str | None = None      #: the operator's "land now" (soft: every drone lands)
 
     def request(self, reason: str) -> None:
         if self.reason is None:
             self.reason = reason
+
+    def request_land(self, reason: str) -> None:
+        if self.land is None:
+            self.land = reason
 
 
 @dataclass
@@ -50,6 +55,8 @@ class Drone:
     speed_sum: float = 0.0
     speed_n: int = 0
     setpoint_map: SetpointMap | None = None   #: built from meta, mass and thrust_curve
+    landing: object = None             #: cfrace.flight.landing.LandingPilot while the drone lands
+    landing_result: dict | None = None   #: why it landed, its spot, its touchdown (or how the landing ended)
 
     def __post_init__(self):
         if self.setpoint_map is None:
@@ -116,7 +123,8 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "separation_at_stop")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "hover_start", "landings",
+                   "separation_at_stop")
 
 
 @dataclass
@@ -145,6 +153,8 @@ class RaceResult:
     faults: list | None = None                       #: what the fault injection did (dry-run)
     log: str | None = None                           #: the flight log's path
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
+    hover_start: dict | None = None                  #: --start hover: how well the drones held their start
+    landings: dict | None = None                     #: drone name -> its landing (reason, spot, touchdown) or None
     #: pairs closer than safety.min_separation_m when every drone was stopped (cfrace.flight.safety)
     separation_at_stop: list | None = None
 

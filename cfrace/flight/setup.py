@@ -115,6 +115,7 @@ class RaceIO:
     prewarm_s: float
     uris: tuple[str, ...]
     hooks: object | None = None
+    wait: Callable[[float], None] | None = None   #: lets time pass outside the loop (None: time.sleep)
 
 
 def real_io(cfg: FlightConfig) -> RaceIO:
