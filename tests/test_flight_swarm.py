@@ -9,7 +9,7 @@ import pytest
 from cfrace.errors import ConfigError
 from cfrace.flight.config import FlightConfig, drone_names
 
-from test_flight_faults import PROFILE, checked_dry_run, pols  # noqa: F401  (pols: the hold-controller policies)
+from test_flight_faults import PROFILE, check_landings, checked_dry_run, pols  # noqa: F401  (pols: a fixture)
 
 
 def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5):
@@ -22,13 +22,14 @@ def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5):
 def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
     result, data = run(pols, tmp_path, 4)
     assert result["end"] == "timeout" and [d["name"] for d in result["drones"]] == ["d1", "d2", "d3", "d4"]
-    assert all(not d["stopped"] or d["stop_kind"] == "timeout" for d in result["drones"])
+    assert all(d["stop_kind"] in ("timeout", "landed") for d in result["drones"])   # landed at the end
+    assert set(check_landings(result).values()) <= {"race_end"}
     assert not any(e["action"] != "none" for e in result["safety_events"])
     # every drone streamed setpoints every tick, in the air (hold controller: hovers where it took off)
     setpoints = [m for _, m in data.messages("/setpoint")]
     assert len(setpoints) >= 240 and all(len(m) == 4 for m in setpoints)
     z = np.array([[m[f"cf{i + 1}"]["pos"][2] for i in range(4)] for _, m in data.messages("/estimate")])
-    assert z[-20:].min() > 0.3
+    assert z[200:240].min() > 0.3                                  # in the air before the race's end
     # the start grid: two rows of two, 0.4 m apart
     p0 = np.array([[m[f"cf{i + 1}"]["pos"][:2] for i in range(4)] for _, m in data.messages("/estimate")][0])
     d = np.linalg.norm(p0[:, None] - p0[None], axis=-1) + np.eye(4) * 9
@@ -43,16 +44,17 @@ def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
     assert rep["identical"] and rep["observations"] > 400, rep
 
 
-@pytest.mark.parametrize("fault, stopped, end", [
-    ("link_loss@1.0:d3", {"d3"}, "timeout"),             # one drone's fault stops only that drone
-    ("geofence@1.0:d2", {"d2"}, "timeout"),
-    ("sigterm@1.0", {"d1", "d2", "d3", "d4"}, "operator_kill"),   # the operator stops them all
-    ("stall_200ms@1.0", {"d1", "d2", "d3", "d4"}, "loop_overrun"),
+@pytest.mark.parametrize("fault, kind, stopped, end", [
+    ("link_loss@1.0:d3", "link_lost", {"d3"}, "timeout"),             # one drone's fault stops only that drone
+    ("geofence@1.0:d2", "geofence", {"d2"}, "timeout"),
+    ("sigterm@1.0", "operator_kill", {"d1", "d2", "d3", "d4"}, "operator_kill"),   # the operator stops them all
+    ("stall_200ms@1.0", "loop_overrun", {"d1", "d2", "d3", "d4"}, "loop_overrun"),
 ])
-def test_faults_with_four_drones(pols, tmp_path, fault, stopped, end):
+def test_faults_with_four_drones(pols, tmp_path, fault, kind, stopped, end):
     result, data = run(pols, tmp_path, 4, fault)
     assert result["end"] == end
-    by_fault = {d["name"] for d in result["drones"] if d["stopped"] and d["stop_kind"] != "timeout"}
+    landed = check_landings(result)
+    by_fault = {d["name"] for d in result["drones"] if d["stop_kind"] == kind or landed.get(d["name"]) == kind}
     assert by_fault == stopped, result["drones"]
     stops = {m["drone"] for _, m in data.messages("/event") if m.get("kind") == "stop"}
     assert stopped <= stops

@@ -125,7 +125,7 @@ def bench_loop_cmd(
                                          "compute figures as ratios to the first."),
 ):
     """Flight-loop timing for N drones (2 by default) at 100 Hz, real time against the simulated Crazyflies."""
-    from cfrace.flight.benchloop import bench_loop, compare_pose_stream as compare
+    from cfrace.flight.benchloop import compare_pose_stream as compare
 
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
@@ -143,6 +143,15 @@ def bench_loop_cmd(
         if json_out is not None:
             json_out.write_text(json.dumps(c, indent=1, default=str) + "\n")
         return
+    _loop_runs(drones, json_out, floor_s, duration_s, track=track, profile=profile, rt_priority=rt_priority,
+               policies=policies, prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log, pose_stream=pose_stream,
+               latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+
+
+def _loop_runs(drones: str, json_out, floor_s: float, duration_s: float, **options) -> None:
+    """bench_loop for each drone count of ``drones`` ("2,4,8"): tables, ratios to the first, JSON."""
+    from cfrace.flight.benchloop import bench_loop
+
     try:
         counts = [int(x) for x in drones.split(",") if x.strip()]
     except ValueError:
@@ -151,10 +160,7 @@ def bench_loop_cmd(
         raise ConfigError(f"--drones: 2 to 16 drones per run, got {drones!r}")
     runs = []
     for n in counts:
-        r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                       prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s if not runs else 0.0,
-                       log=log, latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3, drones=n,
-                       pose_stream=pose_stream)
+        r = bench_loop(duration_s, floor_s=floor_s if not runs else 0.0, drones=n, **options)
         runs.append(r)
         console.print(loop_table(r))
         if r["floor"] is not None:

@@ -48,9 +48,8 @@ breaches the fence, loses its link or crashes is stopped alone, the others race 
 policies see it only as long as no live drone is nearer, cfrace.env.observations); loop and
 operator events stop all. Separation (``too_close``, SafetyConfig.min_separation_m): before
 take-off the runner refuses to start when two drones stand closer than that on the first mocap
-frame (nothing is sent to any drone), and when the race ends it records the pairs that were
-closer than that when every drone was stopped ("landing": the motors go off together and the
-drones drop where they are).
+frame (nothing is sent to any drone), and when the loop ends (after the landings) it records the
+pairs that were closer than that.
 """
 
 from __future__ import annotations
