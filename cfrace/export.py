@@ -122,6 +122,13 @@ def parity_check(path: str | Path, actor_module: torch.nn.Module, normalizer, n:
 AGENTS = ("ego", "adversary", "best")
 
 
+def _source_name(path: str) -> str:
+    """A warm start's or fixed opponent's name for the metadata: the run folder of a checkpoint,
+    the file name of an exported policy."""
+    p = Path(path)
+    return p.name if p.suffix == ".onnx" else (p.parent.name or str(path))
+
+
 def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "best") -> tuple[Path, dict, float]:
     """Export one actor of a training checkpoint (cfrace/rl/train.py) to ONNX, then check parity.
 
@@ -144,18 +151,21 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         raise PolicyError(f"{checkpoint}: checkpoint has no observation layout (trained on a toy env?)")
     ippo = IPPOConfig.from_dict(state["ippo"])
     model = AgentModels(meta0["obs_dim"], meta0["critic_dim"], ippo.actor_hidden, ippo.critic_hidden, ippo.init_std)
-    model.load_state_dict(state["agents"][index])
+    model.load_state_dict(state["agents"][min(index, len(state["agents"]) - 1)])   # shared: one model
     meta = {k: meta0[k] for k in META_SCHEMA if k in meta0}
     meta.update(train_steps=int(state["env_steps"]), cfrace_version=__version__,
-                agent=AGENTS[index] if n > 1 else "ego", agent_index=index, num_agents=n,
+                agent=(AGENTS[index] if index < 2 else f"drone{index}") if n > 1 else "ego", agent_index=index,
+                num_agents=n,
                 total_training_reward=totals[index], iterations=int(state["iteration"]),
                 preset=ippo.preset)
     if meta0.get("init_from"):  # warm-started (cfrace/rl/warmstart.py): say from what
-        meta["init_from"] = Path(meta0["init_from"]).parent.name or str(meta0["init_from"])
+        meta["init_from"] = _source_name(meta0["init_from"])
         meta["init_env_steps"] = int(meta0.get("init_env_steps", 0))
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
-        meta["fixed_opponent"] = Path(meta0["fixed_opponent"]).parent.name or str(meta0["fixed_opponent"])
+        meta["fixed_opponent"] = _source_name(meta0["fixed_opponent"])
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
+    if meta0.get("opponent_rule"):  # trained in fields of more than two drones (--drones N)
+        meta["opponent_rule"] = str(meta0["opponent_rule"])
     if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)

@@ -52,6 +52,24 @@ class Spawn:
     ground_distance: float = 1.5                     #: m, ground start distance before gate 0
 
 
+def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
+    """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's front
+    centre: rows of as many drones as fit side by side ``spawn.opponent_offset`` apart inside the
+    gate opening (floor(opening / offset), at least 1), each row centred, rows one offset (or
+    ``opponent_stagger`` if larger) further back. Two drones: one row of two."""
+    if drones < 1:
+        raise ValueError(f"a start grid needs at least 1 drone, got {drones}")
+    offset = max(spawn.opponent_offset, 1e-3)
+    per_row = max(1, int(math.floor(gate.opening / offset + 1e-9)))
+    spacing = max(offset, spawn.opponent_stagger)
+    slots = []
+    for s in range(drones):
+        row, col = divmod(s, per_row)
+        in_row = min(per_row, drones - row * per_row)
+        slots.append(((col - (in_row - 1) / 2.0) * offset, row * spacing))
+    return np.asarray(slots, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class Track:
     name: str

@@ -105,6 +105,25 @@ def test_a_race_with_every_drone_stopped_does_not_exit_0(capsys):
     assert code == 3
 
 
+def test_swarm_options_with_the_profile_rule_config_and_json_dash(tmp_path, capsys):
+    """N drones (--policies, --drones) with this CLI's profile rule, --config and `--json -`."""
+    from cfrace.cli.flight import fly_config
+
+    (tmp_path / "room.yaml").write_text("profile: cf2x_paper\nsafety: {speed_max_mps: 9.0}\n")
+    code, out, err = run(["sim", "dry-run", "--track", "lemniscate", "--policies", "ours,ds,ds", "--lockstep",
+                          "--config", str(tmp_path / "room.yaml"), "--timeout-s", "1.5",
+                          "--faults", "link_loss@0.5:d3", "--json", "-"], capsys)
+    r = json.loads(out)
+    assert r["profile"] == "cf2x_paper" and "room.yaml" in r["profile_rule"] and "room.yaml" in err
+    assert [d["name"] for d in r["drones"]] == ["d1", "d2", "d3"]
+    assert {e["drone"] for e in r["safety_events"] if e["kind"] == "link_lost"} == {"d3"}   # parsed by name
+    cfg, rule = fly_config(None, "sim://127.0.0.1:1", "trained", track="lemniscate", policies=("ours", "ds", "ds"),
+                           uris=tuple(f"udp://127.0.0.1:{19850 + i}" for i in range(3)))
+    assert cfg.policies == ("ours", "ds", "ds") and cfg.profile == "cf2x_paper" and "training" in rule
+    code, _, err = run(["bench", "loop", "--drones", "2,x", "--foxglove"], capsys)
+    assert code == 2 and "--drones" in err and "Traceback" not in err
+
+
 # 2 -- examples fly the shipped policies; messages with enough digits ------------------------
 
 def test_the_room_yaml_example_flies_the_shipped_policies(tmp_path, capsys):

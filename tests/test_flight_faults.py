@@ -28,14 +28,20 @@ def pols(tmp_path_factory):
             "opp": str(make_hold_policy(d / "opp.onnx", "solo36", "lemniscate", False))}
 
 
-def run(pols, tmp_path, faults, *, lockstep=True, timeout_s=3.0):
-    cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
-                       timeout_s=timeout_s, log=tmp_path / "f.mcap")
+def checked_dry_run(cfg: FlightConfig, faults, lockstep: bool):
+    """dry_run; every simulated drone ends with its motors off and the log is complete."""
     result = dry_run(cfg, lockstep=lockstep, faults=faults).to_json()
     for d in result["drones_final"]:
         assert d["motors_off"] and d["thrust_n"] == 0.0, d
-    data = read_log(tmp_path / "f.mcap")
+    data = read_log(cfg.log)
     assert data.complete and data.summary["end"] == result["end"]
+    return result, data
+
+
+def run(pols, tmp_path, faults, *, lockstep=True, timeout_s=3.0):
+    cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
+                       timeout_s=timeout_s, log=tmp_path / "f.mcap")
+    result, data = checked_dry_run(cfg, faults, lockstep)
     logged = [(m["kind"], m["drone"], m["action"]) for _, m in data.messages("/safety")]
     assert logged == [(e["kind"], e["drone"], e["action"]) for e in result["safety_events"]]
     assert any(m.get("kind") == "fault" for _, m in data.messages("/event"))

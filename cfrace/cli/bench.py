@@ -144,35 +144,86 @@ def bench_loop_cmd(
                                                                                   "to it, as `cfrace fly` does."),
     compare_pose_stream: int = typer.Option(0, help="N > 0: the loop without and with the pose stream, "
                                                     "alternating, N runs each of --duration-s, in one run."),
+    drones: str = typer.Option("2", help="Drones per run; a list (2,4,8) runs each in turn and prints the "
+                                         "compute figures as ratios to the first."),
 ):
-    """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
-    from cfrace.flight.benchloop import bench_loop, compare_pose_stream as compare
-
+    """Flight-loop timing for N drones (2 by default) at 100 Hz, real time against the simulated Crazyflies."""
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
+    counts = drone_counts(drones)
     options = dict(track=track, profile=profile, rt_priority=rt_priority, policies=policies,
                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
-    if foxglove:
-        write_json(_foxglove_compare(duration_s, rounds, options | {"pose_stream": pose_stream}), json_out)
+    if foxglove or compare_pose_stream > 0:   # a comparison for each drone count
+        docs = [_foxglove_compare(duration_s, rounds, options | {"pose_stream": pose_stream, "drones": n})
+                if foxglove else _pose_stream_compare(duration_s, compare_pose_stream, options | {"drones": n})
+                for n in counts]
+        write_json(docs[0] if len(docs) == 1 else {"runs": docs}, json_out)
         return
-    if compare_pose_stream > 0:
-        c = compare(duration_s, compare_pose_stream, **options)
-        t = Table(title=f"pose stream: median of {compare_pose_stream} run(s) each, {duration_s:g} s, alternating")
-        for col in ("", "without", "with", "with / without"):
-            t.add_column(col)
-        for k in c["without"]:
-            t.add_row(k, str(c["without"][k]), str(c["with"][k]), str(c["ratio_with_over_without"].get(k, "")))
-        console.print(t)
-        console.print(f"load average {c['load_avg']}")
-        write_json(c, json_out)
-        return
-    r = bench_loop(duration_s, floor_s=floor_s, pose_stream=pose_stream, **options)
-    console.print(loop_table(r))
-    if r["floor"] is not None:
-        console.print(floor_line(r, floor_s), highlight=False)
-    console.print(goals_line(r))
-    write_json(r, json_out)
+    _loop_runs(counts, json_out, floor_s, duration_s, **options, pose_stream=pose_stream)
+
+
+def _pose_stream_compare(duration_s: float, rounds: int, options: dict) -> dict:
+    """The loop without and with the pose stream, alternating (cfrace.flight.benchloop): a table."""
+    from cfrace.flight.benchloop import compare_pose_stream
+
+    c = compare_pose_stream(duration_s, rounds, **options)
+    t = Table(title=f"pose stream, {options.get('drones', 2)} drones: median of {rounds} run(s) each, "
+                    f"{duration_s:g} s, alternating")
+    for col in ("", "without", "with", "with / without"):
+        t.add_column(col)
+    for k in c["without"]:
+        t.add_row(k, str(c["without"][k]), str(c["with"][k]), str(c["ratio_with_over_without"].get(k, "")))
+    console.print(t)
+    console.print(f"load average {c['load_avg']}")
+    return c
+
+
+def drone_counts(drones: str) -> list[int]:
+    """The drone counts of ``--drones`` ("2,4,8"), 2 to 16 each."""
+    try:
+        counts = [int(x) for x in drones.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--drones: numbers like 2,4,8, got {drones!r}") from None
+    if not counts or any(not 2 <= n <= 16 for n in counts):
+        raise ConfigError(f"--drones: 2 to 16 drones per run, got {drones!r}")
+    return counts
+
+
+def _loop_runs(counts: list[int], json_out, floor_s: float, duration_s: float, **options) -> None:
+    """bench_loop for each drone count: tables, ratios to the first, JSON."""
+    from cfrace.flight.benchloop import bench_loop
+
+    runs = []
+    for n in counts:
+        r = bench_loop(duration_s, floor_s=floor_s if not runs else 0.0, drones=n, **options)
+        runs.append(r)
+        console.print(loop_table(r))
+        if r["floor"] is not None:
+            console.print(floor_line(r, floor_s), highlight=False)
+        console.print(goals_line(r))
+    if len(runs) > 1:
+        console.print(ratio_line(runs), highlight=False)
+    write_json(runs[0] if len(runs) == 1 else {"runs": runs, "ratios": loop_ratios(runs)}, json_out)
+
+
+def loop_ratios(runs: list[dict]) -> list[dict]:
+    """Per run: drones and compute p50 / p99 and skipped ticks, with compute as a ratio to the first run."""
+    base = runs[0]["loop"]["compute_ms"]
+    out = []
+    for r in runs:
+        c = r["loop"]["compute_ms"]
+        out.append({"drones": r["drones"], "compute_p50_ms": c["p50"], "compute_p99_ms": c["p99"],
+                    "p50_ratio": round(c["p50"] / base["p50"], 2) if c["p50"] and base["p50"] else None,
+                    "p99_ratio": round(c["p99"] / base["p99"], 2) if c["p99"] and base["p99"] else None,
+                    "skipped": r["loop"].get("skipped"), "end": r["end"]})
+    return out
+
+
+def ratio_line(runs: list[dict]) -> str:
+    parts = [f"{x['drones']} drones: compute p50 {x['compute_p50_ms']} ms (x{x['p50_ratio']}), p99 "
+             f"{x['compute_p99_ms']} ms (x{x['p99_ratio']}), skipped {x['skipped']}" for x in loop_ratios(runs)]
+    return "one run, ratios to the first: " + "; ".join(parts)
 
 
 #: (label, key in the loop figures) compared by `bench loop --foxglove`
@@ -200,7 +251,8 @@ def _foxglove_compare(duration_s: float, rounds: int, options: dict) -> dict:
             console.print(f"round {i + 1}, {name}: compute p99 {r['loop']['compute_ms']['p99']:.3f} ms, "
                           f"jitter p99 {r['loop']['period_jitter_ms']['p99']:.3f} ms, end {r['end']}",
                           highlight=False)
-    t = Table(title=f"flight loop and Foxglove: medians of {rounds} alternating runs of {duration_s:g} s each (ms)")
+    t = Table(title=f"flight loop and Foxglove, {options.get('drones', 2)} drones: medians of {rounds} alternating "
+                    f"runs of {duration_s:g} s each (ms)")
     names = [n for n, _, _ in FOXGLOVE_CONFIGS]
     for col in ("figure", *names, *[f"{n} / {names[0]}" for n in names[1:]]):
         t.add_column(col, justify="right" if col != "figure" else "left")
@@ -219,7 +271,7 @@ def _foxglove_compare(duration_s: float, rounds: int, options: dict) -> dict:
 def loop_table(r: dict) -> Table:
     """The figures of a bench_loop result as a table (ms)."""
     loop = r["loop"]
-    t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, two drones "
+    t = Table(title=f"flight loop, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz, {r.get('drones', 2)} drones "
                     f"({r['policies']}), ms")
     for col in ("figure", "p50", "p99", "max", "goal (p99)"):
         t.add_column(col)

@@ -13,6 +13,8 @@ from cfrace.cli.common import write_json
 from rich.console import Console
 from rich.table import Table
 
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE
+
 # tables are wide: piped output gets 160 columns unless COLUMNS says otherwise
 console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 160)
 
@@ -69,8 +71,14 @@ def eval_cmd(
 
 def race_cmd(
     track: str = _TRACK,
-    ego: str = typer.Option(..., "--ego", help="ego policy (drone 0): path or short name"),
-    opp: str = typer.Option(..., "--opp", help="opponent policy (drone 1): path or short name"),
+    ego: Optional[str] = typer.Option(None, "--ego", help="ego policy (drone 0): path or short name"),
+    opp: Optional[str] = typer.Option(None, "--opp", help="opponent policy (drone 1): path or short name"),
+    entrants: Optional[str] = typer.Option(None, "--entrants",
+                                           help="N-drone race instead of --ego/--opp: A,B,C,D (paths or short "
+                                                "names, repeats allowed; drone k flies the k-th)"),
+    opponent_rule: str = typer.Option(DEFAULT_OPPONENT_RULE, "--opponent-rule",
+                                      help="with --entrants (more than 2): which drone a policy without its own "
+                                           "rule observes: nearest | ahead | track"),
     obstacles: bool = _OBST,
     races: int = typer.Option(50, "--races", min=1, help="races (half of them swap the starting slots)"),
     laps: int = _LAPS, seed: int = _SEED, time_limit: Optional[float] = _LIMIT, profile: Optional[str] = _PROFILE,
@@ -79,8 +87,22 @@ def race_cmd(
     start: str = typer.Option("gate", "--start", help="gate: in the air before a random gate (the paper's "
                                                       "races); ground: side by side on the floor before gate 0"),
 ) -> None:
-    """Head-to-head races: the first to complete the laps wins; a crash of both is a draw."""
+    """Head-to-head races: the first to complete the laps wins; a crash of both is a draw. With
+    --entrants: races of N drones, finishing order, win rates, crash causes, contacts by pair."""
+    from cfrace.errors import ConfigError
     from cfrace.evaluate.race import race
+
+    if entrants is not None:
+        if ego is not None or opp is not None:
+            raise ConfigError("give either --entrants A,B,... or --ego and --opp, not both")
+        names = [x.strip() for x in entrants.split(",")]
+        if any(not x for x in names):
+            raise ConfigError(f"--entrants {entrants!r}: an empty name in the list")
+        _field_race(track, names, obstacles, races, laps, seed, time_limit, profile, json_out, plot, start,
+                    opponent_rule)
+        return
+    if ego is None or opp is None:
+        raise ConfigError("give --ego and --opp (two drones) or --entrants A,B,C,... (N drones)")
 
     r = race(track, ego, opp, obstacles, races, laps, seed, time_limit, profile, plot, start=start)
     rates = r.rates()
@@ -108,6 +130,35 @@ def race_cmd(
         console.print(f"wrote {p}")
 
 
+def _field_race(track, names, obstacles, races, laps, seed, time_limit, profile, json_out, plot, start,
+                rule) -> None:
+    from cfrace.evaluate.field import race_field
+
+    r = race_field(track, names, obstacles, races, laps, seed, time_limit, profile, plot, start=start,
+                   opponent_rule=rule)
+    n = len(r.entrants)
+    t = Table(title=f"{n}-drone races on {r.track}{' with obstacles' if r.obstacles else ''}: {r.races} races x "
+                    f"{r.laps} laps, opponent rule {r.opponent_rule} ({r.wall_s:.1f} s)")
+    for col in ("drone", "policy", "win rate", "mean place", *(f"P{p}" for p in range(1, n + 1)), "lap time [s]",
+                "crashes", "crash causes"):
+        t.add_column(col, justify="left" if col in ("drone", "policy", "crash causes") else "right")
+    causes = r.crash_causes()
+    for k, name in enumerate(r.entrants):
+        cells = [str(int((r.places[:, k] == p).sum())) for p in range(1, n + 1)]
+        why = ", ".join(f"{c} {v}" for c, v in causes[k].items() if v)
+        t.add_row(f"{k} {name}", r.policies[k], f"{r.win_rates()[k]:.0%}", f"{r.places[:, k].mean():.2f}", *cells,
+                  _f(r.stats[k]["lap_time_s"]), str(r.stats[k]["crashes"]), why or "–")
+    console.print(t)
+    won = "; ".join(f"{p} {v:.0%}" for p, v in r.policy_win_rates().items())
+    console.print(f"first place by policy: {won}; no winner {(r.winner < 0).mean():.0%}")
+    pairs = ", ".join(f"{a}-{b} {c['contacts']} ({c['crashes_in_contact']} crashes)"
+                      for c in r.contacts_by_pair() for a, b in [c["pair"]])
+    console.print(f"drone-drone contacts by pair: {pairs}")
+    _write_json(json_out, r.to_json())
+    for p in r.plots:
+        console.print(f"wrote {p}")
+
+
 def tournament_cmd(
     policies: List[str] = typer.Argument(..., help="two or more policy paths or short names"),
     track: str = _TRACK, obstacles: bool = _OBST,
@@ -117,9 +168,24 @@ def tournament_cmd(
     heatmap: Optional[Path] = typer.Option(None, "--heatmap", help="write the win-rate heatmap PNG here"),
     ray: bool = typer.Option(False, "--ray", help="spread the pairs over Ray workers (a local instance by default)"),
     address: Optional[str] = typer.Option(None, "--address", help="with --ray: the Ray cluster's address"),
+    field_size: Optional[int] = typer.Option(None, "--field", min=2,
+                                             help="free-for-all: every FIELD-subset of the policies races "
+                                                  "--races times; ratings from the placings"),
+    opponent_rule: str = typer.Option(DEFAULT_OPPONENT_RULE, "--opponent-rule",
+                                      help="with --field > 2: nearest | ahead | track"),
 ) -> None:
-    """Every pair races; a matrix of win rates (row vs column), draws apart, like the paper's Fig. 6."""
+    """Every pair races; a matrix of win rates (row vs column), draws apart, like the paper's Fig. 6.
+    With --field N: a free-for-all of N-drone races with an Elo-scale rating."""
     from cfrace.evaluate.race import tournament
+
+    if field_size is not None:
+        if ray or address:
+            from cfrace.errors import ConfigError
+
+            raise ConfigError("--field races in one process; drop --ray/--address")
+        _free_for_all(list(policies), track, field_size, obstacles, races, laps, seed, time_limit, profile,
+                      json_out, heatmap, opponent_rule)
+        return
 
     runner = None
     if ray or address:
@@ -140,6 +206,24 @@ def tournament_cmd(
         cells = ["–" if r.win_rate[i][j] is None else f"{r.win_rate[i][j]:.0%} ({r.draw_rate[i][j]:.0%})"
                  for j in range(len(r.policies))]
         t.add_row(n, *cells, _f(r.average_win_rate()[i], ".0%"))
+    console.print(t)
+    _write_json(json_out, r.to_json())
+    for p in r.plots:
+        console.print(f"wrote {p}")
+
+
+def _free_for_all(policies, track, field_size, obstacles, races, laps, seed, time_limit, profile, json_out, plot,
+                  rule) -> None:
+    from cfrace.evaluate.field import free_for_all
+
+    r = free_for_all(policies, track, field_size, obstacles, races, laps, seed, time_limit, profile, plot,
+                     opponent_rule=rule)
+    t = Table(title=f"free-for-all on {r.track}: fields of {r.field_size}, {len(r.heats)} heats x {r.races} races, "
+                    f"{r.laps} laps, opponent rule {r.opponent_rule} ({r.wall_s:.1f} s)")
+    for col in ("policy", "rating", "races", "wins", "mean place"):
+        t.add_column(col, justify="left" if col == "policy" else "right")
+    for i in sorted(range(len(r.policies)), key=lambda i: -r.rating[i]):
+        t.add_row(r.policies[i], f"{r.rating[i]:.0f}", str(r.starts[i]), str(r.wins[i]), f"{r.mean_place[i]:.2f}")
     console.print(t)
     _write_json(json_out, r.to_json())
     for p in r.plots:

@@ -13,6 +13,7 @@ from rich.console import Console
 from rich.table import Table
 
 from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, write_json
+from cfrace.errors import ConfigError
 
 console = Console(stderr=True)
 out = Console()
@@ -122,6 +123,32 @@ def loop_table(loop: dict, title: str | None = None) -> Table:
     return t
 
 
+def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:
+    """The policy of every drone from --ego/--opp (two), or --policies P1,...,PN, or one policy and
+    --drones N (every drone flies it). ConfigError (one line) on a mix that does not add up."""
+    from cfrace.flight.config import MAX_DRONES, split_list
+
+    if policies is not None:
+        if ego is not None or opp is not None:
+            raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
+        specs = split_list(policies) or ()
+        if len(specs) == 1 and drones:
+            specs = specs * drones
+    elif ego is not None and opp is not None:
+        specs = (ego, opp)
+        if drones not in (None, 2):
+            raise ConfigError(f"--drones {drones} with --ego/--opp: give --policies P1,...,P{drones} instead")
+    elif ego is not None and drones:
+        specs = (ego,) * drones
+    else:
+        raise ConfigError("give --ego and --opp (two drones) or --policies P1,...,PN")
+    if drones is not None and len(specs) != drones:
+        raise ConfigError(f"--drones {drones} but {len(specs)} policies given ({','.join(specs)})")
+    if not 2 <= len(specs) <= MAX_DRONES:
+        raise ConfigError(f"a race needs 2 to {MAX_DRONES} drones, got {len(specs)}")
+    return tuple(specs)
+
+
 def announce(meta: dict, con: Console = console) -> None:
     """One line per drone and the limits, printed once everything answered, before arming."""
     if meta.get("profile"):
@@ -166,8 +193,9 @@ def register(app: typer.Typer) -> None:
         track: Optional[str] = typer.Option(None, help="Track name or YAML path."),
         ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path (flies uris[0])."),
         opp: Optional[str] = typer.Option(None, help="Opponent policy (flies uris[1])."),
-        uris: Optional[str] = typer.Option(None, help="Link URIs ego,opp: radio://0/80/2M/E7E7E7E7E1,radio://1/90/2M/E7E7E7E7E2 "
-                                                      "(one Crazyradio per drone), udp://127.0.0.1:19850,..."),
+        uris: Optional[str] = typer.Option(None, help="Link URIs, one per drone: radio://0/80/2M/E7E7E7E7E1,... "
+                                                      "(at most 4 per Crazyradio at 100 Hz), udp://127.0.0.1:19850,..."),
+        policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one per URI."),
         mocap: Optional[str] = typer.Option(None, help="Required: vicon://HOST, optitrack://HOST, qualisys://HOST, "
                                                        "vrpn://HOST, replay://LOG.mcap, sim://HOST:PORT."),
         bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
@@ -212,17 +240,17 @@ def register(app: typer.Typer) -> None:
                                                           "(the drones of --hover-drones, one after the other)."),
         hover_drones: str = typer.Option("0,1", help="--hover: which drones (0 ego, 1 opp)."),
     ):
-        """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
+        """Race 2 (--ego/--opp) or N (--policies) Crazyflies from motion capture with ONNX policies at 100 Hz."""
         from cfrace.flight.config import split_list
 
         safety = {k: v for k, v in (("geofence_margin_m", geofence_margin_m), ("speed_max_mps", speed_max_mps),
                                     ("tilt_max_deg", tilt_max_deg)) if v is not None}
         if log is None:
             log = Path("flights") / f"fly-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
-        cfg, rule = fly_config(config, mocap, profile, track=track, ego=ego, opp=opp, uris=split_list(uris),
-                               bodies=split_list(bodies), laps=laps, log=log, obstacles=obstacles,
-                               foxglove_port=foxglove, timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority,
-                               safety_overrides=safety, loop_cpu=loop_cpu,
+        cfg, rule = fly_config(config, mocap, profile, track=track, ego=ego, opp=opp, policies=split_list(policies),
+                               uris=split_list(uris), bodies=split_list(bodies), laps=laps, log=log,
+                               obstacles=obstacles, foxglove_port=foxglove, timeout_s=timeout_s, quiet=quiet,
+                               rt_priority=rt_priority, safety_overrides=safety, loop_cpu=loop_cpu,
                                prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3,
                                velocity_alpha=velocity_alpha,
                                latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
@@ -239,7 +267,6 @@ def register(app: typer.Typer) -> None:
 def fly_config(config: Path | None, mocap: str | None, profile: str | None, **options):
     """`fly`'s FlightConfig (the config file, then the options) and the words of its profile rule.
     ConfigError for what real drones cannot fly without: --mocap, --uris."""
-    from cfrace.errors import ConfigError
     from cfrace.flight.config import load_flight_file, make_config
 
     from_file = load_flight_file(config) if config else {}
@@ -249,7 +276,7 @@ def fly_config(config: Path | None, mocap: str | None, profile: str | None, **op
     name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
                                 _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
     if not cfg.uris:
-        raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+        raise ConfigError("missing --uris (one link URI per drone)")
     return replace(cfg, profile=name), rule
 
 

@@ -50,8 +50,10 @@ def serve_cmd(
 @sim_app.command("dry-run")
 def dry_run_cmd(
     track: str = typer.Option(..., help="Track name or YAML path."),
-    ego: str = typer.Option(..., help="Ego policy: ours/ds/ss/dm or an .onnx path."),
-    opp: str = typer.Option(..., help="Opponent policy."),
+    ego: Optional[str] = typer.Option(None, help="Ego policy: ours/ds/ss/dm or an .onnx path."),
+    opp: Optional[str] = typer.Option(None, help="Opponent policy."),
+    policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN (repeats allowed)."),
+    drones: Optional[int] = typer.Option(None, min=2, help="N drones; one --policies entry (or --ego): all fly it."),
     laps: int = typer.Option(3, help="Laps to win."),
     profile: Optional[str] = typer.Option(None, help=f"Drone profile, simulated and flown (default {DEFAULT_PROFILE}, "
                                                       "as `fly` and `sim serve`; 'trained': the one the ego "
@@ -61,11 +63,11 @@ def dry_run_cmd(
     config: Optional[Path] = typer.Option(None, help="The flight config YAML of `cfrace fly --config`: the dry-run "
                                                      "takes its profile, obstacles and safety limits (the room's "
                                                      "URIs and mocap are not used), so it flies what `fly` will."),
-    bodies: str = typer.Option("cf1,cf2", help="Mocap body names ego,opp."),
+    bodies: Optional[str] = typer.Option(None, help="Mocap body names, one per drone (default cf1,...,cfN)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
     log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
     foxglove: Optional[int] = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
-    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp],...: mocap_dropout_short, mocap_dropout_long, "
+    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp|dK],...: mocap_dropout_short, mocap_dropout_long, "
                                                     "pose_outlier, geofence, nan_policy, link_loss, stall_50ms, "
                                                     "stall_200ms, sigterm, sigint."),
     lockstep: bool = typer.Option(False, "--lockstep", help="No wall clock, no cflib: the sim advances one tick "
@@ -96,19 +98,20 @@ def dry_run_cmd(
     pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream",
                                      help="Stream each drone's mocap pose to it (external position)."),
 ):
-    """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
-    from cfrace.cli.flight import race_and_report
+    """Race 2 (--ego/--opp) or N (--policies, --drones) simulated Crazyflies through the whole flight stack
+    (real cflib over UDP)."""
+    from cfrace.cli.flight import race_and_report, race_policies
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
-    the_track = load_track(track)
-    room, obstacles, profile, rule = _room(config, profile, obstacles, the_track, ego)
-    cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
-                       **({"safety": room["safety"]} if "safety" in room else {}),
-                       bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
-                       foxglove_port=foxglove,
+    specs, the_track = race_policies(ego, opp, policies, drones), load_track(track)
+    room, obstacles, profile, rule = _room(config, profile, obstacles, the_track, specs[0])
+    cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (), laps=laps,
+                       profile=profile, obstacles=obstacles, **({"safety": room["safety"]} if "safety" in room else {}),
+                       bodies=split_list(bodies) or ("cf1", "cf2"), log=log, timeout_s=timeout_s,
+                       quiet=quiet or lockstep, foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
                        start=start, landing=landing, pose_stream=pose_stream)

@@ -107,6 +107,11 @@ def train_cmd(
                                                            "(default: the track's spawn.ground_start_prob)"),
     keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
                                           help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
+    drones: Optional[int] = typer.Option(None, "--drones", min=2,
+                                         help="drones per world for ours / dm (default 2): an N-drone race"),
+    opponent_rule: Optional[str] = typer.Option(None, "--opponent-rule",
+                                                help="with --drones > 2: which drone each one observes: "
+                                                     "nearest (default) | ahead | track"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
@@ -142,7 +147,8 @@ def train_cmd(
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
                           fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
-                          ground_start_prob=ground_start_prob)
+                          ground_start_prob=ground_start_prob, drones=drones,
+                          opponent_rule=opponent_rule or TrainConfig.opponent_rule)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     ippo = cfg.ippo()

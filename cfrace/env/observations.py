@@ -87,18 +87,117 @@ def build_observation(pos, vel, rot, target, gate_corners, layout: ObsLayout, op
     return xp.concatenate(parts, -1)
 
 
+def _norm(x):
+    """|x| over the last axis (torch or numpy)."""
+    if array_module(x) is np:
+        return np.linalg.norm(x, axis=-1)
+    import torch
+
+    return torch.linalg.vector_norm(x, dim=-1)
+
+
+def polyline(gates):
+    """The race line through the gate centres of gates (G, 4): (cum (G,) m from gate 0 to gate g,
+    lap length m). Torch or numpy."""
+    xp = array_module(gates)
+    seg = _norm(gates[:, :3] - xp.roll(gates, 1, 0)[:, :3])
+    parts = [gates[:1, 0] * 0, seg[1:].cumsum(0)]                     # 0 m at gate 0, then the sums
+    cum = np.concatenate(parts) if xp is np else xp.cat(parts)
+    return cum, float(seg.sum())
+
+
+def track_position(gates, cum, lap_len: float, start_gate, gates_passed, target, pos):
+    """(..., D) m flown along the race line since the start gate: the gates passed along the line,
+    less the straight distance still to the target gate. start_gate (...,), gates_passed and target
+    (..., D), pos (..., D, 3); torch or numpy (the flight loop: one race, numpy)."""
+    xp = array_module(pos)
+    g = gates.shape[0]
+    absolute = start_gate[..., None] + gates_passed     # index of the target gate
+    laps = (absolute // g).astype(np.float64) if xp is np else (absolute // g).float()
+    coord = laps * lap_len + cum[absolute % g]
+    return coord - cum[start_gate][..., None] - _norm(pos - gates[target][..., :3])
+
+
+#: rules for which one opponent each drone observes in a field of N > 2 drones (with 2 drones
+#: every rule gives the other drone). Keys between candidates j of drone i, smallest wins:
+#:   nearest  the nearest drone in space, |p_j - p_i|
+#:   ahead    the nearest drone ahead on the track (smallest s_j - s_i > 0, s = metres flown along
+#:            the gate polyline); the leader, with nobody ahead, sees the nearest one behind it
+#:   track    the nearest drone along the track, |s_j - s_i|, ahead or behind
+#: A crashed drone is chosen only when every other drone crashed too.
+OPPONENT_RULES = ("nearest", "ahead", "track")
+DEFAULT_OPPONENT_RULE = "nearest"   #: measured in docs/evaluation.md ("Swarm races: which opponent")
+_BEHIND = 1.0e4   #: m, ranks every drone behind after every drone ahead ("ahead")
+_DOWN = 1.0e6     #: m, ranks crashed drones after live ones
+_SELF = 1.0e9
+
+
+def choose_opponents(pos, track_pos, alive, rule: str = DEFAULT_OPPONENT_RULE):
+    """Index (..., N) of the opponent each drone observes; torch or numpy arrays.
+
+    pos (..., N, 3) world positions (m); track_pos (..., N) metres along the gate polyline from a
+    common origin (only differences are used; the "nearest" rule ignores it); alive (..., N) bool.
+    """
+    xp = array_module(pos)
+    n = pos.shape[-2]
+    if rule not in OPPONENT_RULES:
+        raise ValueError(f"unknown opponent rule {rule!r} (choose from {', '.join(OPPONENT_RULES)})")
+    if rule == "nearest":
+        diff = pos[..., None, :, :] - pos[..., :, None, :]          # [i, j] = p_j - p_i
+        key = (diff * diff).sum(-1)
+    else:
+        gap = track_pos[..., None, :] - track_pos[..., :, None]     # [i, j] = s_j - s_i
+        key = xp.where(gap > 0, gap, _BEHIND - gap) if rule == "ahead" else abs(gap)
+    key = key + xp.where(alive[..., None, :], 0.0, _DOWN) + _SELF * (xp.eye(n) if xp is np else
+                                                                        xp.eye(n, device=pos.device))
+    return key.argmin(-1) if xp is not np else np.argmin(key, -1)
+
+
+def gather_drones(x, idx):
+    """x (..., N, K) -> (..., M, K): x[..., idx[..., m], :] for idx (..., M) (torch or numpy)."""
+    xp = array_module(x)
+    if xp is np:
+        return np.take_along_axis(x, idx[..., None], -2)
+    return x.gather(-2, idx[..., None].expand(*idx.shape, x.shape[-1]))
+
+
 def build_observations(pos: torch.Tensor, vel: torch.Tensor, rot: torch.Tensor, target: torch.Tensor,
-                       gate_corners: torch.Tensor, layout: ObsLayout) -> torch.Tensor:
+                       gate_corners: torch.Tensor, layout: ObsLayout, opponent: torch.Tensor | None = None
+                       ) -> torch.Tensor:
     """Observations of every drone in a race: tensors shaped (..., N, ...) with N drones on
-    the second-to-last batch axis. With N = 2 the opponent of drone i is drone 1 - i."""
+    the second-to-last batch axis. ``opponent`` (..., N): the drone each one observes
+    (choose_opponents); None with N = 2: the other drone (drone 1 - i)."""
     opp_pos = opp_vel = None
     if layout.opponent:
-        if pos.shape[-2] != 2:
-            raise ValueError(f"layout {layout.name} needs exactly 2 drones, got {pos.shape[-2]}")
-        opp_pos, opp_vel = pos.flip(-2), vel.flip(-2)
+        n = pos.shape[-2]
+        if opponent is None:
+            if n != 2:
+                raise ValueError(f"layout {layout.name} with {n} drones needs the opponent of each (choose_opponents)")
+            opp_pos, opp_vel = pos.flip(-2), vel.flip(-2)
+        else:
+            opp_pos, opp_vel = gather_drones(pos, opponent), gather_drones(vel, opponent)
     return build_observation(pos, vel, rot, target, gate_corners, layout, opp_pos, opp_vel)
 
 
-def critic_observations(obs: torch.Tensor) -> torch.Tensor:
-    """Joint state for the critics: [own obs, opponent obs] per drone, (..., 2, 2 D)."""
-    return array_module(obs).cat([obs, obs.flip(-2)], dim=-1)
+def critic_order(opponent: torch.Tensor) -> torch.Tensor:
+    """(..., N, N) drone order of each drone's joint state: itself, the opponent it observes, then
+    the others by index. With N = 2: [i, 1 - i]."""
+    import torch
+
+    n = opponent.shape[-1]
+    j = torch.arange(n, device=opponent.device)
+    i = j[:, None]
+    key = torch.where(j == i, 0, torch.where(j == opponent[..., None], 1, 2 + j))   # (..., N, N)
+    return key.argsort(-1)
+
+
+def critic_observations(obs: torch.Tensor, opponent: torch.Tensor | None = None) -> torch.Tensor:
+    """Joint state for the critics, (..., N, N D): per drone its own observation, the observed
+    opponent's, then the other drones' (critic_order). None with N = 2: [own obs, other obs]."""
+    if opponent is None:
+        return array_module(obs).cat([obs, obs.flip(-2)], dim=-1)
+    order = critic_order(opponent)                                    # (..., N, N)
+    n, d = obs.shape[-2], obs.shape[-1]
+    joint = obs[..., None, :, :].expand(*obs.shape[:-2], n, n, d)
+    joint = joint.gather(-2, order[..., None].expand(*order.shape, d))
+    return joint.reshape(*obs.shape[:-2], n, n * d)

@@ -1,4 +1,5 @@
-"""Batched race environment over the simulator: E worlds, A agents (2 multi-agent, 1 single-agent).
+"""Batched race environment over the simulator: E worlds, A agents (multi-agent: 2 by default, or
+N drones per world with ``drones``; single-agent: 1).
 
 Hooks in a fixed order per step: apply actions (action map) -> simulate 10 x 2 ms -> race
 bookkeeping -> reward terms -> dones -> observe -> auto-reset finished worlds.
@@ -16,10 +17,11 @@ import torch
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
-from cfrace.env.observations import build_observations, critic_observations, layout_for
+from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
+                                     critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
-from cfrace.track import Track
+from cfrace.track import Track, start_grid
 
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
@@ -42,13 +44,19 @@ class RaceEnv:
     def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
-                 rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False):
+                 rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False,
+                 drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
+        if drones is not None and (drones < 2 or not MULTI_AGENT[method]):
+            raise ValueError(f"drones: at least 2, and only for the multi-agent methods (got {drones} for {method})")
+        if opponent_rule not in OPPONENT_RULES:
+            raise ValueError(f"unknown opponent rule {opponent_rule!r} (choose from {', '.join(OPPONENT_RULES)})")
         self.track, self.profile, self.method = track, profile, method
         self.obstacles = obstacles and bool(track.obstacles)
         self.num_envs = num_envs
-        self.num_agents = 2 if MULTI_AGENT[method] else 1
+        self.num_agents = (drones or 2) if MULTI_AGENT[method] else 1
+        self.opponent_rule = opponent_rule   #: which drone each one observes when N > 2 (observations.py)
         self.device = torch.device(device)
         self.randomize, self.start_mode, self.scales = randomize, start, rewards
         self.random_phase = random_phase   #: reset(): first races get a random share of the time limit
@@ -60,16 +68,13 @@ class RaceEnv:
         self.max_steps = int(round(episode_s / POLICY_DT))
         self.sim = Simulator(track, profile, num_envs, self.num_agents, obstacles=self.obstacles, device=self.device,
                              seed=seed, compile=compile, rules=rules)
-        self.layout = layout_for(self.num_agents == 2, self.obstacles)
+        self.layout = layout_for(self.num_agents >= 2, self.obstacles)
         self.obs_dim = self.layout.dim
         self.critic_dim = self.obs_dim * self.num_agents
         self.gen = torch.Generator(device="cpu").manual_seed(seed)
         g = track.gate_array()
         self.gates = torch.as_tensor(g, dtype=torch.float32, device=self.device)           # (G, 4)
-        seg = torch.linalg.vector_norm(self.gates[:, :3] - self.gates.roll(1, 0)[:, :3], dim=-1)
-        seg[0] = torch.linalg.vector_norm(self.gates[0, :3] - self.gates[-1, :3])
-        self.cum = torch.cat([torch.zeros(1, device=self.device), seg[1:].cumsum(0)])     # to gate g from gate 0
-        self.lap_len = float(seg.sum())
+        self.cum, self.lap_len = polyline(self.gates)     # m to gate g from gate 0, m per lap
         e, a, dev = num_envs, self.num_agents, self.device
         self.steps = torch.zeros(e, dtype=torch.int64, device=dev)
         self.start_gate = torch.zeros(e, dtype=torch.int64, device=dev)
@@ -88,11 +93,9 @@ class RaceEnv:
 
     def track_position(self) -> torch.Tensor:
         """(E, A) m flown along the gate polyline since the start gate (p of the overtaking term)."""
-        g = self.gates.shape[0]
-        absolute = self.start_gate.unsqueeze(-1) + self.sim.race.gates_passed     # index of the target gate
-        coord = (absolute // g).float() * self.lap_len + self.cum[absolute % g]
-        start = self.cum[self.start_gate].unsqueeze(-1)
-        return coord - start - self.dist_to_target()
+        r = self.sim.race
+        return track_position(self.gates, self.cum, self.lap_len, self.start_gate, r.gates_passed, r.target,
+                              self.sim.pos)
 
     def dist_to_target(self, pos: torch.Tensor | None = None) -> torch.Tensor:
         pos = self.sim.pos if pos is None else pos
@@ -101,6 +104,10 @@ class RaceEnv:
     def observe(self) -> tuple[torch.Tensor, torch.Tensor]:
         s = self.sim
         vel = (s.pos - self.mid_pos) / MOCAP_DT if self.flight_obs else s.vel
+        if self.num_agents > 2:
+            opp = choose_opponents(s.pos, self.track_position(), ~s.race.crashed, self.opponent_rule)
+            obs = build_observations(s.pos, vel, s.rot(), s.race.target, s.gate_corners, self.layout, opp)
+            return obs, critic_observations(obs, opp)
         obs = build_observations(s.pos, vel, s.rot(), s.race.target, s.gate_corners, self.layout)
         critic = critic_observations(obs) if self.num_agents == 2 else obs
         return obs, critic
@@ -119,7 +126,9 @@ class RaceEnv:
     def spawn(self, n: int):
         """Start poses for n worlds: a random gate start (before a gate, on its +n side) or a ground
         start before gate 0. Drones side by side (track spawn ``opponent_offset``), one of them
-        ``opponent_stagger`` m further back (which one is random). Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
+        ``opponent_stagger`` m further back (which one is random). More drones: the track's start
+        grid (cfrace.track.start_grid), each drone in a random slot.
+        Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
         sp, a, g = self.track.spawn, self.num_agents, self.gates.shape[0]
         if self.start_mode == "ground":
             ground = torch.ones(n, dtype=torch.bool)
@@ -145,6 +154,11 @@ class RaceEnv:
             swap = (self._rand(n) < 0.5).unsqueeze(-1)
             offs = torch.where(swap, half.flip(0), half) * sp.opponent_offset         # (n, 2) m sideways
             back = (torch.where(swap, half.flip(0), half) + 0.5) * sp.opponent_stagger  # (n, 2) m along +n: 0 or stagger
+            pos = centre.unsqueeze(1) + side.unsqueeze(1) * offs.unsqueeze(-1) + normal.unsqueeze(1) * back.unsqueeze(-1)
+        elif a > 2:
+            grid = torch.as_tensor(start_grid(sp, self.track.gate, a), dtype=torch.float32, device=self.device)
+            slot = torch.rand(n, a, generator=self.gen).argsort(-1).to(self.device)     # drone -> slot
+            offs, back = grid[slot, 0], grid[slot, 1]                                    # (n, A) m
             pos = centre.unsqueeze(1) + side.unsqueeze(1) * offs.unsqueeze(-1) + normal.unsqueeze(1) * back.unsqueeze(-1)
         else:
             pos = centre.unsqueeze(1)
@@ -208,7 +222,7 @@ class RaceEnv:
         new_lap = lap_done & (sim.race.laps > self.laps_paid.unsqueeze(-1)) & lead
         self.laps_paid = torch.maximum(self.laps_paid, torch.where(new_lap, sim.race.laps, 0).amax(-1))
         track_pos = self.track_position()
-        ot = overtaking(track_pos, self.prev_track_pos) if self.num_agents == 2 else torch.zeros_like(progress)
+        ot = overtaking(track_pos, self.prev_track_pos) if self.num_agents >= 2 else torch.zeros_like(progress)
         ot = torch.where(alive, ot, torch.zeros_like(ot))
         terms = reward_terms(self.method, RewardInputs(actions, ev.gates, new_lap, lead, ev.contact, ev.crashed_now,
                                                        progress, ot, POLICY_DT), self.scales)
@@ -274,8 +288,8 @@ class RaceEnv:
             out["lap_time_s"] = lap[~lap.isnan()].mean().item()
         for i in range(self.num_agents):
             out[f"return_agent{i}"] = self.ep_return[done][:, i].mean().item()
-        if self.num_agents == 2:
+        if self.num_agents >= 2:
             out["lead_share_agent0"] = (self.ep_lead[done][:, 0] / steps).mean().item()
             score = r.gates_passed[done].float() * 1000 - torch.nan_to_num(self.ep_first_lap[done], nan=0.0)
-            out["win_share_agent0"] = (score[:, 0] > score[:, 1]).float().mean().item()
+            out["win_share_agent0"] = (score[:, 0] > score[:, 1:].amax(-1)).float().mean().item()
         return out

@@ -1,6 +1,6 @@
 """Reward terms of the paper's four training schemes, as named tensors (each one logged).
 
-All inputs are (E, A) tensors for E worlds and A agents (A = 2 multi-agent, 1 single-agent).
+All inputs are (E, A) tensors for E worlds and A agents (A >= 2 multi-agent, 1 single-agent).
 The paper's schemes with the authors' weights:
 - ours (sparse multi-agent): gate pass 10 if leading else 5; lap bonus 50 to the leader only, paid
   once per lap per race; rate cost (0.15 (a1^2 + a2^2) + 0.05 a3^2) dt; contact -0.1 per step;
@@ -12,6 +12,12 @@ The paper's schemes with the authors' weights:
   r_ot = 1[d_min < (p_opp - p) < d_max] ((p - p_opp)_t - (p - p_opp)_{t-1}), d_min -5 m, d_max 10 m,
   with p the distance flown along the gate-to-gate polyline; weighted like progress (x50, our choice:
   the paper gives no weight, and at weight 1 the term vanishes next to the x50 progress).
+N > 2 drones (our definitions; both reduce to the paper's with two): "leading" is first place
+(more gates than every other drone, ties broken by the distance to the next gate), so the lap
+bonus and the 10-point gate go to the race leader only; the overtaking term is the paper's term
+against each other drone, averaged over the N - 1 opponents (gaining a place on one drone inside
+the window pays what passing the only opponent pays in a two-drone race, divided by N - 1, so the
+term keeps its weight next to progress whatever N).
 """
 
 from __future__ import annotations
@@ -86,19 +92,31 @@ def reward_terms(method: str, x: RewardInputs, k: RewardScales = RewardScales())
 
 
 def leading(gates_passed: torch.Tensor, dist_to_target: torch.Tensor, alive: torch.Tensor) -> torch.Tensor:
-    """(E, 2) bool: the leader has passed more gates; on a tie, it is closer to its own next gate.
-    A crashed drone never leads a live one. Single agent (A = 1): always leading."""
-    if gates_passed.shape[-1] == 1:
+    """(E, A) bool: first place: more gates passed than every other drone; on a tie, closer to its own
+    next gate. A crashed drone never leads a live one. Single agent (A = 1): always leading."""
+    n = gates_passed.shape[-1]
+    if n == 1:
         return torch.ones_like(alive)
     score = gates_passed.to(dist_to_target.dtype) * 1000.0 - dist_to_target
     score = torch.where(alive, score, torch.full_like(score, -1e9))
-    other = score.flip(-1)
-    return score > other
+    if n == 2:
+        return score > score.flip(-1)
+    others = score.unsqueeze(-2).expand(*score.shape, n)                        # [i, j] = score_j
+    eye = torch.eye(n, dtype=torch.bool, device=score.device)
+    return score > torch.where(eye, torch.full_like(others, -torch.inf), others).amax(-1)
 
 
 def overtaking(track_pos: torch.Tensor, prev_track_pos: torch.Tensor, k: RewardScales = RewardScales()) -> torch.Tensor:
-    """(E, 2) m: paper's r_ot before weighting; track_pos p (E, 2) along the polyline."""
-    gap = track_pos.flip(-1) - track_pos                 # p_opp - p
-    inside = (gap > k.ot_min) & (gap < k.ot_max)
-    rel, prev_rel = track_pos - track_pos.flip(-1), prev_track_pos - prev_track_pos.flip(-1)
-    return inside.to(track_pos.dtype) * (rel - prev_rel)
+    """(E, A) m: paper's r_ot before weighting; track_pos p (E, A) along the polyline. With A > 2
+    the term against each other drone, averaged over the A - 1 of them (module docstring)."""
+    n = track_pos.shape[-1]
+    if n == 2:
+        gap = track_pos.flip(-1) - track_pos                 # p_opp - p
+        inside = (gap > k.ot_min) & (gap < k.ot_max)
+        rel, prev_rel = track_pos - track_pos.flip(-1), prev_track_pos - prev_track_pos.flip(-1)
+        return inside.to(track_pos.dtype) * (rel - prev_rel)
+    gap = track_pos.unsqueeze(-2) - track_pos.unsqueeze(-1)              # [i, j] = p_j - p_i
+    prev_gap = prev_track_pos.unsqueeze(-2) - prev_track_pos.unsqueeze(-1)
+    inside = (gap > k.ot_min) & (gap < k.ot_max)                          # the diagonal (0) is inside
+    gained = inside.to(track_pos.dtype) * (prev_gap - gap)               # (p_i - p_j)_t - (p_i - p_j)_{t-1}
+    return gained.sum(-1) / (n - 1)                                       # the diagonal adds 0

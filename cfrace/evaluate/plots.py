@@ -210,3 +210,84 @@ def plot_heatmap(path: Path, names: list[str], win: list[list[float | None]], dr
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def _race_place(track_pos: np.ndarray, places_final: np.ndarray, stopped: np.ndarray) -> np.ndarray:
+    """(T, D) place over time of one recorded race: by distance along the race line (1 = ahead);
+    a drone that has finished or crashed keeps the place the race gave it (places_final)."""
+    live_place = 1 + (track_pos[:, None, :] > track_pos[:, :, None]).sum(-1)
+    return np.where(stopped, places_final[None, :], live_place)
+
+
+def field_plots(plot_dir: Path, track: Track, obstacles: bool, names: list[str], rec: Recording,
+                places: np.ndarray) -> list[Path]:
+    """field_trajectories.png (every drone of each recorded race, top view, crashes marked x) and
+    field_positions.png (each drone's place over time in those races)."""
+    plt = _plt()
+    plot_dir = Path(plot_dir)
+    plot_dir.mkdir(parents=True, exist_ok=True)
+    worlds = list(rec.recorded)
+    d = len(names)
+    colours = plt.get_cmap("tab10")
+    fig, axes = plt.subplots(1, len(worlds), figsize=(5.0 * len(worlds), 6.0), squeeze=False, layout="constrained")
+    for ax, w in zip(axes[0], worlds):
+        draw_track(ax, track, obstacles, "top")
+        for k in range(d):
+            xyz, _, _ = _trace(rec, w, k)
+            if not len(xyz):
+                xyz = rec.pos[:1, rec.recorded.index(w), k]
+            ax.plot(xyz[:, 0], xyz[:, 1], color=colours(k % 10), lw=1.4, zorder=5,
+                    label=f"{names[k]} (P{places[w, k]})")
+            ax.plot(*xyz[0, :2], "o", color=colours(k % 10), ms=4, zorder=6)
+            _mark_end(ax, xyz, bool(rec.crashed[-1, w, k] and rec.crashed_now[:, w, k].any()), colours(k % 10))
+        ax.legend(loc="lower right", fontsize=7)
+        ax.set_title(f"race {w}: all {d} drones (x: crash; P: final place)", fontsize=9)
+    traj = plot_dir / "field_trajectories.png"
+    fig.savefig(traj, dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(len(worlds), 1, figsize=(9.0, 2.6 * len(worlds)), squeeze=False, sharex=True)
+    for ax, w in zip(axes[:, 0], worlds):
+        k_rec = rec.recorded.index(w)
+        act = rec.active[:, w, :]
+        stopped = ~act & (np.cumsum(act, 0) > 0)
+        place = _race_place(rec.track_pos[:, k_rec, :], places[w], stopped)
+        for k in range(d):
+            ax.step(rec.t, place[:, k] + 0.04 * (k - (d - 1) / 2), where="post", color=colours(k % 10), lw=1.5,
+                    label=names[k])
+            down = np.flatnonzero(rec.crashed_now[:, w, k] & act[:, k])
+            if down.size:
+                ax.plot(rec.t[down[0]], place[down[0], k], "x", color=colours(k % 10), ms=8, mew=2)
+        ax.set_ylim(d + 0.5, 0.5)
+        ax.set_yticks(range(1, d + 1))
+        ax.set_ylabel(f"race {w}\nplace")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(loc="upper right", fontsize=7, ncol=min(d, 4))
+    axes[-1, 0].set_xlabel("time [s] (place by distance along the race line; x: crash)")
+    fig.tight_layout()
+    pos = plot_dir / "field_positions.png"
+    fig.savefig(pos, dpi=110)
+    plt.close(fig)
+    return [traj, pos]
+
+
+def plot_ratings(path: Path, names: list[str], rating: list[float], mean_place: list[float], title: str = "") -> Path:
+    """Bar chart of the free-for-all ratings (Elo scale), mean place written on each bar."""
+    plt = _plt()
+    order = np.argsort(rating)[::-1]
+    fig, ax = plt.subplots(figsize=(1.2 * len(names) + 2.5, 4.0))
+    base = min(rating) - 50.0
+    bars = ax.bar([names[i] for i in order], [rating[i] - base for i in order], bottom=base, color="tab:blue")
+    for b, i in zip(bars, order):
+        ax.text(b.get_x() + b.get_width() / 2, rating[i] + 5, f"{rating[i]:.0f}\nplace {mean_place[i]:.2f}",
+                ha="center", va="bottom", fontsize=8)
+    ax.set_ylabel("rating (Elo scale)")
+    ax.grid(axis="y", alpha=0.3)
+    if title:
+        ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

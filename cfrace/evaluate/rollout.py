@@ -3,12 +3,14 @@
 Every (world, drone) slot is assigned a policy (or -1: motors off, a drone that drops and crashes,
 the "crashed opponent" of the speed comparison). Each step: for each policy, the observations of
 all its slots are built with the layout its metadata names (opponent block from the other drone of
-the world, or from a parked opponent when flying alone), ONE onnxruntime call gives all their
+the world; with more than two drones from the one the opponent rule picks, the policy's own
+``opponent_rule`` metadata or the race's; from a parked opponent when flying alone), ONE onnxruntime call gives all their
 actions, the action map uses the policy's own constants; then the simulator steps 10 x 2 ms.
 Nominal parameters (no domain randomisation), default crash rules.
 
 A world stops racing once a drone completed the laps or every drone is down (crashed or finished);
-the loop ends when every world has stopped or at the time limit.
+with ``until_all`` (fields of more than two: the finishing order) only once every drone is down.
+The loop ends when every world has stopped or at the time limit.
 """
 
 from __future__ import annotations
@@ -22,8 +24,9 @@ import torch
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.env.actions import action_to_command
-from cfrace.env.observations import build_observation
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
 from cfrace.env.race_env import RaceEnv
+from cfrace.sim.collisions import CONTACT_MARGIN
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant
 from cfrace.evaluate.metrics import RunSummary, summarize
@@ -59,6 +62,10 @@ class Recording:
     nan_actions: np.ndarray   # (W, D) int, steps with non-finite actions (replaced by motors off)
     laps: int
     wall_s: float = 0.0
+    track_pos: np.ndarray | None = None      # (T, K, D) m along the race line, worlds ``recorded``
+    pair_contacts: np.ndarray | None = None  # (W, D, D) int, new drone-drone contacts of each pair while racing
+    crash_partner: np.ndarray | None = None  # (W, D) int, the drone touched at the crash step (-1: none)
+    gates_passed: np.ndarray | None = None   # (W, D) int, gates passed at the end
 
     def summary(self) -> RunSummary:
         return summarize(self.active, self.speed, self.lap_stamp, self.contact, self.crashed_now, self.reason,
@@ -77,8 +84,8 @@ def start_poses(track: Track, profile: DroneProfile, n: int, drones: int, obstac
     i // 2, with the two slots swapped for odd i (half the races swap)."""
     if start not in ("gate", "ground"):
         raise ConfigError(f"--start: gate or ground, got {start!r}")
-    env = RaceEnv(track, profile, num_envs=1, method="ours" if drones == 2 else "ds", obstacles=obstacles,
-                  seed=seed, randomize=False, start=start)
+    env = RaceEnv(track, profile, num_envs=1, method="ours" if drones >= 2 else "ds", obstacles=obstacles,
+                  seed=seed, randomize=False, start=start, drones=drones if drones > 2 else None)
     m = (n + 1) // 2 if swap_pairs else n
     pos, quat, gate = env.spawn(m)
     target = gate.unsqueeze(-1).expand(m, drones).clone()
@@ -99,8 +106,11 @@ def parked_opponent(track: Track, profile: DroneProfile) -> torch.Tensor:
 
 def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list[Entrant], assign: np.ndarray,
             starts: Starts, laps: int, time_limit_s: float | None = None, record: tuple[int, ...] = (),
-            seed: int = 0, threads: int | None = None) -> Recording:
-    """Fly every world to the end; ``assign`` (W, D) int: entrant index per slot, -1 = motors off."""
+            seed: int = 0, threads: int | None = None, until_all: bool = False,
+            opponent_rule: str = DEFAULT_OPPONENT_RULE) -> Recording:
+    """Fly every world to the end; ``assign`` (W, D) int: entrant index per slot, -1 = motors off.
+    ``opponent_rule``: who a policy without its own ``opponent_rule`` metadata observes when there
+    are more than two drones (cfrace.env.observations.choose_opponents)."""
     import time
 
     assign = np.asarray(assign, dtype=np.int64)
@@ -116,9 +126,13 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
         iw, idr = np.nonzero(assign == p)
         if iw.size == 0:
             continue
-        if e.layout.opponent and d > 2:
-            raise ValueError("opponent observations need 1 or 2 drones per world")
         groups.append((e, iw, idr, torch.as_tensor(iw), torch.as_tensor(idr)))
+    rules = {e.meta.get("opponent_rule", opponent_rule) for e, *_ in groups if e.layout.opponent} if d > 2 else set()
+    gates = torch.as_tensor(track.gate_array(), dtype=torch.float32)
+    cum, lap_len = polyline(gates)
+    start_gate = starts.target[:, 0].to(torch.int64)
+    touch = 2.0 * (sim.radius + CONTACT_MARGIN)
+    eye = torch.eye(d, dtype=torch.bool)
     off = np.asarray(OFF_ACTION, np.float32)
     off_thrust, _ = action_to_command(off, profile.mass, profile.max_thrust_weights, profile.max_rates_deg)
     rec_ids = torch.as_tensor(record, dtype=torch.int64)
@@ -126,7 +140,10 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     r = Recording(np.zeros(0), np.zeros(shape, bool), np.zeros(shape, np.float32),
                   np.full(shape, np.nan, np.float32), np.zeros(shape, bool), np.zeros(shape, bool),
                   np.zeros(shape, np.int8), np.zeros(shape, bool), np.zeros((n_steps, len(record), d, 3), np.float32),
-                  tuple(record), np.zeros((w, d), np.int64), laps)
+                  tuple(record), np.zeros((w, d), np.int64), laps,
+                  track_pos=np.zeros((n_steps, len(record), d), np.float32),
+                  pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
+    prev_pairs = torch.zeros(w, d, d, dtype=torch.bool)
     finished = torch.zeros(w, d, dtype=torch.bool)
     over = torch.zeros(w, dtype=torch.bool)
     t0 = time.perf_counter()
@@ -137,10 +154,15 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
             thrust = np.full((w, d), off_thrust, np.float32)
             rates = np.zeros((w, d, 3), np.float32)
             pos, vel, rot, target = sim.pos, sim.vel, sim.rot(), sim.race.target
+            tpos = track_position(gates, cum, lap_len, start_gate, sim.race.gates_passed, target, pos)
+            opp = {rule: choose_opponents(pos, tpos, ~sim.race.crashed, rule) for rule in rules}
             for e, iw, idr, tw, td in groups:
                 opp_pos = opp_vel = None
                 if e.layout.opponent:
-                    if d == 2:
+                    if d > 2:
+                        oi = opp[e.meta.get("opponent_rule", opponent_rule)][tw, td]
+                        opp_pos, opp_vel = pos[tw, oi], vel[tw, oi]
+                    elif d == 2:
                         opp_pos, opp_vel = pos[tw, 1 - td], vel[tw, 1 - td]
                     else:
                         opp_pos, opp_vel = parked.expand(iw.shape[0], 3), torch.zeros(iw.shape[0], 3)
@@ -164,14 +186,26 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
             r.crashed_now[step] = ev.crashed_now.numpy()
             r.reason[step] = ev.reason.numpy().astype(np.int8)
             r.crashed[step] = race.crashed.numpy()
+            if d > 1:  # drone-drone contacts by pair: within contact distance at the step's end, both racing
+                dist = torch.cdist(sim.pos, sim.pos)
+                pairs = (dist < touch) & ev.contact.unsqueeze(-1) & ev.contact.unsqueeze(-2) & ~eye
+                racing = active.unsqueeze(-1) & active.unsqueeze(-2)
+                r.pair_contacts += (pairs & ~prev_pairs & racing).numpy()
+                partner = torch.where(pairs, dist, torch.inf).argmin(-1)
+                hit = ev.crashed_now & active & pairs.any(-1)
+                r.crash_partner[hit.numpy()] = partner[hit].numpy()
+                prev_pairs = pairs
             if len(record):
                 r.pos[step] = sim.pos[rec_ids].numpy()
+                r.track_pos[step] = track_position(gates, cum, lap_len, start_gate, race.gates_passed, race.target,
+                                                   sim.pos)[rec_ids].numpy()
             finished |= (race.laps >= laps) & active
-            over |= finished.any(-1) | (race.crashed | finished).all(-1)
+            over |= (race.crashed | finished).all(-1) if until_all else finished.any(-1) | (race.crashed | finished).all(-1)
             if bool(over.all()):
                 break
     n = step + 1
-    for name in ("active", "speed", "lap_stamp", "contact", "crashed_now", "reason", "crashed", "pos"):
+    r.gates_passed = sim.race.gates_passed.numpy().copy()
+    for name in ("active", "speed", "lap_stamp", "contact", "crashed_now", "reason", "crashed", "pos", "track_pos"):
         setattr(r, name, getattr(r, name)[:n])
     r.t = (np.arange(n) + 1) * POLICY_DT
     r.wall_s = time.perf_counter() - t0

@@ -6,7 +6,9 @@ races (win rate). The scores go to ``RUN/checkpoints/scores.csv``; the rule pick
 
 - alone: the highest success rate, then the lowest average time to complete a lap;
 - against an opponent: the highest win rate, then the highest success when alone is not flown;
-  ties go to the earliest checkpoint.
+  ties go to the earliest checkpoint. The opponent may be a field, a comma list with ``*`` for the
+  checkpoint (``*,*,ds,ds``): N-drone races (cfrace.evaluate.field), the win rate is the share of
+  races a ``*`` drone won.
 
 Choose on validation seeds and report on others: the seed given here is the validation seed, and
 `cfrace eval` / `cfrace race` with other seeds give the figures that are reported.
@@ -18,6 +20,8 @@ import csv
 import re
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from cfrace.errors import ConfigError
 
@@ -58,6 +62,16 @@ def score_checkpoint(ckpt: Path, track: str, obstacles: bool, opp: str | None, r
         r = evaluate([str(onnx)], track, obstacles, runs, laps, seed).rows[0]
         row.update(success=r["success_rate"], lap_time_s=r["lap_time_s"], avg_speed_mps=r["avg_speed_mps"],
                    collisions=r["collisions"])
+    elif "," in opp:
+        from cfrace.evaluate.field import race_field
+
+        lineup = [str(onnx) if x.strip() == "*" else x.strip() for x in opp.split(",")]
+        if str(onnx) not in lineup:
+            raise ConfigError(f"against {opp!r}: a field needs * (the checkpoint) in it")
+        r = race_field(track, lineup, obstacles, runs, laps, seed)
+        mine = [k for k, x in enumerate(lineup) if x == str(onnx)]
+        won = float(np.isin(r.winner, mine).mean())
+        row.update(win_rate=won, loss_rate=float((r.winner >= 0).mean()) - won)
     else:
         rates = race(track, str(onnx), opp, obstacles, runs, laps, seed).rates()
         row.update(win_rate=rates["ego_win_rate"], loss_rate=rates["opp_win_rate"])
@@ -75,13 +89,15 @@ def choose(rows: list[dict]) -> dict:
 
 
 def score_run(run: Path, track: str, obstacles: bool = False, opp: str | None = None, runs: int = 50,
-              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None, max_points: int | None = None) -> Scored:
+              laps: int = 3, seed: int = 0, agent: str = "best", on_row=None, max_points: int | None = None,
+              min_iteration: int = 0) -> Scored:
     """Score every kept checkpoint of ``run`` (see the module docstring) and choose one; with
-    ``max_points`` only that many, evenly spaced, the last one included."""
-    ckpts = kept_checkpoints(Path(run))
+    ``max_points`` only that many, evenly spaced, the last one included; ``min_iteration``: only
+    checkpoints from that iteration on (e.g. after a critic warm-up, whose actors are the source's)."""
+    ckpts = [c for c in kept_checkpoints(Path(run)) if int(re.sub(r"\D", "", c.stem) or 0) >= min_iteration]
+    if not ckpts:
+        raise ConfigError(f"{run}: no kept checkpoint from iteration {min_iteration} on")
     if max_points is not None and len(ckpts) > max_points:
-        import numpy as np
-
         ckpts = [ckpts[i] for i in np.unique(np.linspace(0, len(ckpts) - 1, max_points).round().astype(int))]
     rows = []
     for ckpt in ckpts:

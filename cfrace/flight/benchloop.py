@@ -1,4 +1,4 @@
-"""`cfrace bench loop`: the flight loop's timing, real time, two drones at 100 Hz against the sim.
+"""`cfrace bench loop`: the flight loop's timing, real time, N drones (2 by default) at 100 Hz against the sim.
 
 Set-up as in a real flight: the simulated Crazyflies run in their own process (`cfrace sim
 serve`, like real drones they do not share the flight process), the flight process runs the
@@ -31,8 +31,8 @@ from cfrace.paths import POLICIES_DIR
 GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_ms": 0.2}
 
 
-def _free_base_port() -> int:
-    """A base port with base-1 .. base+1 free (pose port, two drones), below the kernel's
+def _free_base_port(drones: int = 2) -> int:
+    """A base port with base-1 .. base+drones-1 free (pose port, the drones), below the kernel's
     ephemeral range so that other programs' automatically assigned ports cannot take them."""
     import random
 
@@ -41,7 +41,7 @@ def _free_base_port() -> int:
         base = rng.randrange(20001, 30000)
         socks = []
         try:
-            for p in (base - 1, base, base + 1):
+            for p in range(base - 1, base + drones):
                 s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
                 socks.append(s)
                 s.bind(("127.0.0.1", p))
@@ -105,7 +105,8 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority="auto", policies: str = "paper",
                prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto",
-               floor_s: float = 0.0, pose_stream: bool = True, foxglove: bool = False, scene: bool = True) -> dict:
+               floor_s: float = 0.0, pose_stream: bool = True, drones: int = 2, foxglove: bool = False,
+               scene: bool = True) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
     profile: simulated and flown drone profile; default: the shipped policies' training profile
     (they crash on another one), cf21bl for the paper-size hold controller.
@@ -113,6 +114,8 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
     simulated drones run on the other CPUs (real drones compute on their own hardware).
     floor_s > 0: first, with the simulated drones already running, the machine's floor
     (``bare_loop``) for that long, on the same CPU and priority ("floor" in the result).
+    drones > 2: the two policies alternate over the drones (ego, opp, ego, opp, ...): each runs
+    in one batched inference call for its drones (cfrace.flight.tick).
     foxglove: serve the flight live to Foxglove (a free port), as `cfrace fly --foxglove`; scene:
     the Foxglove scene in the log (off: the log of JSON records alone)."""
     pinned = resolve_loop_cpu(loop_cpu)
@@ -122,8 +125,9 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         if profile is None:
             from cfrace.track import load_track
             profile = training_profile(load_track(track), ego, False) if policies == "shipped" else "cf21bl"
-        base = _free_base_port()
-        cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track, "--drones", "2",
+        base = _free_base_port(drones)
+        cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track,
+               "--drones", str(drones),
                "--port", str(base), "--profile", profile,
                "--no-obstacles"]   # as the race: the policies fly the track without obstacles
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -131,13 +135,11 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         try:
             if pinned is not None:   # before it starts its threads (they inherit it): Python is still starting
                 os.sched_setaffinity(proc.pid, other_cpus(pinned))
-            cfg = FlightConfig(track=track, ego=ego, opp=opp, profile=profile, laps=1000, timeout_s=duration_s,
-                               uris=(f"udp://127.0.0.1:{base}", f"udp://127.0.0.1:{base + 1}"),
-                               mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
-                               connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
-                               rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s,
-                               loop_cpu=loop_cpu, pose_stream=pose_stream, landing=pose_stream,
-                               foxglove_port=0 if foxglove else None, foxglove_scene=scene)
+            cfg = _bench_config(track, ego, opp, drones, base, profile=profile, timeout_s=duration_s,
+                                log=(work / "bench.mcap") if log else None, rt_priority=rt_priority,
+                                prewarm_s=prewarm_s, latency_comp_s=latency_comp_s, loop_cpu=loop_cpu,
+                                pose_stream=pose_stream, landing=pose_stream,
+                                foxglove_port=0 if foxglove else None, foxglove_scene=scene)
             floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
                 if floor_s > 0 else None
             try:
@@ -155,10 +157,20 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "pose_stream": pose_stream, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "foxglove": foxglove, "scene": scene, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+    return {"duration_s": duration_s, "pose_stream": pose_stream, "drones": drones, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "foxglove": foxglove, "scene": scene, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus, "floor": floor,
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+def _bench_config(track: str, ego: str, opp: str, drones: int, base: int, **options) -> FlightConfig:
+    """The benchmark's race: ``drones`` simulated drones on UDP ports base.. (mocap on base - 1),
+    the two policies alternating over them, laps enough never to finish."""
+    specs = tuple((ego, opp)[i % 2] for i in range(drones))
+    return FlightConfig(track=track, ego=ego, opp=opp, policies=specs if drones > 2 else (), laps=1000,
+                        uris=tuple(f"udp://127.0.0.1:{base + i}" for i in range(drones)),
+                        mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
+                        connect_timeout_s=15.0, **options)
 
 
 def compare_pose_stream(duration_s: float = 10.0, rounds: int = 1, **options) -> dict:

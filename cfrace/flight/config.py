@@ -23,6 +23,12 @@ from cfrace.flight.realtime import parse_loop_cpu, parse_rt_priority
 from cfrace.yamlcfg import Reader, load_yaml
 
 DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
+MAX_DRONES = 16               #: drones per race (the simulator's C kernel takes 16 per world)
+
+
+def drone_names(n: int) -> tuple[str, ...]:
+    """The drones' names in results, logs and fault specs: ego, opp for two; d1 .. dN for more."""
+    return DRONE_NAMES if n == 2 else tuple(f"d{i + 1}" for i in range(n))
 
 
 #: default mocap latency compensation (s) for real mocap systems and the sim:// pose stream: a 100-Hz
@@ -45,6 +51,9 @@ class SafetyConfig:
     mocap_stale_s: float = 0.15      #: s, a pose estimate older than this stops the drone
     link_timeout_s: float = 0.5      #: s without any packet from a drone = link lost
     overrun_stop_s: float = 0.1      #: s, a tick starting later than this past its deadline stops all
+    #: m, least distance between two drones' centres before take-off (checked on the first mocap frame)
+    #: and while the take-off grace lasts (floor_grace_s); closer stops both (cfrace.flight.safety)
+    min_separation_m: float = 0.2
     # soft failsafes: these land the drone (docs/flight.md, "Safety")
     fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
     mocap_glitches: float = 3        #: pose dropouts and outliers within 2 s that mean degraded mocap: land
@@ -68,9 +77,11 @@ class FlightConfig:
     track: str                                   #: track name or path
     ego: str                                     #: policy short name or .onnx path
     opp: str
+    #: N > 2 drones: one policy per drone (ego and opp are then the first two); () = (ego, opp)
+    policies: tuple[str, ...] = ()
     uris: tuple[str, ...] = ()                   #: link URI per drone (radio://, udp://, sim://N)
     mocap: str = "sim"                           #: mocap source spec (vicon://HOST, replay://F.mcap, sim)
-    bodies: tuple[str, ...] = ("cf1", "cf2")     #: mocap body name per drone
+    bodies: tuple[str, ...] = ("cf1", "cf2")     #: mocap body name per drone (N drones: cf1 .. cfN by default)
     laps: int = 3
     profile: str = "cf21bl"                      #: drone profile of the flown drones
     obstacles: bool = False
@@ -109,12 +120,17 @@ class FlightConfig:
                               "(use --no-landing with --no-pose-stream)")
         if self.laps < 1:
             raise ConfigError(f"laps: must be >= 1, got {self.laps}")
-        if len(self.bodies) != len(DRONE_NAMES):
-            raise ConfigError(f"bodies: need {len(DRONE_NAMES)} mocap body names (ego, opp), got {list(self.bodies)}")
+        n = len(self.specs)
+        if not 2 <= n <= MAX_DRONES:
+            raise ConfigError(f"policies: a race needs 2 to {MAX_DRONES} drones, got {n}")
+        if n != 2 and tuple(self.bodies) == ("cf1", "cf2"):
+            object.__setattr__(self, "bodies", tuple(f"cf{i + 1}" for i in range(n)))
+        if len(self.bodies) != n:
+            raise ConfigError(f"bodies: need {n} mocap body names (one per drone), got {list(self.bodies)}")
         if len(set(self.bodies)) != len(self.bodies):
             raise ConfigError(f"bodies: names must differ, got {list(self.bodies)}")
-        if self.uris and len(self.uris) != len(DRONE_NAMES):
-            raise ConfigError(f"uris: need {len(DRONE_NAMES)} URIs (ego, opp), got {list(self.uris)}")
+        if self.uris and len(self.uris) != n:
+            raise ConfigError(f"uris: need {n} URIs (one per drone), got {list(self.uris)}")
         if self.uris and len(set(self.uris)) != len(self.uris):
             raise ConfigError(f"uris: every drone needs its own URI, got {list(self.uris)}")
         if not (1.0 <= self.rate_hz <= 1000.0):
@@ -135,6 +151,15 @@ class FlightConfig:
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def specs(self) -> tuple[str, ...]:
+        """The policy of every drone, in drone order."""
+        return tuple(self.policies) if self.policies else (self.ego, self.opp)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return drone_names(len(self.specs))
 
     @property
     def latency_comp(self) -> float:
@@ -159,7 +184,7 @@ def load_flight_file(path: str | Path) -> dict:
         raise ConfigError(f"{path}: no such flight config file")
     r = Reader(path, load_yaml(path))
     out: dict = {}
-    for key in ("uris", "bodies"):
+    for key in ("uris", "bodies", "policies"):
         if r.has(key):
             seq = r.sequence(key)
             if not all(isinstance(s, str) and s for s in seq):
@@ -207,6 +232,14 @@ def make_config(file: str | Path | None = None, **options) -> FlightConfig:
     kw.update({k: v for k, v in options.items() if v is not None})
     if safety_over:
         kw["safety"] = replace(kw.get("safety", SafetyConfig()), **safety_over)
+    if options.get("policies") and (options.get("ego") or options.get("opp")):
+        raise ConfigError("give either --policies P1,...,PN or --ego and --opp, not both")
+    if kw.get("policies"):   # N drones: ego and opp are the first two
+        pols = tuple(kw["policies"])
+        if len(pols) < 2:
+            raise ConfigError(f"--policies: at least 2, got {list(pols)}")
+        kw.setdefault("ego", pols[0])
+        kw.setdefault("opp", pols[1])
     for key in ("track", "ego", "opp"):
         if key not in kw:
             raise ConfigError(f"missing --{key} (or '{key}:' in the flight config file)")

@@ -20,7 +20,7 @@ from dataclasses import replace
 
 from cfrace.errors import LinkError
 from cfrace.flight.clock import LockstepClock, RealClock
-from cfrace.flight.config import DRONE_NAMES, FlightConfig
+from cfrace.flight.config import FlightConfig
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
 from cfrace.flight.link import DirectSimLink
 from cfrace.flight.links import link_factory, stop_log_path
@@ -88,7 +88,7 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
         else:
             made = keeper_links(i, uri)
         if injector is not None:
-            injector.cutters.setdefault(DRONE_NAMES[i], getattr(made, "cut_link", None))
+            injector.cutters.setdefault(cfg.names[i], getattr(made, "cut_link", None))
         return made
 
     prewarm_s = 0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s
@@ -105,35 +105,37 @@ def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=(
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
             lockstep_warm_calls: int = 0, setup: RaceSetup | None = None, announce=None) -> RaceResult:
-    """Race cfg.ego against cfg.opp on simulated drones; returns the run_race result plus sim info.
-    ``setup``: the race resolved already (the CLI's), else resolved here from cfg."""
-    fault_list = parse_faults(faults)
+    """Race cfg's drones (cfg.ego against cfg.opp, or cfg.policies) on simulated drones, from the
+    track's start grid; returns the run_race result plus sim info. ``setup``: the race resolved
+    already (the CLI's), else resolved here from cfg; ``announce``: as `fly`'s (the banner)."""
+    fault_list = parse_faults(faults, cfg.names)
     cfg = replace(cfg, mocap="sim")
     if cfg.latency_comp_s is None:    # make up for the simulated latency (the `sim` default is none)
         cfg = replace(cfg, latency_comp_s=float(mocap_latency_s))
     setup = replace(setup, cfg=cfg) if setup is not None else resolve_race(cfg)
     # no positioning deck: the drones know where they are from the mocap poses the flight stack streams
-    fleet = SimFleet(setup.track, setup.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles,
+    n = len(cfg.specs)
+    fleet = SimFleet(setup.track, setup.profile, n, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles,
                      decks=())
-    injector = FaultInjector(fault_list, dict(zip(("ego", "opp"), cfg.bodies))) if fault_list else None
+    injector = FaultInjector(fault_list, dict(zip(cfg.names, cfg.bodies))) if fault_list else None
     server, relays = None, {}
     mocap_options = {"noise_m": mocap_noise_m, "latency_s": mocap_latency_s, "seed": seed}
     try:
         if lockstep:
-            uris = ["sim://0", "sim://1"]
+            uris = [f"sim://{i}" for i in range(n)]
         else:
             server = SimCrazyflieServer(fleet, base_port=0).start()
             uris = list(server.uris)
             for f in fault_list:
                 if f.kind == "link_loss":
-                    i = 0 if f.drone == "ego" else 1
+                    i = cfg.names.index(f.drone)
                     if f.drone not in relays:
                         relays[f.drone] = UdpCutRelay(server.ports[i])
                         uris[i] = relays[f.drone].uri
         if injector is not None:   # lockstep: the DirectSimLinks cut themselves (sim_io)
             for name, relay in relays.items():
                 injector.cutters[name] = relay.cut
-            for i, name in enumerate(("ego", "opp")):
+            for i, name in enumerate(cfg.names):
                 injector.drainers[name] = lambda i=i: fleet.set_battery(i, 0.0)
         io = sim_io(cfg, fleet, lockstep=lockstep, uris=uris, injector=injector, mocap_options=mocap_options,
                     lockstep_warm_calls=lockstep_warm_calls)

@@ -51,7 +51,8 @@ class Fault:
     drone: str = "ego"
 
 
-def parse_faults(text: str | None) -> list[Fault]:
+def parse_faults(text: str | None, names: tuple[str, ...] = ("ego", "opp")) -> list[Fault]:
+    """Fault specs; DRONE one of ``names`` (the race's drone names: ego, opp or d1 .. dN), the first by default."""
     if not text:
         return []
     out = []
@@ -69,9 +70,9 @@ def parse_faults(text: str | None) -> list[Fault]:
                 raise ValueError
         except ValueError:
             raise ConfigError(f"--faults: bad time in {item!r} (seconds >= 0)") from None
-        drone = drone or "ego"
-        if drone not in ("ego", "opp"):
-            raise ConfigError(f"--faults: bad drone in {item!r} (ego or opp)")
+        drone = drone or names[0]
+        if drone not in names:
+            raise ConfigError(f"--faults: bad drone in {item!r} ({' or '.join(names)})")
         out.append(Fault(kind, t, drone))
     return out
 

@@ -123,7 +123,8 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "hover_start", "landings")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "hover_start", "landings",
+                   "separation_at_stop")
 
 
 @dataclass
@@ -154,6 +155,8 @@ class RaceResult:
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
     hover_start: dict | None = None                  #: --start hover: how well the drones held their start
     landings: dict | None = None                     #: drone name -> its landing (reason, spot, touchdown) or None
+    #: pairs closer than safety.min_separation_m when every drone was stopped (cfrace.flight.safety)
+    separation_at_stop: list | None = None
 
     def to_json(self) -> dict:
         out = {"end": self.end, "winner": self.winner}
@@ -163,3 +166,16 @@ class RaceResult:
             out["operator_kill"] = self.operator_kill
         out.update({k: getattr(self, k) for k in _WAY_OUT_FIELDS if getattr(self, k) is not None})
         return out
+
+
+def inference_phases(policies) -> list[int]:
+    """The tick phase of each drone's inference (it infers on ticks k with k % decimation == phase).
+    Two drones: 0 and 1, staggered (each tick runs one policy). More: one phase per distinct policy
+    in order of appearance, so the drones flying the same policy infer on the same tick in one
+    batched call and the distinct policies share the ticks out (ours, ours, ds, ds: 0, 0, 1, 1)."""
+    if len(policies) == 2:
+        return [0, 1]
+    order: dict[int, int] = {}
+    for p in policies:
+        order.setdefault(id(p), len(order))
+    return [order[id(p)] for p in policies]

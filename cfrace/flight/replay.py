@@ -21,11 +21,12 @@ from cfrace.drone import DroneProfile, load_profile
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import LogError
 from cfrace.flight.clock import Tick
-from cfrace.flight.config import DRONE_NAMES, SafetyConfig
+from cfrace.flight.config import SafetyConfig
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import read_log
 from cfrace.flight.link import RecordingLink
 from cfrace.flight.loop import Drone, FlightLoop, ObservationBuilder
+from cfrace.flight.loopstate import inference_phases
 from cfrace.flight.mocap import frame_from_msg, open_mocap
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.safety import Fence
@@ -105,6 +106,19 @@ class _Logged:
     obs: dict
 
 
+def _policies(meta: dict, load) -> list:
+    """Every drone's policy in drone order (the log's ``policies``, keyed by drone name); a file
+    named by several drones is loaded once, as the flight did (batched inference, shared phase)."""
+    loaded: dict = {}
+    out = []
+    for name in meta["policies"]:
+        path = meta["policies"][name]["path"]
+        if path not in loaded:
+            loaded[path] = load(path)
+        out.append(loaded[path])
+    return out
+
+
 def _read(path: str | Path, data) -> _Logged:
     """The log's flight; LogError when it cannot be replayed."""
     from cfrace.policy import OnnxPolicy
@@ -112,7 +126,7 @@ def _read(path: str | Path, data) -> _Logged:
     meta = data.meta
     try:
         setup = (meta, load_track(meta["track"]), load_profile(meta["profile"]), SafetyConfig(**meta["safety"]),
-                 [OnnxPolicy(meta["policies"][n]["path"]) for n in DRONE_NAMES], list(meta["bodies"]),
+                 _policies(meta, OnnxPolicy), list(meta["bodies"]),
                  float(meta["rate_hz"]), int(meta["laps"]))
         ticks = [m for _, m in data.messages("/timing")]
         for (t, m) in data.messages("/timing"):
@@ -135,8 +149,8 @@ def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightL
     meta, track, profile, safety, pols, bodies = lg.meta, lg.track, lg.profile, lg.safety, lg.policies, lg.bodies
     drones = [Drone(name=n, body=bodies[i], policy=pols[i], layout=LAYOUTS[pols[i].meta["obs_layout"]], link=links[i],
                     meta=pols[i].meta, mass=profile.mass, thrust_curve=profile.thrust_curve,
-                    decimation=int(round(lg.rate_hz / pols[i].meta["policy_hz"])), phase=i)
-              for i, n in enumerate(DRONE_NAMES)]
+                    decimation=int(round(lg.rate_hz / pols[i].meta["policy_hz"])), phase=phase)
+              for i, (n, phase) in enumerate(zip(meta["policies"], inference_phases(pols)))]
     estimator = PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s, alpha=float(meta.get("velocity_alpha", 0.5)),
                               lead_s=float(meta.get("latency_comp_s", 0.0)))
     return FlightLoop(drones=drones, mocap=source, estimator=estimator,
@@ -177,7 +191,7 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
             raise LogError(f"{path}: not one mocap frame per tick; replay it by tick (without via_replay_source)")
         source = open_mocap(f"replay://{path}?speed=0", bodies=lg.bodies)
         source.open()
-    links = [RecordingLink(f"null://{n}", clock=clock.now) for n in DRONE_NAMES]
+    links = [RecordingLink(f"null://{n}", clock=clock.now) for n in lg.meta["policies"]]
     for link in links:
         link.connect()
     clock.links = links   # links never go silent in a replay: keep them "heard" every tick

@@ -16,6 +16,7 @@ block that stops every drone, closes the links and the mocap source and closes t
 from __future__ import annotations
 
 import gc
+import time
 import signal
 import time
 import sys
@@ -24,14 +25,15 @@ from dataclasses import asdict
 from typing import Callable
 
 
+from cfrace.errors import ConfigError
 from cfrace.flight import realtime
-from cfrace.flight.config import DRONE_NAMES
+from cfrace.flight import safety as sf
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.foxglove_scene import open_sink
 from cfrace.flight.landing import LandingSetup
 from cfrace.flight.loopfigures import loop_figures
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
-from cfrace.flight.loopstate import RaceResult
+from cfrace.flight.loopstate import RaceResult, inference_phases
 from cfrace.flight.procedures import hover_start, hover_start_positions
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
@@ -108,6 +110,26 @@ def _quietly(call: Callable[[], object]) -> None:
         pass
 
 
+class _Unread:
+    """A lockstep mocap source with one frame handed back: the loop's first read gets the source's
+    newest frame, or this one when the source has nothing newer (it makes one per tick). Not for
+    real time: there new frames keep coming and a handed-back one would be old (a stale pose)."""
+
+    def __init__(self, source, frame):
+        self.source, self.frame = source, frame
+
+    def read(self, timeout_s: float = 0.02):
+        if self.frame is None:
+            return self.source.read(timeout_s)
+        newer = self.source.read(0.0)
+        out = newer if newer is not None else self.frame
+        self.frame = None
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+
 class RaceRun:
     """One race from a resolved set-up and its I/O: open, fly, always stop and close."""
 
@@ -128,7 +150,7 @@ class RaceRun:
                      "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
                      "latency_comp_s": cfg.latency_comp, "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
                      "policies": {n: {"path": str(p.path), **p.policy.meta}
-                                  for n, p in zip(DRONE_NAMES, setup.policies)},
+                                  for n, p in zip(cfg.names, setup.policies)},
                      **(extra_meta or {})}
 
     def run(self) -> RaceResult:
@@ -150,6 +172,7 @@ class RaceRun:
         cfg, io = self.setup.cfg, self.io
         self.mocap = io.open_mocap()
         self.mocap.open(cfg.mocap_timeout_s)
+        self._check_separation()
         for i, uri in enumerate(io.uris):
             self.links.append(io.open_link(i, uri))
         for link in self.links:
@@ -164,12 +187,31 @@ class RaceRun:
             link.setup()
         return self._loop()
 
+    def _check_separation(self) -> None:
+        """Take-off rule of the swarm (cfrace.flight.safety): every pair at least min_separation_m
+        apart on the first frame that shows every body, else ConfigError; nothing was sent yet."""
+        cfg = self.setup.cfg
+        if len(cfg.bodies) < 2 or cfg.safety.min_separation_m <= 0:
+            return
+        t_end = time.monotonic() + cfg.mocap_timeout_s
+        while time.monotonic() < t_end:
+            frame = self.mocap.read(0.05)
+            if frame is not None and all(b in frame.poses for b in cfg.bodies):
+                close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m)
+                if close:
+                    pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
+                    raise ConfigError(f"drones too close to take off ({pairs}; at least "
+                                      f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
+                if not self.io.clock.realtime:   # a lockstep source makes one frame per tick: hand it back
+                    self.mocap = _Unread(self.mocap, frame)
+                return
+
     def _drones(self) -> list[Drone]:
         s = self.setup
         return [Drone(name=name, body=s.cfg.bodies[i], policy=p.policy, layout=p.layout,
                       link=self.links[i], meta=dict(p.policy.meta, path=str(p.path)), mass=s.profile.mass,
-                      thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=i)
-                for i, (name, p) in enumerate(zip(DRONE_NAMES, s.policies))]
+                      thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=phase)
+                for i, (name, p, phase) in enumerate(zip(s.cfg.names, s.policies, inference_phases(s.policies)))]
 
     def _loop(self) -> FlightLoop:
         s, cfg, io = self.setup, self.setup.cfg, self.io
@@ -178,8 +220,8 @@ class RaceRun:
                                   alpha=cfg.velocity_alpha, lead_s=cfg.latency_comp)
         if not cfg.quiet:
             from cfrace.flight.liveview import LiveView
-            self.view = LiveView(title=f"cfrace {s.track.name}: {drones[0].meta['method']} vs "
-                                       f"{drones[1].meta['method']}", laps=cfg.laps,
+            self.view = LiveView(title=f"cfrace {s.track.name}: " + " vs ".join(d.meta["method"] for d in drones),
+                                 laps=cfg.laps,
                                  every_ticks=int(round(cfg.rate_hz / cfg.view_hz)), console=self.console)
             self.view.__enter__()
         loop = FlightLoop(drones=drones, mocap=self.mocap, estimator=estimator,
@@ -229,6 +271,11 @@ class RaceRun:
             estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
             laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones},
             hover_start=hover, landings={d["name"]: d.get("landing") for d in res.drones})
+        ests = loop.core.last_ests if hasattr(loop, "core") else None
+        if ests is not None:   # landing: who was too close when every drone was stopped
+            close = sf.too_close({d.body: e.pos for d, e in zip(loop.drones, ests) if e.valid},
+                                 s.cfg.safety.min_separation_m)
+            self.result.separation_at_stop = [{"bodies": [a, b], "distance_m": d} for a, b, d in close]
         if log is not None:
             log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
 

@@ -42,6 +42,14 @@ cuts its motors.
 One-drone events stop only that drone: each drone has its own radio, pose and policy, and the
 other drone can finish the race (a stopped drone lies on the floor). Events that say the loop
 itself is unhealthy (overrun, operator) stop every drone.
+
+A swarm (N drones) keeps the same rule, written down (docs/flight.md, "Swarm safety"): a drone that
+breaches the fence, loses its link or crashes is stopped alone, the others race on (their
+policies see it only as long as no live drone is nearer, cfrace.env.observations); loop and
+operator events stop all. Separation (``too_close``, SafetyConfig.min_separation_m): before
+take-off the runner refuses to start when two drones stand closer than that on the first mocap
+frame (nothing is sent to any drone), and when the loop ends (after the landings) it records the
+pairs that were closer than that.
 """
 
 from __future__ import annotations
@@ -57,6 +65,19 @@ from cfrace.flight.config import SafetyConfig
 
 STOP_DRONE, STOP_ALL, NONE = "stop_drone", "stop_all", "none"
 LAND_DRONE, LAND_ALL = "land_drone", "land_all"
+
+
+def too_close(positions: dict, min_m: float) -> list[tuple[str, str, float]]:
+    """(name, name, distance m) of every pair of drones closer than ``min_m``; positions: name ->
+    (3,) m. Non-finite positions are skipped (the mocap rules handle them)."""
+    names = [n for n, p in positions.items() if np.isfinite(np.asarray(p, dtype=np.float64)).all()]
+    out = []
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            d = float(np.linalg.norm(np.asarray(positions[names[a]], float) - np.asarray(positions[names[b]], float)))
+            if d < min_m:
+                out.append((names[a], names[b], round(d, 3)))
+    return out
 
 
 @dataclass(frozen=True)

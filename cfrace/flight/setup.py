@@ -18,7 +18,7 @@ from cfrace.drone import DroneProfile, load_profile
 from cfrace.env.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
 from cfrace.flight.clock import RealClock
-from cfrace.flight.config import DRONE_NAMES, FlightConfig
+from cfrace.flight.config import FlightConfig
 from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.safety import CommandLimits, Fence
@@ -43,7 +43,7 @@ class RaceSetup:
     cfg: FlightConfig
     track: Track
     profile: DroneProfile
-    policies: tuple[CheckedPolicy, ...]   #: ego first
+    policies: tuple[CheckedPolicy, ...]   #: one per drone, ego first (a repeated policy: the same object)
     fence: Fence
     limits: CommandLimits                 #: what a sent setpoint may hold (the profile's)
 
@@ -72,10 +72,16 @@ def check_policy(cfg: FlightConfig, track: Track, spec: str, profile: DroneProfi
 
 
 def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
-    """Load the track (unless given), the profile and both policies and check them together."""
+    """Load the track (unless given), the profile and every drone's policy and check them together.
+    A policy named more than once is loaded once: its drones share one ONNX session, and the tick
+    runs them in one batched call."""
     track = track if track is not None else load_track(cfg.track)
     profile = load_profile(cfg.profile)
-    policies = tuple(check_policy(cfg, track, spec, profile) for spec in (cfg.ego, cfg.opp))
+    loaded: dict[str, CheckedPolicy] = {}
+    for spec in cfg.specs:
+        if spec not in loaded:
+            loaded[spec] = check_policy(cfg, track, spec, profile)
+    policies = tuple(loaded[spec] for spec in cfg.specs)
     return RaceSetup(cfg, track, profile, policies, Fence.from_track(track, cfg.safety.geofence_margin_m),
                      CommandLimits.from_profile(profile))
 
@@ -115,8 +121,11 @@ class RaceIO:
 def real_io(cfg: FlightConfig) -> RaceIO:
     """Real drones: cflib links to cfg.uris held by the link keeper process, the mocap source
     cfg.mocap, the wall clock."""
-    if len(cfg.uris) != len(DRONE_NAMES):
-        raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {list(cfg.uris)}")
+    from cfrace.flight.radio import check_radios
+
+    if len(cfg.uris) != len(cfg.specs):
+        raise ConfigError(f"--uris: need {len(cfg.specs)} link URIs (one per drone), got {list(cfg.uris)}")
+    check_radios(cfg.uris, cfg.rate_hz)
     links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log))
     return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
                   open_link=links, clock=RealClock(cfg.dt), link_clock=time.monotonic,

@@ -23,6 +23,7 @@ from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight import landing as ld
 from cfrace.flight import safety as sf
 from cfrace.flight.softsafe import SoftState, blocked_by, land_step
+from cfrace.flight.swarm import OpponentPicker, batched_step, due_groups
 from cfrace.flight.loopstate import Drone, ObservationBuilder
 from cfrace.flight.mocap import frame_to_msg
 
@@ -94,6 +95,7 @@ class TickCore:
         self.t = 0.0
         self.last_ests: list | None = None
         self.last_frame = None
+        self.opponents = OpponentPicker(drones, progress)   #: more than two drones: who observes whom
 
     # ------------------------------------------------------------------ pieces
     def event(self, t: float, v: sf.Violation) -> dict:
@@ -117,19 +119,31 @@ class TickCore:
         return not d.stopped and d.landing is None and k % d.decimation == d.phase % d.decimation
 
     def observation(self, i: int, ests: list) -> np.ndarray:
-        opp = ests[1 - i] if len(ests) == 2 else None
-        return self.obs_builder(self.drones[i].layout, ests[i], int(self.progress.target[i]), opp)
+        d = self.drones[i]
+        opp = None
+        if len(ests) == 2:
+            opp = ests[1 - i]
+        elif d.layout.opponent:
+            opp = ests[self.opponents.index(i, ests)]
+        return self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
+
+    def _observe(self, i: int, ests: list) -> np.ndarray:
+        obs = self.observation(i, ests)
+        return self.filters.filter_obs(self.drones[i], obs) if self.filters is not None else obs
 
     def policy_step(self, i: int, ests: list) -> tuple[float, float]:
         """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
-        d = self.drones[i]
         t0 = perf()
-        obs = self.observation(i, ests)
-        if self.filters is not None:
-            obs = self.filters.filter_obs(d, obs)
+        obs = self._observe(i, ests)
         t1 = perf()
-        act = np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4)
+        act = np.asarray(self.drones[i].policy(obs[None]), dtype=np.float32).reshape(4)
         t2 = perf()
+        self._act(i, obs, act)
+        return t1 - t0, t2 - t1
+
+    def _act(self, i: int, obs: np.ndarray, act: np.ndarray) -> None:
+        """Drone i's action (filtered) through its action map into its next setpoint."""
+        d = self.drones[i]
         if self.filters is not None:
             act = self.filters.filter_action(d, act, self.t)
         thrust, rates, counts = d.setpoint_map(act)
@@ -140,7 +154,6 @@ class TickCore:
         # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
         # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
         d.counts = max(FLYING_MIN_COUNTS, counts) if math.isfinite(thrust) else 0
-        return t1 - t0, t2 - t1
 
     def positions(self, ests: list) -> list[tuple[float, float, float]]:
         """Per drone, the position for race progress on floats: a stopped drone stays where it
@@ -188,10 +201,15 @@ class TickCore:
         passed, lap_done, hit = self.progress.update(t, self.positions(ests))
         n = len(self.drones)
         infer, obs_t, computed = [np.nan] * n, [np.nan] * n, [False] * n
-        for i, d in enumerate(self.drones):
-            if self.due(d, k):
-                obs_t[i], infer[i] = self.policy_step(i, ests)
+        for group in due_groups(self.drones, [self.due(d, k) for d in self.drones]):
+            for i in group:
                 computed[i] = True
+            if len(group) == 1:
+                obs_t[group[0]], infer[group[0]] = self.policy_step(group[0], ests)
+            else:
+                times, call_s = batched_step(self, group, ests)
+                for i, o in zip(group, times):
+                    obs_t[i], infer[i] = o, call_s
         if self.landing is not None:
             self.soft.count_glitches(self.drones, ests, t, self.estimator.counters)
             self.soft.track_battery(t, links, self.safety_cfg.low_battery_v)

@@ -37,6 +37,7 @@ class IPPOConfig:
     bound_coef: float = 0.0          #: weight of the action-bound loss mean(sum(relu(|mu| - 1)^2)); 0 = off
     lr_min: float = 1e-5             #: adaptive LR bounds
     lr_max: float = 1e-2
+    shared: bool = False             #: one actor + critic for every drone of a world (False: one per drone, IPPO)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -81,6 +82,7 @@ _CPU = {
 _INTS = ("num_envs", "rollout", "epochs", "minibatches")
 _LAYERS = ("actor_hidden", "critic_hidden")
 _OPTIONAL = ("desired_kl", "value_clip")
+_BOOLS = ("shared",)
 
 
 def parse_overrides(items: list[str] | tuple[str, ...]) -> tuple[tuple[str, object], ...]:
@@ -98,6 +100,10 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> tuple[tuple[str, obje
         try:
             if key in _OPTIONAL and text.lower() in ("none", "null", "off"):
                 value = None
+            elif key in _BOOLS:
+                if text.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                value = text.lower() in ("true", "1", "yes")
             elif key in _INTS:
                 value = int(text)
                 if value < 1:

@@ -115,16 +115,17 @@ def plot_training_curve(rows: list[dict], path: Path, title: str, num_agents: in
     has_returns = any(not math.isnan(_num(r.get("return_agent0"))) for r in rows)
     key = "return_agent{}" if has_returns else "reward_agent{}"
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
-    colours = ("tab:blue", "tab:red")
+    colours = ("tab:blue", "tab:red", "tab:green", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:gray")
     for a in range(num_agents):
         pts = [(_num(r["env_steps"]), _num(r.get(key.format(a)))) for r in rows]
         pts = [(x, y) for x, y in pts if not math.isnan(y)]
         if not pts:
             continue
         x, y = zip(*pts)
-        label = AGENT_NAMES[a] if num_agents > 1 else "agent"
-        ax.plot(x, y, color=colours[a % 2], alpha=0.25, linewidth=0.8)
-        ax.plot(x, _ema(list(y), 0.1), color=colours[a % 2], linewidth=1.8, label=f"{label} (agent {a})")
+        label = (AGENT_NAMES[a] if a < len(AGENT_NAMES) else f"drone {a}") if num_agents > 1 else "agent"
+        c = colours[a % len(colours)]
+        ax.plot(x, y, color=c, alpha=0.25, linewidth=0.8)
+        ax.plot(x, _ema(list(y), 0.1), color=c, linewidth=1.8, label=f"{label} (agent {a})")
     ax.set_ylabel("episode return (cumulative reward)" if has_returns else "mean reward per step")
     return finish_steps_plot(fig, ax, path, title)
 

@@ -9,6 +9,11 @@ One iteration (everything batched over E worlds, one forward pass per agent and 
         done_t = terminated | truncated | ~alive                      (dead steps are masked)
     GAE per agent, advantages normalised over its alive samples, PPO update per agent,
     then fold this rollout's alive observations into each agent's running normalisers.
+
+With ``cfg.shared`` every drone of a world is flown by ONE set of networks (actor, critic and their
+normalisers): one forward pass for all drones, one PPO update on all drones' samples (advantages
+normalised per drone, as without sharing). ``agents`` then holds one model; ``model(a)`` is the one
+flying drone a either way.
 """
 
 from __future__ import annotations
@@ -41,11 +46,13 @@ class Runner:
         self.device = torch.device(env.device)
         self.num_envs, self.num_agents = env.num_envs, env.num_agents
         torch.manual_seed(seed)
+        self.shared = bool(getattr(cfg, "shared", False))
+        models = 1 if self.shared else self.num_agents
         self.agents = nn.ModuleList([
             AgentModels(env.obs_dim, env.critic_dim, cfg.actor_hidden, cfg.critic_hidden, cfg.init_std)
-            for _ in range(self.num_agents)]).to(self.device)
+            for _ in range(models)]).to(self.device)
         self.optimizers = [make_optimizer(m, cfg.lr) for m in self.agents]
-        self.lrs = [cfg.lr] * self.num_agents
+        self.lrs = [cfg.lr] * models
         self.storage = RolloutStorage(cfg.rollout, self.num_envs, self.num_agents, env.obs_dim, env.critic_dim,
                                       self.device)
         self.update_gen = torch.Generator().manual_seed(seed + 1)  # minibatch shuffles
@@ -58,9 +65,13 @@ class Runner:
         self.fixed_opponent: AgentModels | None = None             # see set_fixed_opponent
         self._not_fixed = None                                      # (E, A) bool: learner samples
         self.obs, self.critic = env.reset()                        # (E, A, D), (E, A, C)
-        for a, m in enumerate(self.agents):                        # warm start of the normalisers
-            m.obs_norm.update(self.obs[:, a])
-            m.critic_norm.update(self.critic[:, a])
+        for a in range(self.num_agents):                            # warm start of the normalisers
+            self.model(a).obs_norm.update(self.obs[:, a])
+            self.model(a).critic_norm.update(self.critic[:, a])
+
+    def model(self, agent: int) -> AgentModels:
+        """The networks flying drone ``agent``."""
+        return self.agents[0 if self.shared else agent]
 
     # ------------------------------------------------------------------ one iteration
     def iterate(self) -> dict[str, float]:
@@ -103,10 +114,10 @@ class Runner:
             train_reward = reward.clone()
             if boot.any():
                 t3 = time.perf_counter()
-                for a, m in enumerate(self.agents):
+                for a in range(self.num_agents):
                     ids = boot[:, a].nonzero().squeeze(-1)
                     if len(ids):
-                        train_reward[ids, a] += gamma * m.value(res.final_critic[ids, a])
+                        train_reward[ids, a] += gamma * self.model(a).value(res.final_critic[ids, a])
                 infer_s += time.perf_counter() - t3
             st.add(t, obs=self.obs, critic=self.critic, actions=actions, log_prob=log_prob, values=values,
                    mu=mu, sigma=sigma, rewards=train_reward, dones=res.terminated | res.truncated | ~alive,
@@ -115,20 +126,22 @@ class Runner:
             infer_s += t1 - t0
             sim_s += t2 - t1
         t_update = time.perf_counter()
-        last_values = torch.stack([m.value(self.critic[:, a]) for a, m in enumerate(self.agents)], 1)
+        last_values = torch.stack([self.model(a).value(self.critic[:, a]) for a in range(self.num_agents)], 1)
         st.compute_returns(last_values, gamma, cfg.lam)
         metrics: dict[str, float] = {}
         alive_count = st.alive.sum((0, 1)).float()                 # (A,)
-        for a, m in enumerate(self.agents):
-            batch = st.agent_batch(a)
-            stats, self.lrs[a] = ppo_update(m, self.optimizers[a], batch, cfg, self.lrs[a], self.update_gen,
-                                            self.precision)
+        drones = [[a] for a in range(self.num_agents)] if not self.shared else [list(range(self.num_agents))]
+        for k_model, (m, group) in enumerate(zip(self.agents, drones)):
+            parts = [st.agent_batch(a) for a in group]
+            batch = parts[0] if len(parts) == 1 else {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+            stats, self.lrs[k_model] = ppo_update(m, self.optimizers[k_model], batch, cfg, self.lrs[k_model],
+                                                  self.update_gen, self.precision)
             for k, v in stats.items():
-                metrics[f"{k}_agent{a}"] = v
-            alive_mask = st.alive[:, :, a]
+                metrics[f"{k}_agent{k_model}"] = v
+            alive_mask = st.alive[:, :, group]                      # (T, E, n)
             if self.update_actor_norm:
-                m.obs_norm.update(st.obs[:, :, a][alive_mask])
-            m.critic_norm.update(st.critic[:, :, a][alive_mask])
+                m.obs_norm.update(st.obs[:, :, group][alive_mask])
+            m.critic_norm.update(st.critic[:, :, group][alive_mask])
         _sync(self.device)
         t_end = time.perf_counter()
 
@@ -137,11 +150,12 @@ class Runner:
         self.env_steps += steps
         self.total_reward += (reward_sum / self.num_envs).double().cpu()
         per_step = (reward_sum / alive_count.clamp(min=1)).tolist()
-        for a, m in enumerate(self.agents):
+        for a in range(self.num_agents):
+            m = self.model(a)
             metrics[f"reward_agent{a}"] = per_step[a]
             metrics[f"return_agent{a}"] = float(np.mean(returns[a])) if returns[a] else float("nan")
             metrics[f"total_reward_agent{a}"] = float(self.total_reward[a])
-            metrics[f"lr_agent{a}"] = self.lrs[a]
+            metrics[f"lr_agent{a}"] = self.lrs[0 if self.shared else a]
             metrics[f"std_agent{a}"] = float(m.actor.log_std.detach().exp().mean())
             metrics[f"alive_agent{a}"] = float(alive_count[a]) / steps
         for name, value in term_sums.items():
@@ -170,7 +184,7 @@ class Runner:
 
     def set_lr(self, lr: float) -> None:
         """Every agent's learning rate (the adaptive rule, if on, continues from it)."""
-        self.lrs = [float(lr)] * self.num_agents
+        self.lrs = [float(lr)] * len(self.agents)
         for o in self.optimizers:
             for g in o.param_groups:
                 g["lr"] = float(lr)
@@ -179,6 +193,12 @@ class Runner:
     def _act(self, obs: torch.Tensor, critic: torch.Tensor):
         """One forward pass per agent: sampled actions (E, A, 4), log-probs (E, A), values (E, A),
         Gaussian means and stds (E, A, 4)."""
+        if self.shared:  # one pass over every drone of every world
+            m = self.agents[0]
+            dist = m.actor(m.obs_norm(obs))
+            action = dist.sample()
+            return (action, dist.log_prob(action).sum(-1), m.critic(m.critic_norm(critic)), dist.mean,
+                    dist.stddev.expand_as(action))
         outs = []
         for a, m in enumerate(self.agents):
             dist = m.actor(m.obs_norm(obs[:, a]))

@@ -24,6 +24,7 @@ from cfrace import __version__
 from cfrace.contract import METHODS, MULTI_AGENT_METHODS
 from cfrace.drone import DEFAULT_PROFILE, load_profile
 from cfrace.env.actions import action_map_constants
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE, OPPONENT_RULES
 from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
@@ -61,6 +62,8 @@ class TrainConfig:
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
     ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
+    drones: int | None = None       #: drones per world (multi-agent methods); None = 2
+    opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -105,6 +108,11 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
         raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
     from cfrace.env.race_env import RaceEnv
 
+    if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
+        raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
+                          f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
+    if cfg.opponent_rule not in OPPONENT_RULES:
+        raise ConfigError(f"--opponent-rule {cfg.opponent_rule!r}: one of {', '.join(OPPONENT_RULES)}")
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         if not 0.0 <= cfg.ground_start_prob <= 1.0:
@@ -113,7 +121,8 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
                                                                      ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
-                  random_phase=cfg.random_phase, flight_obs=cfg.flight_obs)
+                  random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
+                  opponent_rule=cfg.opponent_rule)
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -125,6 +134,7 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             **action_map_constants(profile), "policy_hz": 50.0, "drone_profile": profile.name, "seed": int(cfg.seed),
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
             "flight_obs": bool(getattr(env, "flight_obs", False)),
+            **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
 
 
@@ -310,11 +320,11 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
                 threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
-                precision: str = "auto") -> dict:
+                precision: str = "auto", drones: int | None = None) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
-                      overrides=tuple(overrides))
+                      overrides=tuple(overrides), drones=drones)
     dev = pick_device(device)
     n_threads = set_threads(threads, dev)
     ippo = cfg.ippo()
@@ -335,7 +345,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     drones = steps * runner.num_agents
     return {"method": method, "track": meta["track"], "obstacles": obstacles, "preset": ippo.preset,
             "device": str(dev), "threads": n_threads, "num_envs": ippo.num_envs, "rollout": ippo.rollout,
-            "num_agents": runner.num_agents, "actor_hidden": list(ippo.actor_hidden),
+            "num_agents": runner.num_agents, "shared": runner.shared, "actor_hidden": list(ippo.actor_hidden),
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
             "iterations": iterations, "setup_s": setup_s,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],

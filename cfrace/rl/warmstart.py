@@ -11,6 +11,11 @@ Observation layouts are prefixes of each other: solo36 is the first 36 entries o
 opponent block is appended at the end), solo39_obstacles the first 39 of race45_obstacles. The
 first layer's weights for the extra inputs start at zero, so the warm-started actor initially acts
 exactly like its source. Critics start fresh (their inputs and rewards differ).
+
+The source may also be an exported policy file (.onnx, e.g. a shipped policy): its mean network
+and observation normaliser are read back from the graph's weights (cfrace.policygraph names them);
+the file carries no critic and no action std, so the actor's std is the preset's ``init_std``
+(set it with ``--set init_std=...``) and ``--init-critic`` is refused.
 """
 
 from __future__ import annotations
@@ -27,18 +32,51 @@ OPP_POS_VAR = 4.0  #: m^2, prior variance of the opponent's body-frame position 
 OPP_VEL_VAR = 9.0  #: (m/s)^2, prior variance of the opponent's velocity (std 3 m/s)
 
 
+def onnx_actor_state(path: Path) -> tuple[dict, dict]:
+    """(actor state dict in AgentModels' key names, metadata) of an exported policy file: the
+    Gemm weights W{i}, b{i} (the mean network's Linear layers in order) and the normaliser
+    norm_mean, norm_std (var = std^2 - NORM_EPS) of cfrace.policygraph.build_model."""
+    import onnx
+    from onnx import numpy_helper
+
+    from cfrace.contract import NORM_EPS
+    from cfrace.policy import OnnxPolicy
+
+    meta = OnnxPolicy(path).meta
+    inits = {t.name: torch.from_numpy(numpy_helper.to_array(t).copy())
+             for t in onnx.load(str(path)).graph.initializer}
+    linears = sorted((int(k[1:]) for k in inits if k[0] == "W" and k[1:].isdigit()))
+    if not linears or "norm_mean" not in inits:
+        raise ConfigError(f"--init-from {path}: not a cfrace policy graph (no W0 / norm_mean weights)")
+    state = {}
+    for k, i in enumerate(linears):   # Linear layers sit at 0, 2, 4, ... of mean_net (ELU between)
+        state[f"actor.mean_net.{2 * k}.weight"] = inits[f"W{i}"]
+        state[f"actor.mean_net.{2 * k}.bias"] = inits[f"b{i}"]
+    std = inits["norm_std"].double()
+    state["obs_norm.mean"] = inits["norm_mean"].double()
+    state["obs_norm.var"] = (std * std - NORM_EPS).clamp_min(0.0)
+    state["obs_norm.count"] = torch.tensor(1.0e6, dtype=torch.float64)
+    return state, meta
+
+
 def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool = False) -> dict:
     """Copy the best source actor (greatest total training reward) into every agent of ``runner``;
     with ``critic`` also its critic and critic normaliser (see _copy_critic). Returns a description
-    for the metadata."""
+    for the metadata. ``source``: a run folder, a checkpoint, or an exported .onnx policy."""
     path = Path(source)
     if path.is_dir():
         path = path / "checkpoint.pt"
-    saved = load_checkpoint(path)
-    state = saved["runner"]
-    totals = state["total_reward"]
-    best = int(torch.argmax(totals)) if len(totals) > 1 else 0
-    src = state["agents"][best]
+    if path.suffix == ".onnx":
+        if critic:
+            raise ConfigError(f"--init-critic: {path} is an exported policy and has no critic")
+        src, meta = onnx_actor_state(path)
+        saved, state, best = {"meta": meta}, {"env_steps": meta.get("train_steps", 0)}, 0
+    else:
+        saved = load_checkpoint(path)
+        state = saved["runner"]
+        totals = state["total_reward"]
+        best = int(torch.argmax(totals)) if len(totals) > 1 else 0
+        src = state["agents"][min(best, len(state["agents"]) - 1)]   # a shared run keeps one model
     src_layout = saved.get("meta", {}).get("obs_layout")
     if src_layout and env_layout and src_layout != env_layout:
         a, b = LAYOUTS[src_layout], LAYOUTS[env_layout]
@@ -47,8 +85,11 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
     for agent in runner.agents:
         dst = agent.state_dict()
         if critic:
-            # the racer's critic reads [own observation, opponent's observation]: two blocks
-            _transplant(src, dst, "critic", blocks=2, what=f"--init-critic: the critic of {source}")
+            # the racer's critic reads [own observation, opponent's observation, other drones'...]:
+            # one block per drone (two in a two-drone race)
+            env = getattr(runner, "env", None)
+            blocks = max(2, int(getattr(env, "num_agents", 2)))
+            _transplant(src, dst, "critic", blocks=blocks, what=f"--init-critic: the critic of {source}")
         # Copied statistics keep their count: letting them drift made the frozen actors fly
         # differently, crash more, and drift further. New inputs (the opponent block) start from a
         # prior instead of the first reset batch (drones side by side: tiny variance, inputs clipped
@@ -81,9 +122,17 @@ def _transplant(src: dict, dst: dict, net: str, blocks: int, what: str) -> None:
         target = dst[key]
         if target.shape == value.shape:
             target.copy_(value)
-        elif key == first and target.shape[0] == value.shape[0] and target.shape[1] >= blocks * value.shape[1]:
+        elif key == first and target.shape[0] == value.shape[0] and (
+                target.shape[1] >= blocks * value.shape[1] or 2 * target.shape[1] == blocks * value.shape[1]):
             target.zero_()
             target[:, : value.shape[1]] = value
+        elif key in (norm + "mean", norm + "var") and 2 * target.shape[0] == blocks * value.shape[0] and blocks > 2:
+            # a two-drone critic's statistics [own, opponent] into an N-drone critic's: the extra
+            # drones' blocks take the opponent's
+            size = value.shape[0] // 2
+            target[: 2 * size] = value
+            for b in range(2, blocks):
+                target[b * size: (b + 1) * size] = value[size:]
         elif key in (norm + "mean", norm + "var") and target.shape[0] >= blocks * value.shape[0]:
             size, n = target.shape[0] // blocks, value.shape[0]
             prior = torch.tensor([OPP_POS_VAR] * 3 + [OPP_VEL_VAR] * 3, dtype=target.dtype)

@@ -9,6 +9,7 @@ the first 1.0 s, hitting the floor fast, contact longer than ``long_contact_s``.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -144,6 +145,17 @@ def _step(s, r, thrust, rates, p, g, c, rules, radius, z_rest, arena, outer_half
     return s, r, StepEvents(gates, laps, crashed, contact, torch.where(crashed, r.reason, 0))
 
 
+def _auto_backend(device: torch.device, drones: int) -> str:
+    """"c" when the C kernel can take this simulator, else "torch"; on a CPU the fallback is several
+    times slower, so it says why (a RuntimeWarning)."""
+    fits = device.type == "cpu" and drones <= ckernel.MAX_DRONES and ckernel.available()
+    if device.type == "cpu" and not fits:
+        why = (f"{drones} drones per world (the C kernel takes at most {ckernel.MAX_DRONES})"
+               if drones > ckernel.MAX_DRONES else f"no C kernel ({ckernel.build_error()})")
+        warnings.warn(f"simulator: {why}; falling back to the slower torch path", RuntimeWarning, stacklevel=3)
+    return "c" if fits else "torch"
+
+
 class Simulator:
     """Batched simulator of W worlds x D drones racing on one track."""
 
@@ -189,8 +201,7 @@ class Simulator:
                        for k, n in (("kp", 3), ("ki", 3), ("kd", 3), ("k_aero", 3), ("tau_m", 1))}
         self._update_params()
         if backend == "auto":
-            fits = self.device.type == "cpu" and drones <= ckernel.MAX_DRONES and ckernel.available()
-            backend = "c" if fits else "torch"
+            backend = _auto_backend(self.device, drones)
         if backend == "c" and (self.device.type != "cpu" or not ckernel.available()):
             raise RuntimeError(f"the C kernel needs a CPU device and a C compiler ({ckernel.build_error()})")
         if backend == "c" and drones > ckernel.MAX_DRONES:

@@ -46,7 +46,7 @@ from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpo
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
-from cfrace.track import Track, load_track
+from cfrace.track import Track, load_track, start_grid
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
 MIN_THRUST = 1000          #: counts, below this the firmware commands zero thrust
@@ -119,15 +119,16 @@ def _wrap(a: float) -> float:
 
 
 def default_start_positions(track: Track, drones: int, floor_z: float) -> tuple[np.ndarray, float]:
-    """(drones, 3) positions on the floor, side by side, track.spawn.ground_distance before gate 0
-    on its +n side, spaced by track.spawn.opponent_offset; and the yaw (rad) facing gate 0."""
+    """(drones, 3) positions on the floor in the track's start grid (cfrace.track.start_grid: two
+    side by side, spawn.opponent_offset apart; more in rows behind them), its front row
+    track.spawn.ground_distance before gate 0 on its +n side; and the yaw (rad) facing gate 0."""
     gx, gy, _, gyaw = track.gates[0]
     n = np.array([math.cos(gyaw), math.sin(gyaw)])
     lateral = np.array([-n[1], n[0]])
     centre = np.array([gx, gy]) + track.spawn.ground_distance * n
+    grid = start_grid(track.spawn, track.gate, drones)             # (N, 2) [sideways, back] m
     pos = np.zeros((drones, 3))
-    for i in range(drones):
-        pos[i, :2] = centre + (i - (drones - 1) / 2.0) * track.spawn.opponent_offset * lateral
+    pos[:, :2] = centre + grid[:, :1] * lateral + grid[:, 1:] * n
     pos[:, 2] = floor_z
     return pos, _wrap(gyaw + math.pi)
 

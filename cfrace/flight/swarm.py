@@ -1,0 +1,69 @@
+"""The tick's parts for more than two drones: who observes whom, and one inference call per policy.
+
+OpponentPicker: a drone flying a multi-agent policy observes one opponent, the one its opponent
+rule picks (its metadata's ``opponent_rule``, else cfrace.env.observations.DEFAULT_OPPONENT_RULE)
+from the estimates and the race progress, on the training's race line (choose_opponents,
+polyline, track_position: one definition for training, evaluation and flight). Two drones: the
+other one, as always (the tick does not ask).
+due_groups / batched_step: the drones due on a tick, grouped by policy object (a policy named
+several times is loaded once, cfrace.flight.setup.resolve_race), each group in ONE onnxruntime
+call on the stacked observations.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
+
+
+class OpponentPicker:
+    """Index of the drone each drone observes, cached per list of estimates (one tick's)."""
+
+    def __init__(self, drones: list, progress):
+        self.drones, self.progress = drones, progress
+        self.rules = [d.meta.get("opponent_rule", DEFAULT_OPPONENT_RULE) for d in drones]
+        self._needed = {r for r, d in zip(self.rules, drones) if d.layout.opponent}
+        self._gates = np.asarray(progress.gates, dtype=np.float64)
+        self._cum, self._lap_len = polyline(self._gates)
+        self._for: list | None = None
+        self._picked: dict = {}
+
+    def index(self, i: int, ests: list) -> int:
+        """The drone that drone i observes, from these estimates."""
+        if self._for is not ests:
+            p = self.progress
+            pos = np.nan_to_num(np.array([e.pos for e in ests], dtype=np.float64))
+            tpos = track_position(self._gates, self._cum, self._lap_len, np.asarray(p.start_gate),
+                                  np.asarray(p.gates_passed), np.asarray(p.target), pos)
+            alive = np.array([not d.stopped for d in self.drones])
+            self._picked = {rule: choose_opponents(pos, tpos, alive, rule) for rule in self._needed}
+            self._for = ests
+        return int(self._picked[self.rules[i]][i])
+
+
+def due_groups(drones: list, due: list[bool]) -> list[list[int]]:
+    """The due drones' indices grouped by their policy object, in drone order."""
+    groups: dict[int, list[int]] = {}
+    for i, (d, yes) in enumerate(zip(drones, due)):
+        if yes:
+            groups.setdefault(id(d.policy), []).append(i)
+    return list(groups.values())
+
+
+def batched_step(core, group: list[int], ests: list) -> tuple[list[float], float]:
+    """TickCore.policy_step for the drones of one policy with ONE inference call on their stacked
+    observations; returns (observation s per drone, the call's s)."""
+    obs_s, obs = [], []
+    for i in group:
+        t0 = time.perf_counter()
+        obs.append(core._observe(i, ests))
+        obs_s.append(time.perf_counter() - t0)
+    t1 = time.perf_counter()
+    acts = np.asarray(core.drones[group[0]].policy(np.stack(obs)), dtype=np.float32).reshape(len(group), 4)
+    infer = time.perf_counter() - t1
+    for i, o, a in zip(group, obs, acts):
+        core._act(i, o, a.copy())
+    return obs_s, infer

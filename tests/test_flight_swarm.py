@@ -1,0 +1,148 @@
+"""The flight stack with N drones: lockstep and real-time dry-runs of 4 and 8 simulated drones,
+faults of one drone and of all, batched inference of repeated policies, the CLI's policy lists."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cfrace.errors import ConfigError
+from cfrace.flight.config import FlightConfig, drone_names
+
+from test_flight_faults import PROFILE, check_landings, checked_dry_run, pols  # noqa: F401  (pols: a fixture)
+
+
+def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5):
+    specs = tuple(pols["ego"] if i % 2 == 0 else pols["opp"] for i in range(n))
+    cfg = FlightConfig(track="lemniscate", ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
+                       timeout_s=timeout_s, log=tmp_path / "f.mcap")
+    return checked_dry_run(cfg, faults, lockstep)
+
+
+def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
+    result, data = run(pols, tmp_path, 4)
+    assert result["end"] == "timeout" and [d["name"] for d in result["drones"]] == ["d1", "d2", "d3", "d4"]
+    assert all(d["stop_kind"] in ("timeout", "landed") for d in result["drones"])   # landed at the end
+    assert set(check_landings(result).values()) <= {"race_end"}
+    assert not any(e["action"] != "none" for e in result["safety_events"])
+    # every drone streamed setpoints every tick, in the air (hold controller: hovers where it took off)
+    setpoints = [m for _, m in data.messages("/setpoint")]
+    assert len(setpoints) >= 240 and all(len(m) == 4 for m in setpoints)
+    z = np.array([[m[f"cf{i + 1}"]["pos"][2] for i in range(4)] for _, m in data.messages("/estimate")])
+    assert z[200:240].min() > 0.3                                  # in the air before the race's end
+    # the start grid: two rows of two, 0.4 m apart
+    p0 = np.array([[m[f"cf{i + 1}"]["pos"][:2] for i in range(4)] for _, m in data.messages("/estimate")][0])
+    d = np.linalg.norm(p0[:, None] - p0[None], axis=-1) + np.eye(4) * 9
+    assert d.min() == pytest.approx(0.4, abs=0.02)
+    # repeated policies ran in one call: d1 and d3 (the same file) infer on the same ticks
+    obs = [m for _, m in data.messages("/obs")]
+    assert obs and all(("cf1" in m) == ("cf3" in m) and ("cf2" in m) == ("cf4" in m) for m in obs)
+    # the 4-drone log replays bit for bit (opponent rule, batched calls and phases included)
+    from cfrace.flight.replay import replay_log
+
+    rep = replay_log(tmp_path / "f.mcap")
+    assert rep["identical"] and rep["observations"] > 400, rep
+
+
+@pytest.mark.parametrize("fault, kind, stopped, end", [
+    ("link_loss@1.0:d3", "link_lost", {"d3"}, "timeout"),             # one drone's fault stops only that drone
+    ("geofence@1.0:d2", "geofence", {"d2"}, "timeout"),
+    ("sigterm@1.0", "operator_kill", {"d1", "d2", "d3", "d4"}, "operator_kill"),   # the operator stops them all
+    ("stall_200ms@1.0", "loop_overrun", {"d1", "d2", "d3", "d4"}, "loop_overrun"),
+])
+def test_faults_with_four_drones(pols, tmp_path, fault, kind, stopped, end):
+    result, data = run(pols, tmp_path, 4, fault)
+    assert result["end"] == end
+    landed = check_landings(result)
+    by_fault = {d["name"] for d in result["drones"] if d["stop_kind"] == kind or landed.get(d["name"]) == kind}
+    assert by_fault == stopped, result["drones"]
+    stops = {m["drone"] for _, m in data.messages("/event") if m.get("kind") == "stop"}
+    assert stopped <= stops
+
+
+def test_eight_drones_lockstep(pols, tmp_path):
+    result, _ = run(pols, tmp_path, 8, timeout_s=1.5)
+    assert result["end"] == "timeout" and len(result["drones"]) == 8
+    assert result["loop"]["skipped"] == 0
+
+
+@pytest.mark.slow
+def test_four_drones_real_time_through_cflib(pols, tmp_path):
+    """The real cflib client over UDP to 4 simulated Crazyflies at 100 Hz."""
+    result, _ = run(pols, tmp_path, 4, lockstep=False, timeout_s=2.0)
+    assert result["end"] == "timeout" and len(result["drones"]) == 4
+    assert result["loop"]["ticks"] + result["loop"]["skipped"] >= 195
+
+
+def test_batched_inference_equals_one_call_per_drone(pols):
+    from cfrace.policy import OnnxPolicy
+
+    pol = OnnxPolicy(pols["ego"])
+    obs = np.random.default_rng(0).normal(size=(4, 42)).astype(np.float32)
+    one = np.concatenate([pol(o[None]) for o in obs])
+    assert np.allclose(pol(obs), one, atol=1e-6)
+
+
+def test_config_and_cli_lists():
+    from cfrace.cli.flight import race_policies
+    from cfrace.flight.loopstate import inference_phases
+
+    assert drone_names(2) == ("ego", "opp") and drone_names(3) == ("d1", "d2", "d3")
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours"))
+    assert cfg.bodies == ("cf1", "cf2", "cf3") and cfg.names == ("d1", "d2", "d3")
+    with pytest.raises(ConfigError, match="need 3 URIs"):
+        FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours"), uris=("udp://a:1",))
+    assert race_policies("ours", "ds", None, None) == ("ours", "ds")
+    assert race_policies(None, None, "ours,ds,ss", None) == ("ours", "ds", "ss")
+    assert race_policies(None, None, "ours", 4) == ("ours",) * 4
+    assert race_policies("ds", None, None, 3) == ("ds",) * 3
+    for args, msg in (((None, None, "ours,ds", 3), "--drones 3 but 2"), (("ours", "ds", "ss", None), "not both"),
+                      ((None, None, None, None), "give --ego"), (("ours", "ds", None, 4), "--policies P1")):
+        with pytest.raises(ConfigError, match=msg):
+            race_policies(*args)
+    a, b = object(), object()
+    assert inference_phases([a, b]) == [0, 1] and inference_phases([a, a, b, b]) == [0, 0, 1, 1]
+
+
+def test_separation_rule(pols, tmp_path):
+    from cfrace.flight import safety as sf
+    from cfrace.flight.config import SafetyConfig
+
+    assert sf.too_close({"a": [0, 0, 0], "b": [0.1, 0, 0], "c": [1, 0, 0], "d": [np.nan, 0, 0]}, 0.2) == \
+        [("a", "b", 0.1)]
+    result, _ = run(pols, tmp_path, 4, timeout_s=1.0)
+    assert result["separation_at_stop"] == []   # 0.4 m grid, hovering apart: nobody too close
+    # drones placed closer than the rule allows: refused before any link is touched
+    specs = (pols["ego"], pols["opp"]) * 2
+    cfg = FlightConfig(track="lemniscate", ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
+                       timeout_s=1.0, safety=SafetyConfig(min_separation_m=0.5))
+    with pytest.raises(ConfigError, match="too close to take off.*cf1-cf2 0.40 m"):
+        dry_run_plain(cfg)
+
+
+def dry_run_plain(cfg):
+    from cfrace.flight.dryrun import dry_run
+
+    return dry_run(cfg, lockstep=True)
+
+
+def test_fly_refuses_a_fifth_drone_on_one_radio_before_opening_anything(monkeypatch):
+    from cfrace.flight import setup as fs
+
+    opened = []
+    monkeypatch.setattr(fs, "link_factory", lambda *a, **k: opened.append(a) or (lambda i, u: None))
+    uris = tuple(f"radio://0/80/2M/E7E7E7E7E{i}" for i in range(1, 6))
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds") * 2 + ("ours",), uris=uris,
+                       mocap="vicon://127.0.0.1")
+    with pytest.raises(ConfigError, match="Crazyradio 0 carries 5 drones"):
+        fs.real_io(cfg)
+    assert not opened
+    ok = replace_uris(cfg, uris[:4] + ("radio://1/80/2M/E7E7E7E7E5",))
+    fs.real_io(ok)
+    assert len(opened) == 1
+
+
+def replace_uris(cfg, uris):
+    from dataclasses import replace
+
+    return replace(cfg, uris=uris)
