@@ -396,7 +396,7 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
 
     clock = clock or LockstepClock(0.01)
     prof = load_profile(PROFILE)
-    safety = safety or SafetyConfig(speed_max_mps=50.0, floor_grace_s=1e9)
+    safety = safety or SafetyConfig(speed_max_mps=50.0, floor_grace_s=3600.0)
     drones = []
     for phase, (name, body, lay) in enumerate((("ego", "cf1", "race42"), ("opp", "cf2", "solo36"))):
         link = RecordingLink(f"null://{name}", clock=clock.now)

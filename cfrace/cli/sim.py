@@ -72,7 +72,7 @@ def dry_run_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
-    from cfrace.cli.flight import exit_code, print_result, write_json
+    from cfrace.cli.flight import finish
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race, training_profile
@@ -85,14 +85,9 @@ def dry_run_cmd(
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
-    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
-                     mocap_latency_s=mocap_latency_ms / 1e3, console=console,
-                     setup=resolve_race(cfg, the_track)).to_json()
-    print_result(result)
-    write_json(result, json_out)
-    code = exit_code(result)
-    if code:
-        sys.exit(code)
+    finish(lambda: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
+                           mocap_latency_s=mocap_latency_ms / 1e3, console=console,
+                           setup=resolve_race(cfg, the_track)), json_out)
 
 
 @sim_app.command("replay")

@@ -6,8 +6,10 @@ opp, e.g. ``mocap_dropout_short@3.0,link_loss@2.0:opp,sigterm@5``. Kinds:
     mocap_dropout_short  no mocap frame at all for 80 ms (below mocap_stale_s): ride through
     mocap_dropout_long   the drone's body missing from every frame for 1 s: stale -> stop it
     pose_outlier         one frame puts the drone's body 1 m off: the estimator must reject it
-    geofence             from T the drone's policy output is replaced by full thrust straight
-                         up: it really leaves the fence, the geofence must stop it
+    geofence             from T the drone's policy output is replaced by a climb: level
+                         attitude, GEOFENCE_CLIMB_MPS upwards (well below the speed limit), so
+                         that it really leaves the fence through its ceiling and the geofence,
+                         not the speed or tilt rule, must stop it
     nan_policy           from T the drone's policy outputs NaN
     link_loss            from T nothing gets through the drone's link either way (a UDP relay
                          drops every datagram; lockstep: the direct link goes silent)
@@ -27,6 +29,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cfrace.drone import GRAVITY
 from cfrace.errors import ConfigError
 from cfrace.flight.mocap import MocapFrame, Pose
 
@@ -35,6 +38,8 @@ KINDS = ("mocap_dropout_short", "mocap_dropout_long", "pose_outlier", "geofence"
 SHORT_DROPOUT_S = 0.08
 LONG_DROPOUT_S = 1.0
 OUTLIER_OFFSET = np.array([0.8, 0.0, 0.6])   #: m, 1 m off
+GEOFENCE_CLIMB_MPS = 2.0     #: m/s, the geofence fault's climb
+LEVEL_GAIN = 6.0             #: 1/s, body rate per rad of tilt of the geofence fault's levelling
 
 
 @dataclass(frozen=True)
@@ -161,6 +166,7 @@ class FaultInjector:
         self.pending_outliers: set[Fault] = set()
         self.cutters: dict[str, object] = {}          # drone name -> callable that cuts its link
         self.log: list[dict] = []
+        self.loop = None                              # the flight loop (before_tick)
 
     def wrap_mocap(self, source):
         return FaultyMocap(source, self) if self.faults else source
@@ -184,6 +190,7 @@ class FaultInjector:
 
     def before_tick(self, loop, t: float) -> None:
         self.t = t
+        self.loop = loop
         for f in self.faults:
             if f not in self.fired and t >= f.t:
                 self._fire(loop, f)
@@ -197,5 +204,18 @@ class FaultInjector:
                 if f.kind == "nan_policy":
                     return np.full(4, np.nan, np.float32)
                 if f.kind == "geofence":
-                    return np.array([1.0, 0.0, 0.0, 0.0], np.float32)
+                    return self.climb(drone)
         return act
+
+    def climb(self, drone) -> np.ndarray:
+        """The action that levels the drone and climbs at GEOFENCE_CLIMB_MPS (its estimate this tick)."""
+        est = self.loop.core.last_ests[[d.name for d in self.loop.drones].index(drone.name)]
+        rot = np.asarray(est.rot, np.float64)
+        b3 = rot[:, 2]
+        axis = np.cross(b3, [0.0, 0.0, 1.0])                   # world: turn b3 towards up
+        rates = LEVEL_GAIN * (rot.T @ axis)                     # rad/s, body frame
+        k = np.radians(drone.meta["max_rates_deg"])
+        hover = drone.mass * GRAVITY / max(float(b3[2]), 0.5)
+        thrust = hover * (1.0 + 0.5 * (GEOFENCE_CLIMB_MPS - float(est.vel[2])))
+        a0 = 2.0 * thrust / drone.setpoint_map.scale - 1.0
+        return np.clip(np.array([a0, *(rates / k)], np.float32), -1.0, 1.0)

@@ -26,6 +26,7 @@ every REPORT_S and on every change of connection or stop).
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import socket
@@ -158,9 +159,24 @@ class _Keeper:
             self.stop_log.close()
 
 
-def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None) -> None:
+def _schedule(rt_priority: int, cpus) -> None:
+    """The keeper's CPUs (not the loop's) and SCHED_FIFO at rt_priority where permitted, before any
+    cflib thread starts (they inherit both): as the flight process's other threads, it must not
+    wait behind the machine's ordinary jobs (cfrace.flight.realtime)."""
+    try:
+        if cpus:
+            os.sched_setaffinity(0, set(cpus))
+        if rt_priority > 0:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+    except (OSError, AttributeError):
+        pass   # not permitted / not Linux: normal scheduling
+
+
+def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0,
+                cpus=None) -> None:
     """The keeper process's entry point."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _schedule(rt_priority, cpus)
     keeper = _Keeper(conn, uris, heartbeat_s, stop_log)
 
     def on_term(signum, frame):
@@ -179,8 +195,10 @@ def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None)
 class LinkKeeper:
     """The loop's end: spawns the keeper on the first connect; ``link(i)`` is drone i's Link."""
 
-    def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None):
+    def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None, rt_priority: int = 0,
+                 cpus=None):
         self.uris = list(uris)
+        self.rt_priority, self.cpus = int(rt_priority), sorted(cpus) if cpus else None
         self.heartbeat_s = float(heartbeat_s)
         self.stop_log = str(stop_log) if stop_log else None
         self.qualities = [LinkQuality() for _ in self.uris]
@@ -201,7 +219,8 @@ class LinkKeeper:
         # a plain child process (not multiprocessing's spawn, which re-imports the parent's main
         # script): `python -m cfrace.flight.linkproc FD` with one end of a socket pair
         here, there = socket.socketpair()
-        args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log})
+        args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log,
+                           "rt_priority": self.rt_priority, "cpus": self.cpus})
         self._proc = subprocess.Popen([sys.executable, "-m", "cfrace.flight.linkproc", str(there.fileno()), args],
                                       pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL)
         there.close()
@@ -309,4 +328,5 @@ class KeptLink:
 
 if __name__ == "__main__":
     _opts = json.loads(sys.argv[2])
-    keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"])
+    keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"],
+                _opts["rt_priority"], _opts["cpus"])

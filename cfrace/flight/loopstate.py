@@ -116,7 +116,7 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "log_error", "sim")
 
 
 @dataclass
@@ -144,6 +144,7 @@ class RaceResult:
     drones_final_error: str | None = None
     faults: list | None = None                       #: what the fault injection did (dry-run)
     log: str | None = None                           #: the flight log's path
+    log_error: str | None = None                     #: why the flight log is incomplete (a write error)
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
 
     def to_json(self) -> dict:

@@ -10,7 +10,11 @@ Order (nothing is sent to a drone before every check passed):
 Every exit after step 2 (race end, exception, Ctrl-C, SIGTERM, safety) goes through one finally
 block that stops every drone, closes the links and the mocap source and closes the log with a
 /summary. SIGINT/SIGTERM during the race ask the loop to stop everything on its next tick
-(<= 10 ms); a second signal raises KeyboardInterrupt at once (the finally still stops them).
+(<= 10 ms); before the race (connecting, setting up) a signal raises KeyboardInterrupt at once
+(the finally still stops every drone); once the loop has ended, signals are only recorded
+(``operator_kill``, the exit code): nothing interrupts the stop sequence and the log's close.
+A flight log that cannot be written refuses the race before the set-up; a write error during the
+flight is the result's ``log_error`` (and the exit code's, EXIT_CODES["log_error"]).
 """
 
 from __future__ import annotations
@@ -24,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from cfrace.errors import LogError
 from cfrace.flight import realtime
 from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.estimator import PoseEstimator
@@ -33,7 +38,7 @@ from cfrace.flight.loopstate import RaceResult
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
-EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143}
+EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143, "log_error": 74}   # 74: EX_IOERR
 
 
 def ms_stats(x) -> dict:
@@ -91,19 +96,18 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
 
 
 class _Signals:
-    """SIGINT/SIGTERM -> operator kill while the loop runs; KeyboardInterrupt otherwise or on a repeat."""
+    """SIGINT/SIGTERM -> the operator kill. Before the loop runs (``may_raise()`` true) it also
+    raises KeyboardInterrupt; while the loop runs the loop stops every drone on its next tick;
+    after it, nothing is interrupted (the stop sequence and the log's close run to their end)."""
 
-    def __init__(self, kill: KillSwitch, loop_ref: list):
-        self.kill, self.loop_ref, self.old = kill, loop_ref, {}
+    def __init__(self, kill: KillSwitch, may_raise: Callable[[], bool]):
+        self.kill, self.may_raise, self.old = kill, may_raise, {}
 
     def _handler(self, signum, frame):
         name = signal.Signals(signum).name
-        loop = self.loop_ref[0] if self.loop_ref else None
-        if loop is not None and loop.running and self.kill.reason is None:
-            self.kill.request(name)
-            return
         self.kill.request(name)
-        raise KeyboardInterrupt(name)
+        if self.may_raise():
+            raise KeyboardInterrupt(name)
 
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
@@ -114,6 +118,35 @@ class _Signals:
     def __exit__(self, *exc):
         for s, h in self.old.items():
             signal.signal(s, h)
+
+
+class SignalGuard:
+    """SIGINT/SIGTERM around a whole command (`cfrace fly`, `cfrace sim dry-run`): before and during
+    the race a signal interrupts (the race's own handling takes over while it runs); once ``after``
+    is set (the race is over, its result is being printed and written) a signal is only recorded in
+    ``late``, so the JSON and the exit code still come out, and from the guard's end to the exit
+    signals are ignored."""
+
+    def __init__(self):
+        self.late: str | None = None
+        self.after = False
+        self.old: dict = {}
+
+    def _handler(self, signum, frame):
+        name = signal.Signals(signum).name
+        self.late = self.late or name
+        if not self.after:
+            raise KeyboardInterrupt(name)
+
+    def __enter__(self) -> "SignalGuard":
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self.old[s] = signal.signal(s, self._handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self.old.items():   # after the race the command only exits: signals are ignored
+            signal.signal(s, signal.SIG_IGN if self.after else h)
 
 
 def _quietly(call: Callable[[], object]) -> None:
@@ -135,7 +168,8 @@ class RaceRun:
         real_time = io.clock.realtime
         self.loop_cpu = realtime.resolve_loop_cpu(cfg.loop_cpu) if real_time else None
         rt_priority = realtime.resolve_rt_priority(cfg.rt_priority) if real_time else 0
-        self.kill, self.loop_ref = KillSwitch(), []
+        self.kill = KillSwitch()
+        self.phase = "open"    #: open (before the loop), fly, shut_down
         self.links, self.mocap, self.log, self.view = [], None, None, None
         self.result = RaceResult()
         self.meta = {"track": setup.track.name, "obstacles": cfg.obstacles, "laps": cfg.laps,
@@ -148,9 +182,10 @@ class RaceRun:
                      **(extra_meta or {})}
 
     def run(self) -> RaceResult:
-        with _Signals(self.kill, self.loop_ref):
+        with _Signals(self.kill, lambda: self.phase == "open"):
             try:
                 loop = self._open()
+                self.phase = "fly"
                 self._fly(loop)
             except BaseException as exc:
                 self.result.error = f"{type(exc).__name__}: {exc}"
@@ -158,7 +193,10 @@ class RaceRun:
                     self.result.operator_kill = self.kill.reason
                 raise
             finally:
+                self.phase = "shut_down"
                 self._shut_down()
+            if self.kill.reason is not None:
+                self.result.operator_kill = self.kill.reason
         return self.result
 
     def _open(self) -> FlightLoop:
@@ -172,6 +210,8 @@ class RaceRun:
             link.connect(cfg.connect_timeout_s)
         if cfg.log is not None:
             self.log = FlightLog(cfg.log, self.meta)
+            if self.log.error is not None:    # e.g. a full disk: its first write failed
+                raise LogError(f"cannot write flight log {cfg.log}: {self.log.error.strerror or self.log.error}")
         if self.announce is not None:
             self.announce(self.meta | {"fence": self.setup.fence})
         for link in self.links:
@@ -202,7 +242,6 @@ class RaceRun:
                           safety_cfg=cfg.safety, laps=cfg.laps, timeout_s=cfg.timeout_s, log=self.log,
                           view=self.view, faults=io.hooks, kill=self.kill, link_clock=io.link_clock,
                           prewarm_s=io.prewarm_s, limits=s.limits)
-        self.loop_ref.append(loop)
         return loop
 
     def _fly(self, loop: FlightLoop) -> None:
@@ -242,6 +281,8 @@ class RaceRun:
             doc = result.to_json()
             self.log.close({k: v for k, v in doc.items() if k != "loop"} | {"loop": doc.get("loop")})
             result.log = str(self.setup.cfg.log)
+            if self.log.error is not None:
+                result.log_error = f"{self.setup.cfg.log}: {self.log.error.strerror or self.log.error}"
 
 
 def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None,

@@ -116,7 +116,8 @@ def real_io(cfg: FlightConfig) -> RaceIO:
     cfg.mocap, the wall clock."""
     if len(cfg.uris) != len(DRONE_NAMES):
         raise ConfigError(f"--uris: need {len(DRONE_NAMES)} link URIs (ego, opp), got {list(cfg.uris)}")
-    links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log))
+    links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
+                         rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu)
     return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
                   open_link=links, clock=RealClock(cfg.dt), link_clock=time.monotonic,
                   prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris))
