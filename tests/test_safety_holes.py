@@ -152,7 +152,7 @@ def test_the_geofence_fault_leaves_the_fence_and_the_fence_stops_it(pols, tmp_pa
     res = dry_run(cfg, lockstep=True, faults="geofence@1.0").to_json()
     ego = [e for e in res["safety_events"] if e["drone"] == "ego" and e["action"] != "none"]
     assert [e["kind"] for e in ego] == ["geofence"], res["safety_events"]
-    assert "outside the fence" in ego[0]["detail"] and res["drones"][0]["speed_max"] < 4.0
+    assert "outside the fence" in ego[0]["detail"] and res["drones"][0]["speed_max"] < 6.0
 
 
 # ------------------------------------------------------------------------- 4. logs and results at the edges
@@ -275,3 +275,39 @@ def test_sim_serve_reports_bad_packets_in_one_rate_limited_line(tmp_path):
         _, err = proc.communicate(timeout=10)
     assert "Traceback" not in err and len(err.strip().splitlines()) <= 2, err
     assert "bad packet" in err
+
+
+# ------------------------------------------------------------------------- 1. flying blind
+def test_recorded_or_foreign_poses_do_not_steer_live_drones(served, pols, tmp_path):
+    """replay:// poses with live links are refused before anything flies; a moving replay is
+    caught by the before-take-off check (the poses must stay still while nothing is armed)."""
+    from cfrace.flight.config import FlightConfig
+    from cfrace.flight.consistency import check_still
+    from cfrace.flight.dryrun import dry_run
+    from cfrace.flight.mocap import open_mocap
+
+    log = tmp_path / "recorded.mcap"
+    dry_run(FlightConfig(track="lemniscate", ego=str(pols["ego"]), opp=str(pols["opp"]), profile=PROFILE,
+                         quiet=True, timeout_s=1.5, log=log), lockstep=True)
+    one_clear_line(fly(served, pols, tmp_path, "--mocap", f"replay://{log}"), "recorded poses", "null://")
+    assert nothing_sent(served[0])
+    source = open_mocap(f"replay://{log}?speed=2", bodies=["cf1", "cf2"])
+    source.open()
+    with pytest.raises(Exception, match=r"mocap body cf\d moved .* before take-off"):
+        check_still(source, ["cf1", "cf2"], 1.0)
+    source.close()
+
+
+def test_swapped_mocap_bodies_are_stopped_once_the_drones_fly(served, pols, tmp_path):
+    """`fly --bodies cf2,cf1` against the served drones: each drone is steered on the other's poses.
+    The drones take off to different heights, the poses stop moving with the commands and every
+    drone is stopped (pose_mismatch) within 0.3 s of leaving the floor."""
+    from cfrace.flight.holdpolicy import make_hold_policy
+
+    high = make_hold_policy(tmp_path / "high.onnx", "solo36", "lemniscate", False, height_offset=0.6)
+    proc = fly(served, {**pols, "opp": high}, tmp_path, "--bodies", "cf2,cf1", "--timeout-s", "4",
+               "--json", str(tmp_path / "r.json"))
+    result = json.loads((tmp_path / "r.json").read_text())
+    assert result["end"] == "pose_mismatch", (result["end"], result["safety_events"], proc.stderr[-500:])
+    ev = next(e for e in result["safety_events"] if e["kind"] == "pose_mismatch")
+    assert ev["t"] < 1.5 and all(d["stopped"] for d in result["drones"])

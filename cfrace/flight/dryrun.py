@@ -21,6 +21,7 @@ from dataclasses import replace
 from cfrace.errors import LinkError
 from cfrace.flight.clock import LockstepClock, RealClock
 from cfrace.flight.config import DRONE_NAMES, FlightConfig
+from cfrace.flight.consistency import STILL_S
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
 from cfrace.flight.link import DirectSimLink
 from cfrace.flight.links import link_factory, stop_log_path
@@ -93,7 +94,7 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
 
     prewarm_s = 0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s
     return RaceIO(open_mocap=mocap, open_link=link, clock=clock, link_clock=link_clock, prewarm_s=prewarm_s,
-                  uris=tuple(uris), hooks=injector)
+                  uris=tuple(uris), hooks=injector, still_s=0.0 if lockstep else STILL_S)
 
 
 def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=("sim://0", "sim://1"),

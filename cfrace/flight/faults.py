@@ -16,6 +16,11 @@ opp, e.g. ``mocap_dropout_short@3.0,link_loss@2.0:opp,sigterm@5``. Kinds:
     stall_50ms           the loop thread blocks for 50 ms once (missed ticks are skipped)
     stall_200ms          ... for 200 ms (beyond overrun_stop_s: stop all)
     sigterm / sigint     the process sends itself SIGTERM / SIGINT (the real signal handlers)
+    swap_bodies          from T the two drones' mocap bodies are swapped (a labelling mistake):
+                         each drone is steered on the other's poses; the consistency check
+                         (poses must move with the commands) must stop them
+    replay_poses         from T the mocap source replays the frames it gave REPLAY_BACK_S
+                         earlier, in order (recorded poses): the consistency check must stop them
 """
 
 from __future__ import annotations
@@ -34,11 +39,12 @@ from cfrace.errors import ConfigError
 from cfrace.flight.mocap import MocapFrame, Pose
 
 KINDS = ("mocap_dropout_short", "mocap_dropout_long", "pose_outlier", "geofence", "nan_policy", "link_loss",
-         "stall_50ms", "stall_200ms", "sigterm", "sigint")
+         "stall_50ms", "stall_200ms", "sigterm", "sigint", "swap_bodies", "replay_poses")
+REPLAY_BACK_S = 1.0      #: s, how far back the replay_poses fault replays
 SHORT_DROPOUT_S = 0.08
 LONG_DROPOUT_S = 1.0
 OUTLIER_OFFSET = np.array([0.8, 0.0, 0.6])   #: m, 1 m off
-GEOFENCE_CLIMB_MPS = 2.0     #: m/s, the geofence fault's climb
+GEOFENCE_CLIMB_MPS = 4.0     #: m/s, the geofence fault's climb
 LEVEL_GAIN = 6.0             #: 1/s, body rate per rad of tilt of the geofence fault's levelling
 
 
@@ -80,6 +86,7 @@ class FaultyMocap:
     def __init__(self, source, injector: "FaultInjector"):
         self.source, self.inj = source, injector
         self.name = getattr(source, "name", "mocap")
+        self.recorded: list = []     #: (t, poses) of the frames given, for replay_poses
 
     def open(self, timeout_s: float = 5.0) -> None:
         self.source.open(timeout_s)
@@ -96,7 +103,15 @@ class FaultyMocap:
             return None
         t = self.inj.t
         poses = dict(frame.poses)
+        self.recorded.append((t, poses))
         for f in self.inj.faults:
+            if f.kind == "replay_poses" and t >= f.t:
+                back = [p for tt, p in self.recorded if tt <= t - REPLAY_BACK_S]
+                poses = dict(back[-1]) if back else poses
+            if f.kind == "swap_bodies" and t >= f.t:
+                a, b = self.inj.bodies["ego"], self.inj.bodies["opp"]
+                if a in poses and b in poses:
+                    poses[a], poses[b] = poses[b], poses[a]
             body = self.inj.bodies[f.drone]
             if f.kind == "mocap_dropout_short" and f.t <= t < f.t + SHORT_DROPOUT_S:
                 return None

@@ -40,6 +40,7 @@ from pathlib import Path
 
 from cfrace.errors import LinkError
 from cfrace.flight.link import LinkQuality
+from cfrace.flight.realtime import set_fifo
 
 REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
 SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
@@ -50,7 +51,7 @@ _SETPOINT = struct.Struct("<cBfffH")    # b"s", drone, p, q, r (deg/s), thrust c
 class _Keeper:
     """The child's state: its links, which drones fly, when the loop was last heard."""
 
-    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None):
+    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0):
         from cfrace.flight.link_cflib import CflibLink   # cflib only in the keeper
 
         self.conn, self.heartbeat_s = conn, float(heartbeat_s)
@@ -61,6 +62,7 @@ class _Keeper:
         self.last_heard = time.monotonic()
         self.last_report = 0.0
         self.changed = False
+        self.rt_priority = rt_priority   #: SCHED_FIFO for all the keeper's threads from the first setpoint
 
     def stop(self, i: int, why: str) -> None:
         """Stop drone i now and record where and when the stop was sent."""
@@ -110,6 +112,9 @@ class _Keeper:
         """One message from the loop; False once the keeper must end."""
         kind = msg[:1]
         if kind == b"s":
+            if self.rt_priority:   # the race has started: as the loop, its links do not wait behind
+                set_fifo(self.rt_priority)   # the machine's ordinary jobs (cfrace.flight.realtime)
+                self.rt_priority = 0
             _, i, p, q, r, counts = _SETPOINT.unpack(msg)
             if not self.dead[i]:
                 self.links[i].send(p, q, r, counts)
@@ -159,25 +164,21 @@ class _Keeper:
             self.stop_log.close()
 
 
-def _schedule(rt_priority: int, cpus) -> None:
-    """The keeper's CPUs (not the loop's) and SCHED_FIFO at rt_priority where permitted, before any
-    cflib thread starts (they inherit both): as the flight process's other threads, it must not
-    wait behind the machine's ordinary jobs (cfrace.flight.realtime)."""
+def _pin(cpus) -> None:
+    """The keeper's CPUs (not the loop's), before any cflib thread starts (they inherit them)."""
     try:
         if cpus:
             os.sched_setaffinity(0, set(cpus))
-        if rt_priority > 0:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
     except (OSError, AttributeError):
-        pass   # not permitted / not Linux: normal scheduling
+        pass   # not permitted / not Linux
 
 
 def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0,
                 cpus=None) -> None:
     """The keeper process's entry point."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _schedule(rt_priority, cpus)
-    keeper = _Keeper(conn, uris, heartbeat_s, stop_log)
+    _pin(cpus)
+    keeper = _Keeper(conn, uris, heartbeat_s, stop_log, rt_priority)
 
     def on_term(signum, frame):
         keeper.stop_all("sigterm")

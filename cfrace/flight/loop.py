@@ -56,10 +56,10 @@ class FlightLoop:
     def __init__(self, *, drones: list[Drone], mocap, estimator, progress, obs_builder: ObservationBuilder,
                  clock, fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, log=None, view=None,
                  faults=None, kill: KillSwitch | None = None, link_log_every: int = 10, link_clock=None,
-                 prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None):
+                 prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None, consistency: bool = True):
         self.core = TickCore(drones=drones, estimator=estimator, progress=progress, obs_builder=obs_builder,
                              fence=fence, safety_cfg=safety_cfg, laps=laps, timeout_s=timeout_s, dt=clock.dt,
-                             filters=faults, limits=limits)
+                             filters=faults, limits=limits, consistency=consistency)
         self.mocap, self.clock, self.log, self.view, self.faults = mocap, clock, log, view, faults
         self.kill = kill or KillSwitch()
         self.link_log_every = link_log_every

@@ -5,7 +5,9 @@ Order (nothing is sent to a drone before every check passed):
   1. track, drone profile, both policies loaded and checked (cfrace.flight.setup.resolve_race,
      done by the caller: PolicyError / ConfigError);
   2. the mocap source opened and every body seen (MocapError: unknown body);
-  3. every link connected (LinkError: no answer / no Crazyradio / nothing listening);
+  3. every link connected (LinkError: no answer / no Crazyradio / nothing listening), then the
+     poses watched for RaceIO.still_s: they must not move while nothing is armed (MocapError:
+     the pose source does not belong to these drones; cfrace.flight.consistency);
   4. every link set up (rate mode params, arming, zero-thrust unlock), then the loop.
 Every exit after step 2 (race end, exception, Ctrl-C, SIGTERM, safety) goes through one finally
 block that stops every drone, closes the links and the mocap source and closes the log with a
@@ -31,6 +33,7 @@ import numpy as np
 from cfrace.errors import LogError
 from cfrace.flight import realtime
 from cfrace.flight.config import DRONE_NAMES
+from cfrace.flight.consistency import check_still
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
@@ -208,6 +211,8 @@ class RaceRun:
             self.links.append(io.open_link(i, uri))
         for link in self.links:
             link.connect(cfg.connect_timeout_s)
+        if io.still_s > 0:     # before anything is armed: the poses must not move on their own
+            check_still(self.mocap, list(cfg.bodies), io.still_s)
         if cfg.log is not None:
             self.log = FlightLog(cfg.log, self.meta)
             if self.log.error is not None:    # e.g. a full disk: its first write failed

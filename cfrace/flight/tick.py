@@ -21,6 +21,7 @@ import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight import safety as sf
+from cfrace.flight.consistency import ConsistencyMonitor
 from cfrace.flight.loopstate import Drone, ObservationBuilder
 from cfrace.flight.mocap import frame_to_msg
 
@@ -70,7 +71,7 @@ class TickCore:
 
     def __init__(self, *, drones: list[Drone], estimator, progress, obs_builder: ObservationBuilder,
                  fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, dt: float, filters=None,
-                 limits: sf.CommandLimits | None = None):
+                 limits: sf.CommandLimits | None = None, consistency: bool = True):
         self.drones, self.estimator, self.progress = drones, estimator, progress
         self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
         self.laps, self.timeout_s, self.dt, self.filters = laps, timeout_s, float(dt), filters
@@ -78,6 +79,9 @@ class TickCore:
         self.events: list[dict] = []
         self._active: set = set()        # (kind, drone) of violations currently present
         self._outliers = {d.body: 0 for d in drones}
+        #: do the poses move with the commands (off only for scripted poses in unit tests)
+        self.consistency = ConsistencyMonitor(len(drones), dt, drones[0].mass) if drones and consistency else None
+        self.mismatch: list = [None] * len(drones)   #: per drone: why its poses do not fit its commands
         self.t = 0.0
         self.last_ests: list | None = None
         self.last_frame = None
@@ -147,7 +151,8 @@ class TickCore:
                 pos=e.pos, vel=e.vel, rot=e.rot, est_valid=bool(e.valid), est_age_s=float(e.age_s),
                 obs=d.obs if computed[i] else None, action=d.action,
                 link_connected=links[i].connected, link_rx_age_s=links[i].rx_age_s,
-                gate_crash=bool(hit[i]), command=None if d.stopped else (*d.rates_dps, d.counts))
+                gate_crash=bool(hit[i]), command=None if d.stopped else (*d.rates_dps, d.counts),
+                pose_mismatch=self.mismatch[i])
                 for i, (d, e) in enumerate(zip(self.drones, ests))))
 
     # ------------------------------------------------------------------ the tick
@@ -166,6 +171,9 @@ class TickCore:
             if self.due(d, k):
                 obs_t[i], infer[i] = self.policy_step(i, ests)
                 computed[i] = True
+        if self.consistency is not None:
+            for i, d in enumerate(self.drones):
+                self.mismatch[i] = self.consistency.update(i, ests[i], d.rates_dps, d.thrust_n, not d.stopped)
         decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill),
                             self.fence, self.safety_cfg, self.limits)
         setpoints, stops = self._setpoints(decision, ests, t, k)
@@ -295,5 +303,8 @@ class TickCore:
                         "lap_times": [round(x, 3) for x in p.lap_times[i]], "stopped": d.stopped,
                         "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
                         "speed_max": round(d.speed_max, 3),
+                        "pose_residual_max": None if self.consistency is None else
+                        {"rate_dps": round(self.consistency.worst[i][0], 1),
+                         "dv_of_limit": round(self.consistency.worst[i][1], 3)},
                         "speed_mean": round(d.speed_sum / d.speed_n, 3) if d.speed_n else None})
         return out
