@@ -16,7 +16,7 @@ from cfrace.evaluate.pipeline import load_pipeline, post_stage
 from cfrace.evaluate.select import choose
 from cfrace.paths import POLICIES_DIR
 from cfrace.rl.train import TrainConfig, train
-from cfrace.sweep.spec import parse_spec
+from cfrace.sweep.parse import parse_spec
 
 
 def test_every_shipped_policy_has_a_stage():

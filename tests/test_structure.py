@@ -127,7 +127,6 @@ def test_the_gate_rule_is_defined_once():
 LONG_FILES = {
     "sim/kernel.c": "one fused C kernel: its blocks share the lane layout and must be read together",
     "simcf/firmware.py": "the simulated firmware's one state machine (setpoints, watchdog, arming, params)",
-    "sweep/spec.py": "the sweep file format (landed from its branch during the consolidation; its owner splits it)",
 }
 LONG_FUNCTIONS = {
     "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",
@@ -142,8 +141,6 @@ LONG_FUNCTIONS = {
     # landed from other branches during the consolidation; their owners split them when they next change
     "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
     "cli/calibrate.py:thrust_cmd": "the `calibrate thrust` command's option list (typer signature)",
-    "calibrate/plots.py:plot_fits": "the five fit figures one after the other (split when it next changes)",
-    "sweep/spec.py:parse_spec": "the sweep file's parser, one key after the other",
 }
 
 

@@ -18,7 +18,7 @@ import pytest
 
 pytest.importorskip("ray")
 
-from cfrace.sweep.spec import load_spec  # noqa: E402
+from cfrace.sweep.parse import load_spec  # noqa: E402
 
 SPEC = """
 version: 1

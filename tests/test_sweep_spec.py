@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from cfrace.errors import ConfigError
-from cfrace.sweep.spec import load_spec, parse_spec, train_options
+from cfrace.sweep.parse import load_spec, parse_spec
+from cfrace.sweep.spec import train_options
 
 
 def spec(body: str, tmp_path: Path, name: str = "s.yaml"):

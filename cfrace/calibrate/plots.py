@@ -21,63 +21,69 @@ def _plt():
 
 
 def plot_fits(fit: Fit, rec: Recording, folder: Path, true: DroneProfile | None = None) -> list[Path]:
-    """Write thrust_curve.png, voltage.png, k_eta.png, k_m.png and tau_m.png to ``folder``."""
+    """Write thrust_curve.png, voltage.png, k_eta.png (when rotor speeds were logged), k_m.png and
+    tau_m.png to ``folder``; each figure is drawn by one of the functions below."""
     plt = _plt()
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    figures = [_thrust_curve_fig, _voltage_fig] + ([_k_eta_fig] if fit.k_eta is not None else []) + [_k_m_fig, _tau_m_fig]
     paths = []
-
-    def finish(fig, ax, xlabel, ylabel, title, name, **legend):
-        """Labels, grid, legend; save as folder/name."""
+    for draw in figures:
+        fig, ax = plt.subplots(figsize=(6.4, 4.2))
+        xlabel, ylabel, title, name, legend = draw(ax, fit, true)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(ylabel)
         ax.set_title(title)
         ax.grid(alpha=0.3, which="both")
         ax.legend(**({"fontsize": 8} | legend))
         fig.tight_layout()
-        p = folder / name
-        fig.savefig(p, dpi=110)
+        fig.savefig(folder / name, dpi=110)
         plt.close(fig)
-        paths.append(p)
+        paths.append(folder / name)
+    return paths
 
-    st = fit.stats
-    # thrust curve: each hold scaled to the reference voltage and to four rotors
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+
+def _thrust_curve_fig(ax, fit: Fit, true: DroneProfile | None):
+    """Each hold scaled to the reference voltage and to four rotors, the fitted and the true curve."""
     for kind, marker, label in (("all", "o", "all motors"), ("motor", "x", "one motor x 4")):
         pts = [(s.hold.counts, 4.0 / s.hold.active * s.fz * (REFERENCE_VOLTS / s.volts) ** fit.gamma)
-               for s in st if s.hold.kind == kind]
+               for s in fit.stats if s.hold.kind == kind]
         if pts:
             ax.plot(*np.array(pts).T, marker, ms=5, label=f"{label} (at {REFERENCE_VOLTS:g} V)", alpha=0.8)
     ax.plot(fit.counts, fit.newtons, "-", color="k", lw=1.2, label=f"fit, residual {fit.curve_residual * 1e3:.2f} mN/rotor")
     if true is not None:
         c = np.linspace(0, fit.counts[-1], 200)
         ax.plot(c, true.thrust_curve.to_newtons(c), "--", color="tab:red", lw=1, label=f"true ({true.name})")
-    finish(fig, ax, "motor command (counts)", "collective thrust (N)",
-           "thrust curve", "thrust_curve.png")
+    return "motor command (counts)", "collective thrust (N)", "thrust curve", "thrust_curve.png", {}
 
-    # voltage dependence: per-rotor thrust over the curve's value at the reference voltage
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+
+def _voltage_fig(ax, fit: Fit, true: DroneProfile | None):
+    """Per-rotor thrust over the curve's value at the reference voltage."""
     curve = dict(zip(fit.counts, fit.newtons))
     pts = np.array([(s.volts / REFERENCE_VOLTS, s.fz / s.hold.active / (curve[s.hold.counts] / 4.0))
-                    for s in st if s.hold.counts in curve and s.fz > 0])
+                    for s in fit.stats if s.hold.counts in curve and s.fz > 0])
     ax.plot(pts[:, 0], pts[:, 1], "o", ms=4, label="holds")
     v = np.linspace(pts[:, 0].min(), pts[:, 0].max(), 50)
     ax.plot(v, v ** fit.gamma, "k-", label=f"(V / V_ref)^{fit.gamma:.2f} ({'fitted' if fit.gamma_fitted else 'assumed'})")
-    finish(fig, ax, f"battery voltage / {REFERENCE_VOLTS:g} V", "thrust / thrust at the reference voltage",
-           "voltage dependence", "voltage.png")
+    return (f"battery voltage / {REFERENCE_VOLTS:g} V", "thrust / thrust at the reference voltage",
+            "voltage dependence", "voltage.png", {})
 
-    if fit.k_eta is not None:
-        fig, ax = plt.subplots(figsize=(6.4, 4.2))
-        x = np.array([s.omega2 for s in st if s.omega2])
-        y = np.array([s.fz / s.hold.active for s in st if s.omega2])
-        ax.plot(x, y, "o", ms=4, label="holds (thrust per rotor)")
-        xx = np.linspace(0, x.max(), 50)
-        ax.plot(xx, fit.k_eta * xx, "k-", label=f"k_eta = {fit.k_eta:.4g} N/(rad/s)^2, residual "
-                                                f"{fit.k_eta_residual * 100:.2f} %")
-        finish(fig, ax, "rotor speed^2 from rpm.m1-m4 ((rad/s)^2)", "thrust per rotor (N)",
-               "thrust coefficient", "k_eta.png")
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+def _k_eta_fig(ax, fit: Fit, true: DroneProfile | None):
+    """Thrust per rotor against the logged rotor speed squared."""
+    x = np.array([s.omega2 for s in fit.stats if s.omega2])
+    y = np.array([s.fz / s.hold.active for s in fit.stats if s.omega2])
+    ax.plot(x, y, "o", ms=4, label="holds (thrust per rotor)")
+    xx = np.linspace(0, x.max(), 50)
+    ax.plot(xx, fit.k_eta * xx, "k-", label=f"k_eta = {fit.k_eta:.4g} N/(rad/s)^2, residual "
+                                            f"{fit.k_eta_residual * 100:.2f} %")
+    return ("rotor speed^2 from rpm.m1-m4 ((rad/s)^2)", "thrust per rotor (N)", "thrust coefficient",
+            "k_eta.png", {})
+
+
+def _k_m_fig(ax, fit: Fit, true: DroneProfile | None):
+    """Yaw torque against the thrust of the one running motor, with the fitted ratio."""
+    st = fit.stats
     for s in st:
         if s.hold.kind == "motor":
             ax.plot(s.fz, s.tz * 1e3, "o", ms=4, color=f"C{s.hold.motor}")
@@ -87,22 +93,24 @@ def plot_fits(fit: Fit, rec: Recording, folder: Path, true: DroneProfile | None 
     f = np.linspace(0, max(s.fz for s in st if s.hold.kind == "motor"), 20)
     for sign in (1, -1):
         ax.plot(f, sign * fit.k_m_ratio * f * 1e3, "k-", lw=0.8)
-    finish(fig, ax, "thrust of the one running motor (N)", "yaw torque (mN m)",
-           f"yaw torque per thrust {fit.k_m_ratio * 1e3:.3f} mm (k_m = that x k_eta)", "k_m.png")
+    return ("thrust of the one running motor (N)", "yaw torque (mN m)",
+            f"yaw torque per thrust {fit.k_m_ratio * 1e3:.3f} mm (k_m = that x k_eta)", "k_m.png", {})
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+
+def _tau_m_fig(ax, fit: Fit, true: DroneProfile | None):
+    """The step responses' normalised errors on a log scale, with the fitted lag."""
     for k, c in enumerate(fit.tau_steps):
         t, e = np.array(c["t"]), np.array(c["e"])
         ok = e > 0
         ax.semilogy(t[ok] * 1e3, e[ok], ".", ms=3, color=f"C{k % 10}",
                     label=f"{c['from']} -> {c['to']}: {c['tau'] * 1e3:.1f} ms")
     tt = np.linspace(0, 4 * fit.tau_m, 20)
-    ax.semilogy(tt * 1e3, np.exp(-tt * fit.sag / fit.tau_m), "k-", lw=1.5, label=f"median {fit.tau_m / fit.sag * 1e3:.1f} ms (tau_m {fit.tau_m * 1e3:.1f} ms after the sag)")
+    ax.semilogy(tt * 1e3, np.exp(-tt * fit.sag / fit.tau_m), "k-", lw=1.5,
+                label=f"median {fit.tau_m / fit.sag * 1e3:.1f} ms (tau_m {fit.tau_m * 1e3:.1f} ms after the sag)")
     ax.set_ylim(0.02, 1.5)
     ax.set_xlim(-3 * fit.tau_m * 1e3, 5 * fit.tau_m * 1e3)
-    finish(fig, ax, "time from the fitted start of the step (ms)", "normalised error of sqrt(thrust)",
-           "motor lag (step responses)", "tau_m.png", fontsize=7, ncol=2)
-    return paths
+    return ("time from the fitted start of the step (ms)", "normalised error of sqrt(thrust)",
+            "motor lag (step responses)", "tau_m.png", {"fontsize": 7, "ncol": 2})
 
 
 def summary_lines(fit: Fit) -> list[str]:

@@ -47,7 +47,7 @@ def sweep_cmd(
     plot: Optional[Path] = typer.Option(None, "--plot", help="combined curves PNG (default OUT/curves.png)"),
 ) -> None:
     """Run a grid or list of training runs (on Ray by default); resume a stopped sweep; plot curves."""
-    from cfrace.sweep.spec import load_spec
+    from cfrace.sweep.parse import load_spec
 
     sweep = load_spec(spec, check_paths=not dry_run)
     out_root = out or Path(sweep.out)

@@ -43,7 +43,7 @@ SELECT_KEYS = {"against", "runs", "laps", "seed", "agent", "export"}
 def load_pipeline(path: Path = PIPELINE, only: str | None = None):
     """The pipeline's Sweep; with ``only`` (comma-separated globs of stage names) just those stages
     and everything they depend on."""
-    from cfrace.sweep.spec import load_spec
+    from cfrace.sweep.parse import load_spec
 
     sweep = load_spec(path, check_paths=False)
     for run in sweep.runs:

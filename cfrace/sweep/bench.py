@@ -92,7 +92,7 @@ def bench_sweep_wall(spec: str | Path, address: str | None = None) -> dict:
     does not include starting Ray (bench_parallel reports that as ray_start_s)."""
     from cfrace.sweep.local import run_local
     from cfrace.sweep.ray_exec import run_ray
-    from cfrace.sweep.spec import load_spec
+    from cfrace.sweep.parse import load_spec
 
     sweep = load_spec(spec)
     with tempfile.TemporaryDirectory(prefix="cfrace-bench-sweep-") as tmp:
