@@ -311,3 +311,16 @@ def test_swapped_mocap_bodies_are_stopped_once_the_drones_fly(served, pols, tmp_
     assert result["end"] == "pose_mismatch", (result["end"], result["safety_events"], proc.stderr[-500:])
     ev = next(e for e in result["safety_events"] if e["kind"] == "pose_mismatch")
     assert ev["t"] < 1.5 and all(d["stopped"] for d in result["drones"])
+
+
+# ------------------------------------------------------------------------- the fault suite
+def test_fault_suite_rows_pass_and_catch_a_replay(tmp_path):
+    """Two rows of `cfrace sim faults` (the whole suite runs for minutes): a replay of the frames of
+    1 s earlier mid-race is stopped by the consistency check within 0.3 s, with a complete log."""
+    from cfrace.flight.faultsuite import FAULT_T, dry_run_row, markdown
+
+    row = dry_run_row("replay_poses", "lemniscate", tmp_path)
+    assert row.passed and row.log_complete and row.exit_code == 0, row
+    assert FAULT_T <= row.detected_s <= FAULT_T + 0.3 and row.stopped_s <= FAULT_T + 0.3
+    table = markdown([row])
+    assert table.count("\n") == 2 and "| fault replay_poses@2 (ego) |" in table and "| pass |" in table

@@ -95,14 +95,10 @@ def write_json(result: dict, path: Path | None) -> None:
 
 
 def exit_code(result: dict, late_signal: str | None = None) -> int:
-    """143 / 130 when the operator's signal ended or followed the race (also while its result was
-    written: late_signal), 74 when the flight log could not be written, else 0."""
-    from cfrace.flight.runner import EXIT_CODES
+    """The command's exit code (cfrace.flight.runner.result_exit_code)."""
+    from cfrace.flight.runner import result_exit_code
 
-    signal_name = result.get("operator_kill") or late_signal
-    if signal_name:
-        return EXIT_CODES.get(signal_name, 130)
-    return EXIT_CODES["log_error"] if result.get("log_error") else 0
+    return result_exit_code(result, late_signal)
 
 
 def finish(run, json_out: Path | None) -> None:

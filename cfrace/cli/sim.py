@@ -90,6 +90,36 @@ def dry_run_cmd(
                            setup=resolve_race(cfg, the_track)), json_out)
 
 
+@sim_app.command("faults")
+def faults_cmd(
+    track: str = typer.Option("lemniscate", help="Track (its shipped ours / ds policies race)."),
+    processes: bool = typer.Option(True, "--processes/--no-processes",
+                                   help="Also kill -9 `cfrace fly` and cut a link, with `cfrace sim serve` "
+                                        "and `cfrace fly` as separate processes (about 30 s more)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON."),
+):
+    """Every fault and bad-input scenario through the real stack, as one table (docs/flight.md)."""
+    from dataclasses import asdict
+
+    from rich.table import Table
+
+    from cfrace.flight.faultsuite import HEADER, run_suite
+
+    rows = run_suite(track, processes)
+    table = Table(title=f"faults and bad inputs, {track}")
+    for col in HEADER:
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        table.add_row(*r.cells())
+    out.print(table)
+    if json_out is not None:
+        json_out.write_text(json.dumps([asdict(r) for r in rows], indent=1, default=str) + "\n")
+    failed = [r.scenario for r in rows if not r.passed]
+    if failed:
+        console.print(f"error: {len(failed)} scenario(s) failed: {', '.join(failed)}", highlight=False)
+        sys.exit(1)
+
+
 @sim_app.command("replay")
 def replay_cmd(
     log: Path = typer.Argument(..., help="A flight log written by cfrace fly / cfrace sim dry-run."),

@@ -73,7 +73,8 @@ class _Keeper:
             self.dead[i] = True
         self.changed = True
         rec = {"drone": i, "uri": self.links[i].uri, "why": why, "was_flying": was_flying,
-               "t_mono": t_mono, "t_wall": t_wall, "stop_sent_s": time.monotonic() - t_mono}
+               "t_mono": t_mono, "t_wall": t_wall, "stop_sent_s": time.monotonic() - t_mono,
+               "since_loop_s": t_mono - self.last_heard}   # since the loop's last message
         if self.stop_log is not None:
             self.stop_log.write(json.dumps(rec) + "\n")
         if why != "loop" and was_flying:

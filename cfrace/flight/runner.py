@@ -44,6 +44,16 @@ from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143, "log_error": 74}   # 74: EX_IOERR
 
 
+def result_exit_code(result: dict, late_signal: str | None = None) -> int:
+    """A race's exit code from its JSON: 143 / 130 when the operator's signal ended or followed the
+    race (also while its result was written: late_signal), 74 when the flight log could not be
+    written, else 0."""
+    signal_name = result.get("operator_kill") or late_signal
+    if signal_name:
+        return EXIT_CODES.get(signal_name, 130)
+    return EXIT_CODES["log_error"] if result.get("log_error") else 0
+
+
 def ms_stats(x) -> dict:
     """p50 / p99 / max in ms of the finite values of x (s); None where there are none."""
     x = np.asarray(x, dtype=np.float64)
