@@ -126,6 +126,7 @@ def check_still(mocap, bodies: list[str], seconds: float = STILL_S, clock=None) 
     end = clock() + seconds
     while clock() < end:
         frame = mocap.read(0.02)
+        time.sleep(0.01)   # an in-process source answers at once: leave the GIL to the drones' threads
         if frame is None:
             continue
         for b in bodies:
