@@ -25,12 +25,13 @@ import gc
 import signal
 import sys
 import threading
+import time
 from dataclasses import asdict
 from typing import Callable
 
 import numpy as np
 
-from cfrace.errors import LogError
+from cfrace.errors import LinkError, LogError
 from cfrace.flight import realtime
 from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.consistency import check_still
@@ -231,7 +232,24 @@ class RaceRun:
             self.announce(self.meta | {"fence": self.setup.fence})
         for link in self.links:
             link.setup()
+        if io.still_s > 0:    # real links: every drone answered just now, or the race does not start
+            self._wait_heard()
         return self._loop()
+
+    def _wait_heard(self, timeout_s: float = 2.0) -> None:
+        """Until every live link has heard its drone within half the link timeout (LinkError after
+        timeout_s): a link silent since before the start would be stopped at once by the first tick."""
+        limit = self.setup.cfg.safety.link_timeout_s / 2.0
+        end = time.monotonic() + timeout_s
+        while True:
+            now = self.io.link_clock()
+            silent = [k for k in self.links if not k.uri.startswith("null://") and not k.quality.rx_age(now) < limit]
+            if not silent:
+                return
+            if time.monotonic() > end:
+                raise LinkError(f"{silent[0].uri}: the drone has not answered for "
+                                f"{silent[0].quality.rx_age(now):.1f} s before the start")
+            time.sleep(0.01)
 
     def _drones(self) -> list[Drone]:
         s = self.setup
