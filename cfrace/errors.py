@@ -27,3 +27,7 @@ class MocapError(CfraceError):
 
 class LogError(CfraceError):
     """A flight log that cannot be read (truncated, corrupt, wrong schema)."""
+
+
+class FlightError(CfraceError):
+    """A flight procedure that could not be completed (e.g. the drones did not settle at their start)."""

@@ -62,13 +62,15 @@ def test_lockstep_dry_run_flies_and_logs(lockstep_run):
     assert data.meta["velocity_alpha"] == 0.7
     for topic in ("/mocap/pose", "/estimate", "/obs", "/action", "/setpoint", "/timing", "/link", "/race"):
         assert data.count(topic) > 0, topic
-    assert data.count("/timing") == 301 and data.count("/obs") == 301        # 100 Hz loop
+    assert data.count("/obs") == 301                                           # 100 Hz loop, 3 s race
+    landing_ticks = data.count("/timing") - 301                                # then both drones land
+    assert 0 < landing_ticks < 500 and {m["drone"] for _, m in data.messages("/landing")} == {"ego", "opp"}
     obs = [m for _, m in data.messages("/obs")]                                # 50 Hz each, staggered
     assert [m["k"] for m in obs if "cf1" in m] == list(range(0, 301, 2))
     assert [m["k"] for m in obs if "cf2" in m] == list(range(1, 301, 2))
     z = [m["cf1"]["pos"][2] for _, m in data.messages("/estimate")]
     assert z[0] < 0.05 and max(z) > 0.6                                        # took off from the floor
-    assert result["loop"]["ticks"] == 301 and result["loop"]["skipped"] == 0
+    assert result["loop"]["ticks"] == 301 + landing_ticks and result["loop"]["skipped"] == 0
     assert data.meta["policies"]["ego"]["obs_layout"] == "race42"
 
 
@@ -106,7 +108,8 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
 
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
     result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False).to_json()
-    assert result["end"] == "timeout"
+    assert result["end"] == "timeout", ([(e["t"], e["kind"], e["detail"]) for e in result["safety_events"]],
+                                        result.get("landings"))
     # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own
     from test_flight_realtime import fifo_permitted
     from cfrace.flight.realtime import resolve_loop_cpu
@@ -357,7 +360,8 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
         flown = poses.get(k + 1 - k0 + min(poses))
         if flown is not None:
             errors.append(float(np.linalg.norm(sim.state.pos[0, 0].numpy() - np.asarray(flown["pos"]))))
-    path = float(np.linalg.norm(np.asarray(poses[max(poses)]["pos"]) - np.asarray(first["pos"])))
+    race_end = min(poses) + 300                        # the race's last frame (then it lands)
+    path = float(np.linalg.norm(np.asarray(poses[race_end]["pos"]) - np.asarray(first["pos"])))
     assert len(errors) > 200 and path > 3.0            # it flew, through the fast part after gate 2
     assert max(errors) < 0.005, max(errors)            # 5 mm over 2.5 s of flight
 

@@ -54,7 +54,32 @@ CASES = [
     ("stall_200ms@1.5", ("loop_overrun", None, "stop_all"), ["ego", "opp"], "loop_overrun"),
     ("sigterm@1.5", ("operator_kill", None, "stop_all"), ["ego", "opp"], "operator_kill"),
     ("sigint@1.5", ("operator_kill", None, "stop_all"), ["ego", "opp"], "operator_kill"),
+    # soft failsafes: the drone lands
+    ("mocap_glitchy@1.5", ("mocap_degraded", "ego", "land_drone"), ["ego"], "timeout"),
+    ("low_battery@1.5:opp", ("low_battery", "opp", "land_drone"), ["opp"], "timeout"),
+    ("operator_land@1.5", ("operator_land", None, "land_all"), ["ego", "opp"], "timeout"),
 ]
+HARD_ENDS = ("loop_overrun", "operator_kill")
+
+
+def check_landings(result, track_name="lemniscate"):
+    """Every drone that was not cut landed: on the ground within 5 s of its landing's start, at
+    most 0.5 m/s down, inside the arena, on its spot; the result says why it landed."""
+    from cfrace.track import load_track
+    arena = load_track(track_name).arena
+    out = {}
+    for d in result["drones"]:
+        land = d["landing"]
+        if d["stop_kind"] != "landed":
+            continue
+        assert land["down"] and land["t"] is not None and land["t"] < 5.0, land
+        assert abs(land["vz_mps"]) <= 0.5, land
+        x, y, _ = land["place"]
+        assert arena.x[0] <= x <= arena.x[1] and arena.y[0] <= y <= arena.y[1], land
+        assert abs(x - land["spot"][0]) < 0.15 and abs(y - land["spot"][1]) < 0.15, land
+        assert result["landings"][d["name"]] == land
+        out[d["name"]] = land["reason"]
+    return out
 
 
 @pytest.mark.parametrize("fault, event, stopped, end", CASES, ids=[c[0] for c in CASES])
@@ -62,10 +87,16 @@ def test_fault_lockstep(pols, tmp_path, fault, event, stopped, end):
     result, data, logged = run(pols, tmp_path, fault)
     assert event in logged, logged
     assert result["end"] == end
-    by_fault = {d["name"] for d in result["drones"] if d["stopped"] and d["stop_kind"] not in ("timeout",)}
+    landed = check_landings(result)
+    by_fault = {d["name"] for d in result["drones"] if d["stop_kind"] == event[0] or landed.get(d["name"]) == event[0]}
     assert by_fault == set(stopped), result["drones"]
+    if end not in HARD_ENDS:   # everyone else landed: at the race's end, or when the other drone fell in its way
+        assert {n for n, why in landed.items() if why in ("race_end", "opponent_down")} \
+            == {"ego", "opp"} - set(stopped), landed
+    assert sorted(m["drone"] for _, m in data.messages("/landing")) == [d["name"] for d in result["drones"]
+                                                                        if d["landing"] and "down" in d["landing"]]
     t_event = next(e["t"] for e in result["safety_events"] if (e["kind"], e["drone"], e["action"]) == event)
-    assert 1.5 <= t_event < 2.5
+    assert 1.5 <= t_event < 2.6      # low_battery: after low_battery_s (1 s) below the limit
     if fault.startswith("link_loss"):
         # the stop cannot reach the drone: the firmware's own watchdog turned the motors off
         assert result["drones_final"][0]["watchdog"] == "shutdown"
@@ -75,8 +106,8 @@ def test_fault_lockstep(pols, tmp_path, fault, event, stopped, end):
     if fault.startswith(("sigterm", "sigint")):
         assert result["operator_kill"] == ("SIGTERM" if "term" in fault else "SIGINT")
         assert result["duration_s"] < 1.6
-    if not stopped:   # rode through: the drones flew on to the end at their height
-        z = [m["cf1"]["pos"][2] for _, m in data.messages("/estimate")]
+    if not stopped:   # rode through: the drones flew on to the end at their height (then landed)
+        z = [m["cf1"]["pos"][2] for t, m in data.messages("/estimate") if t < 3.0]
         assert min(z[-50:]) > 0.6
 
 
@@ -91,7 +122,7 @@ def test_fault_specs():
 def test_faults_real_time_through_cflib(pols, tmp_path):
     """Real time, real cflib over UDP: a real link loss (a relay drops every datagram), a NaN
     policy and a 50 ms stall, in one race."""
-    result, data, logged = run(pols, tmp_path, "stall_50ms@0.8,link_loss@1.0:opp,nan_policy@1.5",
+    result, data, logged = run(pols, tmp_path, "stall_50ms@0.8,link_loss@1.0:opp,nan_policy@1.2",
                                lockstep=False, timeout_s=3.0)
     assert ("link_lost", "opp", "stop_drone") in logged and ("non_finite", "ego", "stop_drone") in logged
     assert ("tick_skipped", None, "none") in logged

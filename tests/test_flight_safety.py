@@ -185,3 +185,40 @@ def test_flight_config_file(tmp_path):
     f.write_text("safety: {speed_max: 3}\n")
     with pytest.raises(ConfigError, match="safety.speed_max.*unknown key"):
         make_config(f, track="lemniscate", ego="ours", opp="ds")
+
+
+@pytest.mark.parametrize("change, kind", [
+    (dict(pos=np.array([2.6, 5.0, 1.0])), "fence_near"),          # 0.2 m from the fence (x 2.8)
+    (dict(pos=np.array([0.0, 5.0, 3.1])), "fence_near"),          # 0.2 m below the fence's ceiling
+    (dict(mocap_glitches=3), "mocap_degraded"),
+    (dict(blocked="opp down at (0.00, 5.50, 0.02)"), "opponent_down"),
+    (dict(vbat=3.2, vbat_low_s=1.0), "low_battery"),
+])
+def test_soft_failsafes_land_only_that_drone(fence, change, kind):
+    for i in (0, 1):
+        ds = [drone(), drone()]
+        ds[i] = drone(**change)
+        d = sf.check(inputs(*ds), fence, CFG)
+        assert kinds(d) == [(kind, i, sf.LAND_DRONE)]
+        assert d.land[i] and not d.land[1 - i] and d.stop == (False, False)
+        # a landing drone is past the soft rules (and the racing ones: floor, gate crash)
+        landing = drone(**change, landing=True, gate_crash=True)
+        assert sf.check(inputs(landing), fence, CFG).ok
+
+
+def test_soft_limits_are_limits_and_hard_rules_win(fence):
+    calm = [drone(pos=np.array([2.49, 5.0, 1.0])), drone(mocap_glitches=2), drone(vbat=3.2, vbat_low_s=0.9),
+            drone(vbat=3.31, vbat_low_s=5.0)]
+    for d in calm:
+        assert sf.check(inputs(d), fence, CFG).ok
+    both = sf.check(inputs(drone(mocap_glitches=5, rot=rot_x(85.0))), fence, CFG)
+    assert both.stop[0] and not both.land[0]                     # a tumble cuts the motors, even when landing
+    assert sf.check(inputs(drone(landing=True, rot=rot_x(85.0))), fence, CFG).stop[0]
+    assert sf.check(inputs(drone(pos=np.array([3.0, 5.0, 1.0]))), fence, CFG).stop[0]   # outside: geofence, cut
+
+
+def test_operator_land_lands_everyone_operator_kill_cuts(fence):
+    d = sf.check(inputs(operator_land="SIGUSR1"), fence, CFG)
+    assert d.land == (True, True) and not any(d.stop) and ("operator_land", None, sf.LAND_ALL) in kinds(d)
+    d = sf.check(inputs(operator_land="SIGUSR1", operator_kill="SIGINT"), fence, CFG)
+    assert d.stop_all and d.land == (False, False)

@@ -1,12 +1,14 @@
 """CRTP services of the simulated Crazyflie, bytes in / bytes out (no sockets)."""
 
 import errno
+import math
 import random
 import struct
 
 import pytest
 
 from cfrace.simcf import crtp
+from cfrace.simcf.controller import ABS, VELOCITY
 from cfrace.simcf.crtp import CrtpEndpoint, LOG_VARS, PARAMS, packet
 from cfrace.simcf.firmware import SimFleet
 
@@ -102,7 +104,9 @@ def test_log_toc_blocks_and_data(ep, fleet):
     stamp = body[1] | body[2] << 8 | body[3] << 16
     assert stamp == int(round(fleet.time * 1000))
     z, vbat = struct.unpack("<ff", body[4:])
-    assert z == pytest.approx(fleet.state(0)["pos"][2], abs=1e-6) and vbat == pytest.approx(4.0)
+    # the estimator (Lighthouse deck by default): within millimetres of the truth; the battery model
+    assert z == pytest.approx(fleet.state(0)["pos"][2], abs=0.005)
+    assert vbat == pytest.approx(fleet.log_values(0)["pm.vbat"], abs=1e-5) and 3.9 < vbat < 4.2
     assert [d for d in ep.due_packets() if d[0] >> 4 == crtp.LOG] == []     # not due again yet
     fleet.advance(0.02)
     assert len([d for d in ep.due_packets() if d[0] >> 4 == crtp.LOG]) == 1
@@ -135,9 +139,41 @@ def test_setpoint_and_stop_packets(ep, fleet):
     assert fleet.status(0)["setpoints_received"] == 1
     ep.handle(packet(crtp.GENERIC_COMMANDER, 0, b"\x00"))                   # STOP
     assert fleet.status(0)["setpoints_received"] == 2
-    warn = ep.handle(packet(crtp.GENERIC_COMMANDER, 0, b"\x07" + bytes(16)))
+    warn = ep.handle(packet(crtp.GENERIC_COMMANDER, 0, b"\x03" + bytes(16)))   # CPPM emulation: not emulated
     assert warn and all(p[0] >> 4 == crtp.CONSOLE for p in warn)
     assert b"not emulated" in b"".join(p[1:] for p in warn)
+    assert fleet.status(0)["setpoints_received"] == 2
+    warn = ep.handle(packet(crtp.GENERIC_COMMANDER, 0, b"\x07" + bytes(3)))     # position, too short
+    assert b"bad length" in b"".join(p[1:] for p in warn) and fleet.status(0)["setpoints_received"] == 2
+
+
+def test_generic_setpoint_types_decode_as_the_firmware():
+    """Units and signs of each generic setpoint type (crtp_commander_generic.c) as cflib packs them."""
+    sp = crtp.decode_generic(7, struct.pack("<ffff", 1.0, -2.0, 0.5, 90.0))            # position, yaw deg
+    assert (sp.mode_x, sp.mode_y, sp.mode_z, sp.mode_yaw) == (ABS,) * 4
+    assert list(sp.position) == [1.0, -2.0, 0.5] and sp.attitude[2] == pytest.approx(math.pi / 2)
+    new, old = (crtp.decode_generic(t, struct.pack("<ffff", 0.3, 0.0, -0.1, s * 45.0)) for t, s in ((8, 1), (1, -1)))
+    for sp in (new, old):                       # cflib negates the yaw rate for the legacy type only
+        assert (sp.mode_x, sp.mode_z, sp.mode_yaw) == (VELOCITY, VELOCITY, VELOCITY) and not sp.velocity_body
+        assert sp.velocity[0] == pytest.approx(0.3) and sp.rates[2] == pytest.approx(math.radians(45.0))
+    hover = crtp.decode_generic(10, struct.pack("<ffff", 0.2, 0.1, 0.0, 0.4))
+    assert hover.velocity_body and hover.mode_x == VELOCITY and hover.mode_z == ABS and hover.position[2] == pytest.approx(0.4)
+    zd = crtp.decode_generic(9, struct.pack("<ffff", 5.0, 10.0, 0.0, 0.7))
+    assert zd.mode_roll == ABS and zd.attitude[1] == pytest.approx(-math.radians(10.0)) and zd.position[2] == pytest.approx(0.7)
+    man = crtp.decode_generic(11, struct.pack("<fffHB", 10.0, -20.0, 5.0, 30000, 1))   # rate mode
+    assert man.mode_roll == VELOCITY and man.rates[1] == pytest.approx(math.radians(20.0)) and man.thrust == 30000
+    assert crtp.decode_generic(6, bytes(28)) is None and crtp.decode_generic(3, bytes(10)) is None
+
+
+def test_high_level_packets_decode_as_cflib_packs_them():
+    assert crtp.decode_high_level(struct.pack("<BBff?f", 7, 3, 1.0, 0.5, False, 2.0)) == (
+        "takeoff", 3, {"height": 1.0, "yaw": 0.5, "duration": 2.0})
+    assert crtp.decode_high_level(struct.pack("<BBff?f", 8, 0, 0.0, 0.0, True, 3.0))[2]["yaw"] is None
+    cmd, mask, args = crtp.decode_high_level(struct.pack("<BBBBfffff", 12, 0, 1, 1, 1.0, 2.0, 0.5, 0.0, 4.0))
+    assert cmd == "go_to" and args["relative"] and args["linear"] and args["duration"] == 4.0
+    assert crtp.decode_high_level(struct.pack("<BBBfffff", 4, 0, 0, 1.0, 2.0, 0.5, 0.0, 4.0))[2]["x"] == 1.0
+    assert crtp.decode_high_level(struct.pack("<BB", 3, 0)) == ("stop", 0, {})
+    assert crtp.decode_high_level(struct.pack("<BBBBBf", 5, 0, 0, 0, 1, 1.0)) is None        # trajectories
 
 
 def test_non_finite_setpoints_are_dropped(ep, fleet):

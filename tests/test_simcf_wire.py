@@ -8,13 +8,12 @@ import pytest
 
 cflib = pytest.importorskip("cflib")
 import cflib.crtp  # noqa: E402
-from cflib.crazyflie import Crazyflie  # noqa: E402
 from cflib.crazyflie.log import LogConfig  # noqa: E402
-from cflib.crazyflie.syncCrazyflie import SyncCrazyflie  # noqa: E402
 from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
 
 from cfrace.simcf.firmware import SimFleet, quat_to_euler  # noqa: E402
 from cfrace.simcf.server import SimCrazyflieServer  # noqa: E402
+from cflibtools import connect, wait_for  # noqa: E402
 
 cflib.crtp.init_drivers()
 
@@ -24,19 +23,6 @@ def served():
     fleet = SimFleet("lemniscate", "cf2x_paper", 2, arming_required=True)
     with SimCrazyflieServer(fleet, base_port=0) as server:
         yield fleet, server
-
-
-def connect(uri):
-    return SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None))
-
-
-def wait_for(cond, timeout=2.0):
-    t_end = time.monotonic() + timeout
-    while time.monotonic() < t_end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def rate_mode(cf):
@@ -76,9 +62,10 @@ def test_connect_params_and_log(served):
             for k, (ts, data, _) in enumerate(logger):
                 if k == 3:
                     break
-        assert data["stateEstimate.x"] == pytest.approx(fleet.state(1)["pos"][0], abs=1e-5)
-        assert data["stateEstimate.z"] == pytest.approx(fleet.profile.collision_box[2] / 2, abs=1e-5)
-        assert data["pm.vbat"] == pytest.approx(4.0)
+        # the estimate (Lighthouse deck by default) within millimetres of the truth; the battery model
+        assert data["stateEstimate.x"] == pytest.approx(fleet.state(1)["pos"][0], abs=0.01)
+        assert data["stateEstimate.z"] == pytest.approx(fleet.profile.collision_box[2] / 2, abs=0.01)
+        assert 3.9 < data["pm.vbat"] < 4.2
     st = server.stats()[1]
     assert st["rx"] > 20 and st["tx"] > 20 and server.stats()[0]["rx"] == 0
 

@@ -130,6 +130,8 @@ LONG_FILES = {
 }
 LONG_FUNCTIONS = {
     "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",
+    "cli/flight.py:fly_cmd": "the same: the `fly` command's option list; the body is a few calls",
+    "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list (typer signature); the body is a few calls",
     "cli/train.py:train_cmd": "the `train` command's option list; in the trainer's files, restructured with them",
     "cli/logs.py:info_cmd": "one table of a log's summary, printed row by row",
     "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper; in the trainer's files",

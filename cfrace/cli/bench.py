@@ -117,14 +117,32 @@ def bench_loop_cmd(
     log: bool = typer.Option(True, "--log/--no-log", help="Write the flight log, as `cfrace fly` does."),
     floor_s: float = typer.Option(5.0, help="First measure the machine's floor this long: a loop with no work "
                                             "on the same CPU and priority (0 = skip)."),
+    pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream", help="Stream each drone's mocap pose "
+                                                                                  "to it, as `cfrace fly` does."),
+    compare_pose_stream: int = typer.Option(0, help="N > 0: the loop without and with the pose stream, "
+                                                    "alternating, N runs each of --duration-s, in one run."),
 ):
     """Flight-loop timing for two drones at 100 Hz, real time against the simulated Crazyflies."""
-    from cfrace.flight.benchloop import bench_loop
+    from cfrace.flight.benchloop import bench_loop, compare_pose_stream as compare
 
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
+    if compare_pose_stream > 0:
+        c = compare(duration_s, compare_pose_stream, track=track, profile=profile, rt_priority=rt_priority,
+                    policies=policies, prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
+                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+        t = Table(title=f"pose stream: median of {compare_pose_stream} run(s) each, {duration_s:g} s, alternating")
+        for col in ("", "without", "with", "with / without"):
+            t.add_column(col)
+        for k in c["without"]:
+            t.add_row(k, str(c["without"][k]), str(c["with"][k]), str(c["ratio_with_over_without"].get(k, "")))
+        console.print(t)
+        console.print(f"load average {c['load_avg']}")
+        if json_out is not None:
+            json_out.write_text(json.dumps(c, indent=1, default=str) + "\n")
+        return
     r = bench_loop(duration_s, track=track, profile=profile, rt_priority=rt_priority, policies=policies,
-                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log,
+                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, floor_s=floor_s, log=log, pose_stream=pose_stream,
                     latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
     console.print(loop_table(r))
     if r["floor"] is not None:

@@ -65,6 +65,15 @@ def print_result(result: dict, con: Console = out) -> None:
         con.print(t)
     else:
         con.print("safety events: none")
+    if result.get("hover_start"):
+        con.print(f"hover start: held within {result['hover_start']['hold_error_m']} m of the start positions")
+    for name, land in (result.get("landings") or {}).items():
+        if land is None:
+            continue
+        how = (f"down {land['t']:.2f} s after it began, {abs(land['vz_mps']):.2f} m/s at "
+               f"({land['place'][0]:.2f}, {land['place'][1]:.2f})" if land.get("down") and land.get("t") is not None
+               else f"not down ({land.get('cut') or 'landing timeout'})")
+        con.print(f"landing {name} ({land['reason']}): spot ({land['spot'][0]:.2f}, {land['spot'][1]:.2f}), {how}")
     for d in result.get("drones_final") or []:
         con.print(f"  {d['body']}: motors {'off' if d['motors_off'] else 'ON'}, thrust {d['thrust_counts']} counts, "
                   f"armed {d['armed']}, watchdog {d['watchdog']}")
@@ -150,6 +159,21 @@ def announce(meta: dict, con: Console = console) -> None:
               + f"{meta['laps']} laps on {meta['track']}. Ctrl-C stops every drone.", highlight=False)
 
 
+def first_flight_cmd(cfg, check: bool, hover_drones: list[int], json_out: Path | None) -> None:
+    """`cfrace fly --check` / `--hover`: no race; one line per check, exit 2 on a failure."""
+    from dataclasses import replace
+
+    from cfrace.flight.procedures import first_flight
+    from cfrace.flight.setup import real_io, resolve_race
+    cfg = replace(cfg, log=None)     # no race, no flight log (nor the link keeper's stop log)
+    report = first_flight(resolve_race(cfg), real_io(cfg), check=check, hover_drones=hover_drones)
+    for line in report["lines"]:
+        out.print(line, highlight=False)
+    write_json(report, json_out)
+    if not report["ok"]:
+        sys.exit(2)
+
+
 def register(app: typer.Typer) -> None:
     """Add `cfrace fly` to the top-level app."""
 
@@ -188,6 +212,17 @@ def register(app: typer.Typer) -> None:
                                                           "there are two or more), off, or a CPU number; the "
                                                           "process's other threads go to the other CPUs."),
         quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+        start: Optional[str] = typer.Option(None, help="ground (default): the policies take off; hover: take-off "
+                                                       "to the start positions on the high-level commander first."),
+        landing: Optional[bool] = typer.Option(None, "--landing/--no-landing",
+                                               help="Land at the race's end and on soft failsafes (default on)."),
+        pose_stream: Optional[bool] = typer.Option(None, "--pose-stream/--no-pose-stream",
+                                                   help="Stream each drone's mocap pose to it (default on)."),
+        check: bool = typer.Option(False, "--check", help="Pre-flight checks only (docs/first-flight.md): firmware, "
+                                                          "battery, link, body and yaw of each drone; exit 2 on a failure."),
+        hover: bool = typer.Option(False, "--hover", help="Hover test only: take off 0.5 m, hold 5 s, land "
+                                                          "(the drones of --hover-drones, one after the other)."),
+        hover_drones: str = typer.Option("0,1", help="--hover: which drones (0 ego, 1 opp)."),
     ):
         """Race two Crazyflies from motion capture with two ONNX policies at 100 Hz, safely."""
         from cfrace.flight.config import make_config, split_list
@@ -203,8 +238,12 @@ def register(app: typer.Typer) -> None:
                           timeout_s=timeout_s, quiet=quiet, rt_priority=rt_priority, safety_overrides=safety,
                           loop_cpu=loop_cpu,
                           prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)
+                          latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
+                          start=start, landing=landing, pose_stream=pose_stream)
         if not cfg.uris:
             from cfrace.errors import ConfigError
             raise ConfigError("missing --uris (one link URI per drone: ego,opp)")
+        if check or hover:
+            return first_flight_cmd(cfg, check, [int(v) for v in split_list(hover_drones) or ()] if hover else [],
+                                    json_out)
         finish(lambda: fly(resolve_race(cfg), console=console, announce=announce), json_out)

@@ -25,12 +25,15 @@ def serve_cmd(
     obstacles: bool = typer.Option(True, "--obstacles/--no-obstacles", help="Simulate the track's obstacles."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
     seed: int = typer.Option(0),
+    decks: str = typer.Option("lighthouse", help="Positioning decks each drone carries: lighthouse, flow, "
+                                                 "both comma-separated, or none (external position only)."),
 ):
     """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
     from cfrace.flight.config import split_list
     from cfrace.simcf.server import serve
 
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
+          decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
           out=lambda text: out.print(text, highlight=False))
 
 
@@ -70,6 +73,12 @@ def dry_run_cmd(
                                               "or more), off, or a CPU number; the other threads (the simulated "
                                               "drones' too) go to the other CPUs."),
     quiet: bool = typer.Option(False, "--quiet", help="No live view."),
+    start: str = typer.Option("ground", help="ground: the policies take off; hover: the drones take off to "
+                                             "their start positions on the high-level commander first."),
+    landing: bool = typer.Option(True, "--landing/--no-landing", help="Land at the race's end and on soft "
+                                                                      "failsafes (off: motors off, they drop)."),
+    pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream",
+                                     help="Stream each drone's mocap pose to it (external position)."),
 ):
     """Race two policies on simulated Crazyflies through the whole flight stack (real cflib over UDP)."""
     from cfrace.cli.flight import finish
@@ -84,7 +93,8 @@ def dry_run_cmd(
     cfg = FlightConfig(track=track, ego=ego, opp=opp, laps=laps, profile=profile, obstacles=obstacles,
                        bodies=split_list(bodies), log=log, timeout_s=timeout_s, quiet=quiet or lockstep,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
-                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3)
+                       loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
+                       start=start, landing=landing, pose_stream=pose_stream)
     finish(lambda: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                            mocap_latency_s=mocap_latency_ms / 1e3, console=console,
                            setup=resolve_race(cfg, the_track)), json_out)

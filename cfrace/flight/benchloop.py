@@ -105,7 +105,7 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
 def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: str | None = None,
                log: bool = True, rt_priority="auto", policies: str = "paper",
                prewarm_s: float = 0.003, latency_comp_s: float | None = None, loop_cpu="auto",
-               floor_s: float = 0.0) -> dict:
+               floor_s: float = 0.0, pose_stream: bool = True) -> dict:
     """Run the loop for duration_s against a `cfrace sim serve` subprocess; timing summary dict.
     profile: simulated and flown drone profile; default: the shipped policies' training profile
     (they crash on another one), cf21bl for the paper-size hold controller.
@@ -134,7 +134,7 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                                mocap=f"sim://127.0.0.1:{base - 1}", quiet=True, mocap_timeout_s=15.0,
                                connect_timeout_s=15.0, log=(work / "bench.mcap") if log else None,
                                rt_priority=rt_priority, prewarm_s=prewarm_s, latency_comp_s=latency_comp_s,
-                               loop_cpu=loop_cpu)
+                               loop_cpu=loop_cpu, pose_stream=pose_stream, landing=pose_stream)
             floor = bare_loop(floor_s, rt_priority=rt_priority, loop_cpu=loop_cpu, prewarm_s=prewarm_s) \
                 if floor_s > 0 else None
             try:
@@ -152,7 +152,37 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
                 proc.kill()
     loop = result["loop"]
     met = {k: (loop[k] is not None and loop[k] <= v) for k, v in GOALS_MS.items()}
-    return {"duration_s": duration_s, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
+    return {"duration_s": duration_s, "pose_stream": pose_stream, "policies": kind, "profile": profile, "latency_comp_s": cfg.latency_comp, "prewarm_s": prewarm_s, "end": result["end"], "loop": loop, "rt_fifo": result["rt_fifo"],
             "loop_cpu": result["loop_cpu"], "sim_serve_cpus": sim_cpus, "floor": floor,
             "goals_ms": GOALS_MS, "goals_met": met, "safety_events": result["safety_events"],
             "cpu_count": os.cpu_count(), "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+def compare_pose_stream(duration_s: float = 10.0, rounds: int = 1, **options) -> dict:
+    """The loop without (and so without landing: today's stop) and with the pose stream (each drone's
+    mocap pose sent to it every frame),
+    alternating, ``rounds`` times each, in one run: the figures of every run and, per condition, the
+    median over its runs of compute p50/p99 (ms) and of the packets per second the flight process
+    hands the links (setpoints, and poses when streaming)."""
+    import numpy as np
+    runs = {False: [], True: []}
+    for _ in range(rounds):
+        for stream in (False, True):
+            runs[stream].append(bench_loop(duration_s, pose_stream=stream, **options))
+
+    def summary(rs: list) -> dict:
+        def med(f):
+            vals = [f(r) for r in rs if f(r) is not None]
+            return round(float(np.median(vals)), 4) if vals else None
+        return {"compute_p50_ms": med(lambda r: r["loop"]["compute_ms"]["p50"]),
+                "compute_p99_ms": med(lambda r: r["loop"]["compute_ms"]["p99"]),
+                "compute_cpu_p50_ms": med(lambda r: r["loop"]["compute_cpu_ms"]["p50"]),
+                "period_jitter_p99_ms": med(lambda r: r["loop"]["period_jitter_ms"]["p99"]),
+                "setpoints_per_s": med(lambda r: r["loop"]["setpoints_sent"] / r["duration_s"]),
+                "poses_per_s": med(lambda r: r["loop"]["poses_sent"] / r["duration_s"])}
+    off, on = summary(runs[False]), summary(runs[True])
+    ratio = {k: (round(on[k] / off[k], 3) if off[k] and on[k] is not None else None)
+             for k in ("compute_p50_ms", "compute_p99_ms", "compute_cpu_p50_ms")}
+    return {"without": off, "with": on, "ratio_with_over_without": ratio, "rounds": rounds,
+            "duration_s": duration_s, "runs": {"without": runs[False], "with": runs[True]},
+            "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -61,6 +61,12 @@ class SafetyConfig:
     mocap_stale_s: float = 0.15      #: s, a pose estimate older than this stops the drone
     link_timeout_s: float = 0.5      #: s without any packet from a drone = link lost
     overrun_stop_s: float = 0.1      #: s, a tick starting later than this past its deadline stops all
+    # soft failsafes: these land the drone (docs/flight.md, "Safety")
+    fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
+    mocap_glitches: float = 3        #: pose dropouts and outliers within 2 s that mean degraded mocap: land
+    opponent_clearance_m: float = 0.7   #: m, a downed drone this close to the path to the next gate: land
+    low_battery_v: float = 3.3       #: V (pm.vbat under load), below it ...
+    low_battery_s: float = 1.0       #: ... for this long: land (sags at full thrust are shorter); 0 V = off
 
     def __post_init__(self):
         for f in fields(self):
@@ -99,8 +105,18 @@ class FlightConfig:
     #: body rates) to make up for the mocap's latency; None: LATENCY_COMP_DEFAULT_S, 0 for `sim`
     latency_comp_s: float | None = None
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    start: str = "ground"                        #: ground (policies take off) or hover (high-level take-off first)
+    landing: bool = True                         #: land at the race's end and on soft failsafes (else motors off)
+    pose_stream: bool = True                     #: stream each drone's mocap pose to it (external position)
 
     def __post_init__(self):
+        if self.start not in ("ground", "hover"):
+            raise ConfigError(f"start: must be ground or hover, got {self.start!r}")
+        if self.start == "hover" and not self.landing:
+            raise ConfigError("start: hover needs landing on (the firmware flies the take-off and the landing)")
+        if self.landing and not self.pose_stream:
+            raise ConfigError("landing needs pose_stream on: the firmware lands from the mocap poses it is sent "
+                              "(use --no-landing with --no-pose-stream)")
         if not (isinstance(self.laps, int) and not isinstance(self.laps, bool) and 1 <= self.laps <= 1000):
             raise ConfigError(f"laps: must be a whole number in 1..1000, got {self.laps!r}")
         for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s"):
@@ -157,7 +173,7 @@ def load_flight_file(path: str | Path) -> dict:
             if not all(isinstance(s, str) and s for s in seq):
                 raise r.fail(key, f"expected a list of strings, got {seq!r}")
             out[key] = tuple(seq)
-    for key in ("mocap", "profile", "track", "ego", "opp"):
+    for key in ("mocap", "profile", "track", "ego", "opp", "start"):
         if r.has(key):
             out[key] = r.string(key)
     for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s", "rate_hz"):
@@ -180,11 +196,12 @@ def load_flight_file(path: str | Path) -> dict:
         if laps != int(laps):
             raise r.fail("laps", f"must be a whole number, got {laps:g}")
         out["laps"] = int(laps)
-    if r.has("obstacles"):
-        v = r.raw("obstacles")
-        if not isinstance(v, bool):
-            raise r.fail("obstacles", f"expected true or false, got {v!r}")
-        out["obstacles"] = v
+    for key in ("obstacles", "landing", "pose_stream"):
+        if r.has(key):
+            v = r.raw(key)
+            if not isinstance(v, bool):
+                raise r.fail(key, f"expected true or false, got {v!r}")
+            out[key] = v
     if r.has("safety"):
         s = r.mapping("safety")
         kw = {f.name: s.number(f.name, min=0.0, max=SAFETY_MAX[f.name]) for f in fields(SafetyConfig) if s.has(f.name)}

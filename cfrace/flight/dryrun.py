@@ -95,7 +95,8 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
 
     prewarm_s = 0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s
     return RaceIO(open_mocap=mocap, open_link=link, clock=clock, link_clock=link_clock, prewarm_s=prewarm_s,
-                  uris=tuple(uris), hooks=injector, still_s=0.0 if lockstep else STILL_S)
+                  uris=tuple(uris), hooks=injector, still_s=0.0 if lockstep else STILL_S,
+                  wait=fleet.advance if lockstep else time.sleep)
 
 
 def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=("sim://0", "sim://1"),
@@ -114,7 +115,9 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
     if cfg.latency_comp_s is None:    # make up for the simulated latency (the `sim` default is none)
         cfg = replace(cfg, latency_comp_s=float(mocap_latency_s))
     setup = replace(setup, cfg=cfg) if setup is not None else resolve_race(cfg)
-    fleet = SimFleet(setup.track, setup.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles)
+    # no positioning deck: the drones know where they are from the mocap poses the flight stack streams
+    fleet = SimFleet(setup.track, setup.profile, 2, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles,
+                     decks=())
     injector = FaultInjector(fault_list, dict(zip(("ego", "opp"), cfg.bodies))) if fault_list else None
     server, relays = None, {}
     mocap_options = {"noise_m": mocap_noise_m, "latency_s": mocap_latency_s, "seed": seed}
@@ -133,6 +136,8 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
         if injector is not None:   # lockstep: the DirectSimLinks cut themselves (sim_io)
             for name, relay in relays.items():
                 injector.cutters[name] = relay.cut
+            for i, name in enumerate(("ego", "opp")):
+                injector.drainers[name] = lambda i=i: fleet.set_battery(i, 0.0)
         io = sim_io(cfg, fleet, lockstep=lockstep, uris=uris, injector=injector, mocap_options=mocap_options,
                     lockstep_warm_calls=lockstep_warm_calls)
         result = run_race(setup, io, settle=_settle(fleet, lockstep, cfg.dt), console=console,

@@ -21,6 +21,12 @@ opp, e.g. ``mocap_dropout_short@3.0,link_loss@2.0:opp,sigterm@5``. Kinds:
                          (poses must move with the commands) must stop them
     replay_poses         from T the mocap source replays the frames it gave REPLAY_BACK_S
                          earlier, in order (recorded poses): the consistency check must stop them
+
+Soft failsafes (the drone lands, docs/flight.md "Safety"):
+
+    mocap_glitchy        three pose outliers 0.3 s apart: degraded mocap (mocap_degraded)
+    low_battery          the drone's battery is nearly empty from T (simulated drones only)
+    operator_land        the process sends itself SIGUSR1, the operator's "land now" (every drone)
 """
 
 from __future__ import annotations
@@ -39,8 +45,10 @@ from cfrace.errors import ConfigError
 from cfrace.flight.mocap import MocapFrame, Pose
 
 KINDS = ("mocap_dropout_short", "mocap_dropout_long", "pose_outlier", "geofence", "nan_policy", "link_loss",
-         "stall_50ms", "stall_200ms", "sigterm", "sigint", "swap_bodies", "replay_poses")
+         "stall_50ms", "stall_200ms", "sigterm", "sigint", "swap_bodies", "replay_poses", "mocap_glitchy",
+         "low_battery", "operator_land")
 REPLAY_BACK_S = 1.0      #: s, how far back the replay_poses fault replays
+GLITCH_SPACING_S = 0.3
 SHORT_DROPOUT_S = 0.08
 LONG_DROPOUT_S = 1.0
 OUTLIER_OFFSET = np.array([0.8, 0.0, 0.6])   #: m, 1 m off
@@ -117,7 +125,7 @@ class FaultyMocap:
                 return None
             if f.kind == "mocap_dropout_long" and f.t <= t < f.t + LONG_DROPOUT_S:
                 poses.pop(body, None)
-            if f.kind == "pose_outlier" and f in self.inj.pending_outliers and body in poses:
+            if f.kind in ("pose_outlier", "mocap_glitchy") and f in self.inj.pending_outliers and body in poses:
                 self.inj.pending_outliers.discard(f)
                 p = poses[body]
                 poses[body] = Pose(p.pos + OUTLIER_OFFSET, p.quat)
@@ -179,7 +187,9 @@ class FaultInjector:
         self.t = 0.0
         self.fired: set[Fault] = set()
         self.pending_outliers: set[Fault] = set()
+        self.first_glitch: dict[Fault, float] = {}    # mocap_glitchy: each glitch -> the first one's time
         self.cutters: dict[str, object] = {}          # drone name -> callable that cuts its link
+        self.drainers: dict[str, object] = {}         # drone name -> callable that empties its battery (sim)
         self.log: list[dict] = []
         self.loop = None                              # the flight loop (before_tick)
 
@@ -192,8 +202,17 @@ class FaultInjector:
         if loop.log is not None:
             loop.log.write("/event", self.t, {"kind": "fault", "fault": f.kind, "drone": f.drone,
                                               "text": f"injected fault {f.kind} on {f.drone}"})
-        if f.kind == "pose_outlier":
+        if f.kind in ("pose_outlier", "mocap_glitchy"):
             self.pending_outliers.add(f)
+            if f.kind == "mocap_glitchy" and f.t < self.first_glitch.setdefault(f, f.t) + 2 * GLITCH_SPACING_S:
+                self.faults.append(replace(f, t=f.t + GLITCH_SPACING_S))     # the next glitch
+                self.first_glitch[self.faults[-1]] = self.first_glitch[f]
+        elif f.kind == "low_battery":
+            drain = self.drainers.get(f.drone)
+            if drain is not None:
+                drain()
+        elif f.kind == "operator_land":
+            os.kill(os.getpid(), signal.SIGUSR1)
         elif f.kind == "link_loss":
             cut = self.cutters.get(f.drone)
             if cut is not None:

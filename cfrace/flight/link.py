@@ -47,13 +47,15 @@ class LinkQuality:
     sent: int = 0                     #: setpoints sent
     errors: int = 0
     error: str = ""                   #: the last error message
+    vbat: float = float("nan")        #: V, the drone's battery (pm.vbat), nan if unknown
 
     def rx_age(self, now: float) -> float:
         return now - self.last_rx if self.last_rx == self.last_rx else float("inf")
 
     def as_dict(self, now: float) -> dict:
         return {"connected": self.connected, "rx_age_s": self.rx_age(now), "latency_ms": self.latency_ms,
-                "link_quality": self.link_quality, "sent": self.sent, "errors": self.errors, "error": self.error}
+                "link_quality": self.link_quality, "sent": self.sent, "errors": self.errors, "error": self.error,
+                "vbat": self.vbat}
 
 
 @runtime_checkable
@@ -75,6 +77,34 @@ class Link(Protocol):
 
     def close(self) -> None:
         """Stop (if connected) and release the link."""
+
+    # the firmware's own flight modes (take-off, landing, failsafes; docs/flight.md "Landing")
+    def send_pose(self, pos, quat) -> None:
+        """Stream the drone's mocap pose to its estimator: pos (3,) m world, quat (4,) wxyz. Never raises."""
+
+    def high_level(self, command: str, **args) -> None:
+        """A high-level commander command: takeoff / land (height m, yaw rad or None = current,
+        duration s), go_to (x, y, z m, yaw rad, duration s), stop. Never raises."""
+
+    def notify_stop(self) -> None:
+        """Hand control from streamed setpoints to the high-level commander. Never raises."""
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        """For the pre-flight checks: {"protocol": CRTP protocol version, "vbat": V or nan}."""
+
+
+def send_high_level(hlc, command: str, args: dict) -> None:
+    """Call the high-level commander ``hlc`` (cflib's HighLevelCommander or anything with its methods)."""
+    if command == "takeoff":
+        hlc.takeoff(args["height"], args["duration"], yaw=args.get("yaw"))
+    elif command == "land":
+        hlc.land(args["height"], args["duration"], yaw=args.get("yaw"))
+    elif command == "go_to":
+        hlc.go_to(args["x"], args["y"], args["z"], args["yaw"], args["duration"])
+    elif command == "stop":
+        hlc.stop()
+    else:
+        raise ValueError(f"unknown high-level command {command!r}")
 
 
 @dataclass
@@ -133,6 +163,8 @@ class DirectSimLink:
         r, p, y = packet_values(float(roll_rate_dps), float(pitch_rate_dps), float(yaw_rate_dps))
         self.fleet.handle_setpoint(self.index, r, p, y, int(thrust_counts))
         self.quality.sent += 1
+        if self.quality.sent % 10 == 1:      # the battery, as the real link logs it (10 Hz)
+            self.quality.vbat = float(self.fleet.log_values(self.index)["pm.vbat"])
         self._heard()
 
     def stop(self) -> None:
@@ -147,6 +179,23 @@ class DirectSimLink:
             self.stop()
         self.quality.connected = False
 
+    def send_pose(self, pos, quat) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.external_position(self.index, pos, quat)
+
+    def high_level(self, command: str, **args) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.high_level(self.index, command, **args)
+
+    def notify_stop(self) -> None:
+        if not self.cut and self.quality.connected:
+            self.fleet.notify_setpoint_stop(self.index)
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        self._need()
+        from cfrace.simcf.crtp import PROTOCOL_VERSION
+        return {"protocol": PROTOCOL_VERSION, "vbat": float(self.fleet.log_values(self.index)["pm.vbat"])}
+
 
 class RecordingLink:
     """A link to nothing that keeps what it was sent (replays and unit tests)."""
@@ -158,6 +207,8 @@ class RecordingLink:
         self.sent: list[tuple[float, float, float, int]] = []
         self.stops = 0
         self.setups = 0
+        self.poses: list = []      #: (pos, quat) sent with send_pose
+        self.commands: list = []   #: (high-level command or "notify_stop", args)
 
     def connect(self, timeout_s: float = 5.0) -> None:
         self.quality.connected = True
@@ -176,3 +227,15 @@ class RecordingLink:
 
     def close(self) -> None:
         self.quality.connected = False
+
+    def send_pose(self, pos, quat) -> None:
+        self.poses.append((tuple(float(v) for v in pos), tuple(float(v) for v in quat)))
+
+    def high_level(self, command: str, **args) -> None:
+        self.commands.append((command, dict(args)))
+
+    def notify_stop(self) -> None:
+        self.commands.append(("notify_stop", {}))
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        return {"protocol": 12, "vbat": float("nan")}

@@ -20,7 +20,7 @@ import time
 import warnings
 
 from cfrace.errors import LinkError
-from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_args
+from cfrace.flight.link import RATE_MODE_PARAMS, LinkQuality, cflib_setpoint_args, send_high_level
 
 import cflib.crtp  # noqa: E402  (the one place cflib is imported)
 from cflib.crazyflie import Crazyflie  # noqa: E402
@@ -64,6 +64,8 @@ class CflibLink:
         self._ready = threading.Event()
         self._failed: str | None = None
         self._params: dict[str, threading.Event] = {}
+        self._vbat_log = None                    #: the pm.vbat log block, once started
+        self._vbat_seen = threading.Event()
 
     # ------------------------------------------------------------------ callbacks (cflib threads)
     def _on_connected(self, uri):
@@ -144,6 +146,28 @@ class CflibLink:
             warnings.simplefilter("ignore")   # legacy firmware: cflib falls back and warns
             cf.supervisor.send_arming_request(True)
         cf.commander.send_setpoint(0.0, 0.0, 0.0, 0)   # a zero-thrust setpoint unlocks the motors
+        self._start_battery_log()
+
+    def _start_battery_log(self) -> None:
+        """pm.vbat at 10 Hz into quality.vbat (the low-battery failsafe); once per connection, and
+        not at all if the drone logs no pm.vbat."""
+        cf = self._cf
+        if cf is None or self._vbat_log is not None:
+            return
+        from cflib.crazyflie.log import LogConfig
+
+        def got(ts, data, conf):
+            self.quality.vbat = float(data["pm.vbat"])
+            self._vbat_seen.set()
+        conf = LogConfig(name="cfrace_battery", period_in_ms=100)
+        try:
+            conf.add_variable("pm.vbat", "float")
+            cf.log.add_config(conf)
+            conf.data_received_cb.add_callback(got)
+            conf.start()
+            self._vbat_log = conf
+        except (KeyError, AttributeError) as exc:
+            self._note_error(f"no pm.vbat log: {exc}")
 
     def _need(self) -> Crazyflie:
         if self._cf is None or not self.quality.connected:
@@ -176,8 +200,46 @@ class CflibLink:
         self.stop()
         self._shutdown()
 
+    # ------------------------------------------------------------------ the firmware's flight modes
+    def send_pose(self, pos, quat) -> None:
+        """The mocap pose as external pose (localization port): x y z, qx qy qz qw. Never raises."""
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            w, x, y, z = (float(v) for v in quat)
+            cf.extpos.send_extpose(float(pos[0]), float(pos[1]), float(pos[2]), x, y, z, w)
+        except Exception as exc:  # a dying link: the silence check reports it
+            self._note_error(f"send_pose failed: {exc}")
+
+    def high_level(self, command: str, **args) -> None:
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            send_high_level(cf.high_level_commander, command, args)
+        except Exception as exc:
+            self._note_error(f"high-level {command} failed: {exc}")
+
+    def notify_stop(self) -> None:
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            cf.commander.send_notify_setpoint_stop()
+        except Exception as exc:
+            self._note_error(f"notify_stop failed: {exc}")
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        """The CRTP protocol version and the battery (nan if the drone logs no pm.vbat in time)."""
+        cf = self._need()
+        self._start_battery_log()
+        self._vbat_seen.wait(timeout_s)
+        return {"protocol": int(cf.platform.get_protocol_version()), "vbat": self.quality.vbat}
+
     def _shutdown(self) -> None:
         cf, self._cf = self._cf, None
+        self._vbat_log = None
         self.quality.connected = False
         if cf is not None:
             try:

@@ -19,7 +19,8 @@ is sent (time.monotonic and the wall clock, in the keeper) and appended to ``sto
 lines) when one is given; a stop because the loop is gone is also one line on stderr.
 
 Messages on the pipe (bytes; first byte the kind): loop -> keeper ``s`` setpoint, ``x`` stop,
-``c`` connect, ``u`` set up, ``q`` quit; keeper -> loop ``r`` reply (JSON), ``l`` link figures (JSON,
+``p`` pose (external position), ``h`` high-level command or notify-stop (JSON), ``c`` connect,
+``u`` set up, ``v`` status (pre-flight checks), ``q`` quit; keeper -> loop ``r`` reply (JSON), ``l`` link figures (JSON,
 every REPORT_S and on every change of connection or stop).
 """
 
@@ -45,6 +46,7 @@ from cfrace.flight.realtime import set_fifo
 REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
 SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
 _SETPOINT = struct.Struct("<cBfffH")    # b"s", drone, p, q, r (deg/s), thrust counts
+_POSE = struct.Struct("<cB7f")          # b"p", drone, x, y, z (m), qw, qx, qy, qz
 
 
 # ---------------------------------------------------------------------------------- keeper side
@@ -90,7 +92,7 @@ class _Keeper:
         for i, link in enumerate(self.links):
             q = link.quality
             figures[i] = {"connected": q.connected and not self.dead[i], "last_rx": q.last_rx,
-                          "latency_ms": q.latency_ms, "link_quality": q.link_quality, "sent": q.sent,
+                          "latency_ms": q.latency_ms, "link_quality": q.link_quality, "sent": q.sent, "vbat": q.vbat,
                           "errors": q.errors, "error": q.error if not self.dead[i] else "stopped by the link keeper"}
         self.conn.send_bytes(b"l" + json.dumps(figures).encode())
         self.last_report, self.changed = now, False
@@ -101,9 +103,12 @@ class _Keeper:
         try:
             if kind == b"c":
                 self.links[i].connect(float(body["timeout_s"]))
+                reply = {"ok": True}
+            elif kind == b"v":
+                reply = {"ok": True, "status": self.links[i].read_status()}
             else:
                 self.links[i].setup()
-            reply = {"ok": True}
+                reply = {"ok": True}
         except LinkError as exc:
             reply = {"ok": False, "error": str(exc)}
         self.report(time.monotonic())    # the figures first: the loop reads them once the reply is in
@@ -120,9 +125,22 @@ class _Keeper:
             if not self.dead[i]:
                 self.links[i].send(p, q, r, counts)
                 self.flying[i] = True
+        elif kind == b"p":
+            _, i, *v = _POSE.unpack(msg)
+            if not self.dead[i]:
+                self.links[i].send_pose(v[:3], v[3:])
+        elif kind == b"h":      # a high-level command or notify-stop: the drone flies on its firmware
+            body = json.loads(msg[1:])
+            i = int(body["drone"])
+            if not self.dead[i]:
+                if body["command"] == "notify_stop":
+                    self.links[i].notify_stop()
+                else:
+                    self.links[i].high_level(body["command"], **body["args"])
+                self.flying[i] = body["command"] != "stop"
         elif kind == b"x":
             self.stop(msg[1], "loop")
-        elif kind in (b"c", b"u"):
+        elif kind in (b"c", b"u", b"v"):
             self.request(kind, json.loads(msg[1:]))
         elif kind == b"q":
             return False
@@ -256,7 +274,7 @@ class LinkKeeper:
         with self._send_lock:
             conn.send_bytes(msg)
 
-    def request(self, kind: bytes, i: int, wait_s: float, **body) -> None:
+    def request(self, kind: bytes, i: int, wait_s: float, **body) -> dict:
         self.start()
         try:
             self._post(kind + json.dumps({"drone": i, **body}).encode())
@@ -268,6 +286,7 @@ class LinkKeeper:
             raise LinkError(f"{self.uris[i]}: the link keeper did not answer") from None
         if not reply.get("ok"):
             raise LinkError(reply.get("error", f"{self.uris[i]}: link failed"))
+        return reply
 
     def send(self, i: int, p: float, q: float, r: float, counts: int) -> None:
         try:
@@ -280,6 +299,18 @@ class LinkKeeper:
             self._post(b"x" + bytes([i]))
         except OSError:
             pass
+
+    def send_pose(self, i: int, pos, quat) -> None:
+        try:
+            self._post(_POSE.pack(b"p", i, *(float(v) for v in pos), *(float(v) for v in quat)))
+        except (OSError, struct.error):
+            pass
+
+    def command(self, i: int, command: str, args: dict) -> None:
+        try:
+            self._post(b"h" + json.dumps({"drone": i, "command": command, "args": args}).encode())
+        except OSError:
+            self.qualities[i].connected = False
 
     def release(self) -> None:
         """One link closed; after the last, the keeper stops everything and ends."""
@@ -320,6 +351,18 @@ class KeptLink:
 
     def stop(self) -> None:
         self.keeper.stop(self.i)
+
+    def send_pose(self, pos, quat) -> None:
+        self.keeper.send_pose(self.i, pos, quat)
+
+    def high_level(self, command: str, **args) -> None:
+        self.keeper.command(self.i, command, args)
+
+    def notify_stop(self) -> None:
+        self.keeper.command(self.i, "notify_stop", {})
+
+    def read_status(self, timeout_s: float = 2.0) -> dict:
+        return self.keeper.request(b"v", self.i, timeout_s)["status"]
 
     def close(self) -> None:
         if not self._closed:

@@ -56,10 +56,14 @@ class FlightLoop:
     def __init__(self, *, drones: list[Drone], mocap, estimator, progress, obs_builder: ObservationBuilder,
                  clock, fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, log=None, view=None,
                  faults=None, kill: KillSwitch | None = None, link_log_every: int = 10, link_clock=None,
-                 prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None, consistency: bool = True):
+                 prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None, landing=None,
+                 hover_start: bool = False, pose_stream: bool = False, consistency: bool = True):
         self.core = TickCore(drones=drones, estimator=estimator, progress=progress, obs_builder=obs_builder,
                              fence=fence, safety_cfg=safety_cfg, laps=laps, timeout_s=timeout_s, dt=clock.dt,
-                             filters=faults, limits=limits, consistency=consistency)
+                             filters=faults, limits=limits, landing=landing, hover_start=hover_start,
+                             consistency=consistency)
+        self.pose_stream = bool(pose_stream)   #: send each drone its mocap pose (external position) every frame
+        self.poses_sent = 0                    #: poses sent to the drones (all drones together)
         self.mocap, self.clock, self.log, self.view, self.faults = mocap, clock, log, view, faults
         self.kill = kill or KillSwitch()
         self.link_log_every = link_log_every
@@ -92,7 +96,8 @@ class FlightLoop:
     # ------------------------------------------------------------------ I/O around the tick
     def _links(self) -> list[LinkInputs]:
         now = self.link_clock()
-        return [LinkInputs(d.link.quality.connected, d.link.quality.rx_age(now)) for d in self.drones]
+        return [LinkInputs(d.link.quality.connected, d.link.quality.rx_age(now), d.link.quality.vbat)
+                for d in self.drones]
 
     def _stop(self, i: int, t: float, kind: str) -> None:
         if self.core.mark_stopped(i, t, kind):
@@ -153,12 +158,22 @@ class FlightLoop:
             self.faults.before_tick(self, tick.t)
         frame = self.mocap.read(0.0)
         now = self._now = self.clock.now()
-        out = self.core.step(TickIn(tick.k, tick.t, tick.late_s, now), frame, self._links(), self.kill.reason)
+        out = self.core.step(TickIn(tick.k, tick.t, tick.late_s, now), frame, self._links(), self.kill.reason,
+                             self.kill.land)
         for i, _ in out.stops:
             self.drones[i].link.stop()
         for d, sp in zip(self.drones, out.setpoints):
             if sp is not None:
                 d.link.send(*sp)
+        for i, name, args in out.commands:      # high-level commands first, then the hand-over
+            link = self.drones[i].link
+            link.notify_stop() if name == "notify_stop" else link.high_level(name, **args)
+        if self.pose_stream and frame is not None:
+            for d in self.drones:
+                pose = frame.poses.get(d.body)
+                if pose is not None and not d.stopped:
+                    d.link.send_pose(pose.pos, pose.quat)
+                    self.poses_sent += 1
         t_sent = perf()
         cpu = thread_time() - cpu_start
         # ---------------------------------------------- after the send: bookkeeping

@@ -16,10 +16,15 @@ class KillSwitch:
 
     def __init__(self):
         self.reason: str | None = None
+        self.land: str | None = None      #: the operator's "land now" (soft: every drone lands)
 
     def request(self, reason: str) -> None:
         if self.reason is None:
             self.reason = reason
+
+    def request_land(self, reason: str) -> None:
+        if self.land is None:
+            self.land = reason
 
 
 @dataclass
@@ -50,6 +55,8 @@ class Drone:
     speed_sum: float = 0.0
     speed_n: int = 0
     setpoint_map: SetpointMap | None = None   #: built from meta, mass and thrust_curve
+    landing: object = None             #: cfrace.flight.landing.LandingPilot while the drone lands
+    landing_result: dict | None = None   #: why it landed, its spot, its touchdown (or how the landing ended)
 
     def __post_init__(self):
         if self.setpoint_map is None:
@@ -116,7 +123,8 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "log_error", "sim")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "log_error", "sim", "hover_start",
+                   "landings")
 
 
 @dataclass
@@ -146,6 +154,8 @@ class RaceResult:
     log: str | None = None                           #: the flight log's path
     log_error: str | None = None                     #: why the flight log is incomplete (a write error)
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
+    hover_start: dict | None = None                  #: --start hover: how well the drones held their start
+    landings: dict | None = None                     #: drone name -> its landing (reason, spot, touchdown) or None
 
     def to_json(self) -> dict:
         out = {"end": self.end, "winner": self.winner}

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import gc
 import signal
+import time
 import sys
 import threading
 import time
@@ -37,8 +38,10 @@ from cfrace.flight.config import DRONE_NAMES
 from cfrace.flight.consistency import check_still
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.flightlog import FlightLog
+from cfrace.flight.landing import LandingSetup
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
 from cfrace.flight.loopstate import RaceResult
+from cfrace.flight.procedures import hover_start, hover_start_positions
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
@@ -123,10 +126,14 @@ class _Signals:
         if self.may_raise():
             raise KeyboardInterrupt(name)
 
+    def _land_handler(self, signum, frame):
+        self.kill.request_land(signal.Signals(signum).name)
+
     def __enter__(self):
         if threading.current_thread() is threading.main_thread():
             for s in (signal.SIGINT, signal.SIGTERM):
                 self.old[s] = signal.signal(s, self._handler)
+            self.old[signal.SIGUSR1] = signal.signal(signal.SIGUSR1, self._land_handler)   # "land now"
         return self
 
     def __exit__(self, *exc):
@@ -274,21 +281,47 @@ class RaceRun:
                           obs_builder=ObservationBuilder(s.track.gate_corners()), clock=io.clock, fence=s.fence,
                           safety_cfg=cfg.safety, laps=cfg.laps, timeout_s=cfg.timeout_s, log=self.log,
                           view=self.view, faults=io.hooks, kill=self.kill, link_clock=io.link_clock,
-                          prewarm_s=io.prewarm_s, limits=s.limits)
+                          prewarm_s=io.prewarm_s, limits=s.limits,
+                          landing=LandingSetup.for_race(s.track, s.profile) if cfg.landing else None,
+                          hover_start=cfg.start == "hover", pose_stream=cfg.pose_stream)
         return loop
+
+    def _hover_start(self) -> dict:
+        """--start hover: every drone takes off to its start position on the high-level commander
+        (cfrace.flight.procedures.hover_start) before the race's clock starts."""
+        s = self.setup
+        targets, yaw = hover_start_positions(s.track, len(self.links))
+        latest: dict = {}
+
+        def poses() -> dict:
+            frame = self.mocap.read(0.0)
+            if frame is not None:
+                latest.update({b: (p.pos, p.quat) for b, p in frame.poses.items()})
+            return latest
+        poses()
+        wait = self.io.wait or time.sleep
+        report = hover_start(self.links, list(s.cfg.bodies), poses, wait, targets, yaw)
+        wait(s.cfg.dt)   # one more period: the race's first tick then reads a frame of its own
+        if self.log is not None:
+            self.log.write("/event", 0.0, {"kind": "hover_start", "text": f"hovering at the start: {report}"})
+        return report
 
     def _fly(self, loop: FlightLoop) -> None:
         s, log = self.setup, self.log
+        hover = self._hover_start() if s.cfg.start == "hover" else None
         if log is not None:
             log.write("/event", 0.0, {"kind": "start", "text": "race start"})
         res, fifo, loop_cpu = _run_realtime_friendly(loop, self.meta["rt_priority"], self.loop_cpu)
         self.result = RaceResult(
             end=res.end, winner=res.winner, duration_s=round(res.t_end, 3), operator_kill=self.kill.reason,
             rt_fifo=fifo, loop_cpu=loop_cpu, track=s.track.name, profile=s.profile.name,
-            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones]) | {"skipped": res.skipped},
+            loop=timing_summary(res.timing, s.cfg.dt, [d.name for d in loop.drones])
+            | {"skipped": res.skipped, "poses_sent": loop.poses_sent,
+               "setpoints_sent": sum(d.link.quality.sent for d in loop.drones)},
             safety_events=res.safety_events, drones=res.drones,
             estimator={b: dict(c) for b, c in loop.estimator.counters.items()},
-            laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones})
+            laps={d["name"]: d["laps"] for d in res.drones}, lap_times={d["name"]: d["lap_times"] for d in res.drones},
+            hover_start=hover, landings={d["name"]: d.get("landing") for d in res.drones})
         if log is not None:
             log.write("/race", res.t_end, {"final": True, **loop.race_state(), "end": res.end, "winner": res.winner})
 

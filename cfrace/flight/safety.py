@@ -26,6 +26,21 @@ Which event stops what (docs/flight.md explains why):
 | tick_skipped  | none      | a tick started more than one period late (missed ticks, skipped)  |
 | mocap_dropout | none      | no fresh pose for more than 2 ticks but still below mocap_stale_s |
 
+Soft failsafes land the drone instead (the firmware's high-level commander, cfrace.flight.landing):
+
+| kind           | scope     | trigger                                                          |
+|----------------|-----------|------------------------------------------------------------------|
+| fence_near     | one drone | inside the fence but within fence_soft_m of it                   |
+| mocap_degraded | one drone | mocap_glitches pose dropouts (>= 50 ms) / outliers within 2 s    |
+| opponent_down  | one drone | a stopped drone within opponent_clearance_m of its path to its   |
+|                |           | next gate                                                        |
+| low_battery    | one drone | pm.vbat below low_battery_v for low_battery_s                    |
+| operator_land  | all       | the operator's "land now" (SIGUSR1)                              |
+
+A landing drone is exempt from the racing rules (floor, gate_crash, the soft rules) and from the
+profile's command limits (the landing controller bounds its own commands); every hard rule still
+cuts its motors.
+
 One-drone events stop only that drone: each drone has its own radio, pose and policy, and the
 other drone can finish the race (a stopped drone lies on the floor). Events that say the loop
 itself is unhealthy (overrun, operator) stop every drone.
@@ -43,6 +58,7 @@ from cfrace.env.actions import THRUST_MAX_COUNTS
 from cfrace.flight.config import SafetyConfig
 
 STOP_DRONE, STOP_ALL, NONE = "stop_drone", "stop_all", "none"
+LAND_DRONE, LAND_ALL = "land_drone", "land_all"
 
 
 @dataclass(frozen=True)
@@ -101,6 +117,11 @@ class DroneInputs(NamedTuple):
     gate_crash: bool = False   #: crossed the target gate plane inside the frame this tick
     command: tuple | None = None   #: (p, q, r deg/s, thrust counts) about to be sent, None if none
     pose_mismatch: str | None = None   #: why its poses do not move with its commands (consistency.py)
+    landing: bool = False      #: the drone is landing (racing and soft rules off)
+    mocap_glitches: int = 0    #: pose dropouts and outliers of this body within the last 2 s
+    blocked: str = ""          #: what lies in its way to the next gate (a downed drone), "" if nothing
+    vbat: float = math.nan     #: V, the drone's battery (nan: unknown)
+    vbat_low_s: float = 0.0    #: s its battery has been below low_battery_v without a break
 
 
 class SafetyInputs(NamedTuple):
@@ -109,6 +130,7 @@ class SafetyInputs(NamedTuple):
     tick_late_s: float              #: s, how late this tick started against its deadline
     drones: tuple[DroneInputs, ...]
     operator_kill: str | None = None  #: e.g. "SIGTERM", "SIGINT", or None
+    operator_land: str | None = None  #: e.g. "SIGUSR1": land every drone
 
 
 @dataclass(frozen=True)
@@ -123,6 +145,7 @@ class Decision(NamedTuple):
     stop: tuple[bool, ...]        #: per drone: must be stopped now
     stop_all: bool
     violations: tuple[Violation, ...]
+    land: tuple[bool, ...] = ()   #: per drone: must land now (unless stopped)
 
     @property
     def ok(self) -> bool:
@@ -164,7 +187,7 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
         bad("link_lost", "link disconnected")
     elif not (d.link_rx_age_s <= cfg.link_timeout_s):
         bad("link_lost", f"no packet for {d.link_rx_age_s * 1e3:.0f} ms (limit {cfg.link_timeout_s * 1e3:.0f} ms)")
-    if d.gate_crash:
+    if d.gate_crash and not d.landing:
         bad("gate_crash", "crossed the target gate plane inside the frame")
     if pos_ok:
         x, y, z = float(d.pos[0]), float(d.pos[1]), float(d.pos[2])
@@ -172,8 +195,20 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
         if not (lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and lo[2] <= z <= hi[2]):
             bad("geofence", f"position ({x:.2f}, {y:.2f}, {z:.2f}) m outside the fence "
                             f"x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, z <= {hi[2]:.2f}")
-        if t > cfg.floor_grace_s and z < cfg.floor_z_m:
+        elif not d.landing:
+            room = min(x - lo[0], hi[0] - x, y - lo[1], hi[1] - y, hi[2] - z)
+            if room < cfg.fence_soft_m:
+                bad("fence_near", f"{room:.2f} m from the fence (soft limit {cfg.fence_soft_m} m): landing", LAND_DRONE)
+        if t > cfg.floor_grace_s and z < cfg.floor_z_m and not d.landing:
             bad("floor", f"z {z:.2f} m below {cfg.floor_z_m} m after take-off")
+    if not d.landing:
+        if d.mocap_glitches >= cfg.mocap_glitches > 0:
+            bad("mocap_degraded", f"{d.mocap_glitches} pose dropouts/outliers within 2 s: landing", LAND_DRONE)
+        if d.blocked:
+            bad("opponent_down", f"{d.blocked} in the way: landing", LAND_DRONE)
+        if cfg.low_battery_v > 0 and d.vbat < cfg.low_battery_v and d.vbat_low_s >= cfg.low_battery_s:
+            bad("low_battery", f"battery {d.vbat:.2f} V < {cfg.low_battery_v} V for {d.vbat_low_s:.1f} s: landing",
+                LAND_DRONE)
     if rot_ok:
         cos_tilt = max(-1.0, min(1.0, float(d.rot[2][2])))  # world z of the body z axis
         if cos_tilt < math.cos(math.radians(cfg.tilt_max_deg)):
@@ -200,7 +235,12 @@ def check(inputs: SafetyInputs, fence: Fence, cfg: SafetyConfig, limits: Command
                                     f"{int(inputs.tick_late_s / inputs.dt)} tick(s) skipped"))
     for i, d in enumerate(inputs.drones):
         violations += check_drone(i, d, inputs.t, inputs.dt, fence, cfg, limits)
+    if inputs.operator_land:
+        violations.append(Violation("operator_land", None, LAND_ALL, f"operator: land now ({inputs.operator_land})"))
     stop_all = any(v.action == STOP_ALL for v in violations)
     n = len(inputs.drones)
     stop = tuple(stop_all or any(v.drone == i and v.action == STOP_DRONE for v in violations) for i in range(n))
-    return Decision(stop, stop_all, tuple(violations))
+    land_all = any(v.action == LAND_ALL for v in violations)
+    land = tuple(not stop[i] and (land_all or any(v.drone == i and v.action == LAND_DRONE for v in violations))
+                 for i in range(n))
+    return Decision(stop, stop_all, tuple(violations), land)

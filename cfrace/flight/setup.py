@@ -111,6 +111,7 @@ class RaceIO:
     uris: tuple[str, ...]
     hooks: object | None = None
     still_s: float = 0.0    #: s the poses must stay still before the set-up (0: no check; consistency.check_still)
+    wait: Callable[[float], None] | None = None   #: lets time pass outside the loop (None: time.sleep)
 
 
 def check_pose_source(mocap: str, uris) -> None:

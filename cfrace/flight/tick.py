@@ -20,8 +20,10 @@ from typing import NamedTuple
 import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+from cfrace.flight import landing as ld
 from cfrace.flight import safety as sf
 from cfrace.flight.consistency import ConsistencyMonitor
+from cfrace.flight.softsafe import SoftState, blocked_by, land_step
 from cfrace.flight.loopstate import Drone, ObservationBuilder
 from cfrace.flight.mocap import frame_to_msg
 
@@ -40,6 +42,7 @@ class LinkInputs(NamedTuple):
 
     connected: bool
     rx_age_s: float       #: s since the last packet from the drone
+    vbat: float = math.nan   #: V, the drone's battery as its link reports it (nan: unknown)
 
 
 class TickIn(NamedTuple):
@@ -64,6 +67,11 @@ class TickOut:
     ests: list
     end: str = ""         #: "" while the race goes on
     winner: str = "draw"
+    commands: list = None  #: (drone index, "notify_stop" or a high-level command, args) to send, in order
+
+    def __post_init__(self):
+        if self.commands is None:
+            self.commands = []
 
 
 class TickCore:
@@ -71,7 +79,12 @@ class TickCore:
 
     def __init__(self, *, drones: list[Drone], estimator, progress, obs_builder: ObservationBuilder,
                  fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, dt: float, filters=None,
-                 limits: sf.CommandLimits | None = None, consistency: bool = True):
+                 limits: sf.CommandLimits | None = None, landing: ld.LandingSetup | None = None,
+                 hover_start: bool = False, consistency: bool = True):
+        self.landing = landing   #: None: every stop cuts the motors (no landing)
+        self.hover_start = hover_start   #: drones hover (high-level commander) until their first inference
+        self.race_over: tuple | None = None   #: (end, winner, t) once the race is decided; landings may follow
+        self.soft = SoftState(len(drones))   #: what the soft failsafes and the landings remember
         self.drones, self.estimator, self.progress = drones, estimator, progress
         self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
         self.laps, self.timeout_s, self.dt, self.filters = laps, timeout_s, float(dt), filters
@@ -104,8 +117,8 @@ class TickCore:
 
     @staticmethod
     def due(d: Drone, k: int) -> bool:
-        """Drone d infers on tick k (its policy rate, staggered by its phase)."""
-        return not d.stopped and k % d.decimation == d.phase % d.decimation
+        """Drone d infers on tick k (its policy rate, staggered by its phase); not while it lands."""
+        return not d.stopped and d.landing is None and k % d.decimation == d.phase % d.decimation
 
     def observation(self, i: int, ests: list) -> np.ndarray:
         opp = ests[1 - i] if len(ests) == 2 else None
@@ -143,20 +156,33 @@ class TickCore:
             out.append((x if math.isfinite(x) else 0.0, y if math.isfinite(y) else 0.0, z if math.isfinite(z) else 0.0))
         return out
 
-    def safety_inputs(self, t: float, late_s: float, ests: list, computed: list, hit, links, kill
-                      ) -> sf.SafetyInputs:
+    def _blocked(self, i: int, ests: list) -> str:
+        d = self.drones[i]
+        if d.stopped or d.landing is not None or self.landing is None:
+            return ""
+        gate = np.asarray(self.landing.gates[int(self.progress.target[i])][:3], np.float64)
+        return blocked_by(i, self.drones, ests[i].pos, gate, self.safety_cfg.opponent_clearance_m)
+
+    def safety_inputs(self, t: float, late_s: float, ests: list, computed: list, hit, links, kill,
+                      land: str | None = None) -> sf.SafetyInputs:
+        soft = self.landing is not None
         return sf.SafetyInputs(
-            t=t, dt=self.dt, tick_late_s=late_s, operator_kill=kill,
+            t=t, dt=self.dt, tick_late_s=late_s, operator_kill=kill, operator_land=land if soft else None,
             drones=tuple(sf.DroneInputs(
                 pos=e.pos, vel=e.vel, rot=e.rot, est_valid=bool(e.valid), est_age_s=float(e.age_s),
                 obs=d.obs if computed[i] else None, action=d.action,
                 link_connected=links[i].connected, link_rx_age_s=links[i].rx_age_s,
-                gate_crash=bool(hit[i]), command=None if d.stopped else (*d.rates_dps, d.counts),
+                gate_crash=bool(hit[i]),
+                command=None if d.stopped or d.landing is not None else (*d.rates_dps, d.counts),
+                landing=d.landing is not None or not soft,
+                mocap_glitches=self.soft.recent_glitches(i, t), blocked=self._blocked(i, ests),
+                vbat=float(getattr(links[i], "vbat", math.nan)), vbat_low_s=self.soft.low_battery_s(i, t),
                 pose_mismatch=self.mismatch[i])
                 for i, (d, e) in enumerate(zip(self.drones, ests))))
 
     # ------------------------------------------------------------------ the tick
-    def step(self, tick: TickIn, frame, links: list[LinkInputs], kill: str | None = None) -> TickOut:
+    def step(self, tick: TickIn, frame, links: list[LinkInputs], kill: str | None = None,
+             land: str | None = None) -> TickOut:
         """One tick on the newest frame (None: no new one); see the module doc."""
         k, t = tick.k, tick.t
         self.t = t
@@ -173,19 +199,55 @@ class TickCore:
                 computed[i] = True
         if self.consistency is not None:
             for i, d in enumerate(self.drones):
-                self.mismatch[i] = self.consistency.update(i, ests[i], d.rates_dps, d.thrust_n, not d.stopped)
-        decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill),
+                self.mismatch[i] = self.consistency.update(
+                    i, ests[i], d.rates_dps, d.thrust_n,
+                    not d.stopped and d.landing is None and d.action is not None)   # racing on rates
+        if self.landing is not None:
+            self.soft.count_glitches(self.drones, ests, t, self.estimator.counters)
+            self.soft.track_battery(t, links, self.safety_cfg.low_battery_v)
+        decision = sf.check(self.safety_inputs(t, tick.late_s, ests, computed, hit, links, kill, land),
                             self.fence, self.safety_cfg, self.limits)
-        setpoints, stops = self._setpoints(decision, ests, t, k)
-        end, winner = self.race_end(decision, t)
-        out = TickOut(setpoints, stops, decision, [], [], obs_t, infer, est_map, ests, end, winner)
+        if self.landing is not None and not decision.stop_all:
+            for i, d in enumerate(self.drones):
+                if decision.land[i] and not d.stopped and d.landing is None:
+                    kind = next(v.kind for v in decision.violations if v.action in (sf.LAND_DRONE, sf.LAND_ALL)
+                                and v.drone in (i, None))
+                    self.soft.start_landing(self.drones, i, ests[i], t, kind, self.landing)
+        commands: list = []
+        setpoints, stops = self._setpoints(decision, ests, t, k, commands)
+        end, winner = self._end(decision, ests, t)
+        out = TickOut(setpoints, stops, decision, [], [], obs_t, infer, est_map, ests, end, winner, commands)
         self._events(out, t, k)
         self._records(out, t, k, frame, computed, passed.any() or lap_done.any())
         return out
 
-    def _setpoints(self, decision, ests: list, t: float, k: int) -> tuple[list, list]:
+    def _end(self, decision, ests: list, t: float) -> tuple[str, str]:
+        """(end, winner) of this tick. With landing: once the race is decided every drone still
+        flying lands, and the loop ends when none is landing any more (a hard stop ends it at once)."""
+        end, winner = self.race_end(decision, t)
+        if self.landing is None or decision.stop_all:
+            return end, winner
+        if self.race_over is None and end:
+            self.race_over = (end, winner, t)
+            for i, d in enumerate(self.drones):
+                if not d.stopped and d.landing is None:
+                    self.soft.start_landing(self.drones, i, ests[i], t, "race_end", self.landing)
+        if any(d.landing is not None and not d.stopped for d in self.drones):
+            return "", "draw"
+        return (self.race_over[0], self.race_over[1]) if self.race_over is not None else (end, winner)
+
+    def _setpoints(self, decision, ests: list, t: float, k: int, commands: list) -> tuple[list, list]:
         setpoints, stops = [None] * len(self.drones), []
         for i, d in enumerate(self.drones):
+            if d.landing is not None and not d.stopped and not decision.stop[i]:
+                setpoints[i] = land_step(i, d, ests[i], t, commands, self.landing.timeout_s)
+                if d.landing_result is not None and "down" in d.landing_result:
+                    d.frozen_pos = ests[i].pos.copy()
+                    d.stop_k = k
+                    kind = "landed" if d.landing_result["down"] else "landing_timeout"
+                    if self.mark_stopped(i, t, kind):
+                        stops.append((i, kind))
+                continue
             if decision.stop[i]:
                 kinds = [v.kind for v in decision.violations
                          if v.action != sf.NONE and (v.drone == i or v.drone is None)]
@@ -193,9 +255,14 @@ class TickCore:
                     d.frozen_pos = ests[i].pos.copy()
                     d.stop_k = k
                 kind = kinds[0] if kinds else "safety"
+                if d.landing_result is not None and "down" not in d.landing_result and not d.stopped:
+                    d.landing_result.update(d.landing.touchdown.as_dict() if d.landing.touchdown else {})
+                    d.landing_result.update(down=False, cut=kind)
                 if self.mark_stopped(i, t, kind):
                     stops.append((i, kind))
             elif not d.stopped:
+                if self.hover_start and d.action is None:
+                    continue   # hovering on the high-level commander until its first inference
                 r = d.rates_dps
                 setpoints[i] = (r[0], r[1], r[2], d.counts)
         return setpoints, stops
@@ -228,11 +295,19 @@ class TickCore:
     def _records(self, out: TickOut, t: float, k: int, frame, computed: list, progressed: bool) -> None:
         """This tick's flight log records (topics: docs/flight-log.md); /timing and /link are the runner's."""
         rec = out.records
+        rec += self.soft.pending_records
+        self.soft.pending_records = []
         for ev in out.events:
             rec.append(("/safety", {key: ev[key] for key in ("kind", "drone", "body", "action", "detail")}))
         for i, kind in out.stops:
             d = self.drones[i]
             rec.append(("/event", {"kind": "stop", "drone": d.name, "body": d.body, "text": f"stopped: {kind}"}))
+            if d.landing_result is not None:
+                rec.append(("/landing", {"drone": d.name, "body": d.body, "end": kind, **d.landing_result}))
+        for i, name, args in out.commands:
+            d = self.drones[i]
+            rec.append(("/event", {"kind": "high_level", "drone": d.name, "body": d.body,
+                                   "text": f"{name} {args}" if args else name}))
         if frame is not None:
             rec.append(("/mocap/pose", {**frame_to_msg(frame), "k": k}))
         rec.append(("/estimate", {b: {"pos": e.pos, "vel": e.vel, "quat": e.quat, "age_s": e.age_s,
@@ -302,6 +377,7 @@ class TickCore:
                         "method": d.meta.get("method"), "laps": int(p.laps[i]), "gates_passed": int(p.gates_passed[i]),
                         "lap_times": [round(x, 3) for x in p.lap_times[i]], "stopped": d.stopped,
                         "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
+                        "landing": d.landing_result,
                         "speed_max": round(d.speed_max, 3),
                         "pose_residual_max": None if self.consistency is None else
                         {"rate_dps": round(self.consistency.worst[i][0], 1),

@@ -15,9 +15,10 @@ import math
 import struct
 import threading
 import zlib
-from dataclasses import dataclass, field
 
 from cfrace.simcf.firmware import SimFleet
+from cfrace.simcf.packets import (EXT_POSE, GENERIC_TYPES, LOG_TYPES, LOG_VARS, LogBlock,  # noqa: F401
+                                  pack_value, decode_generic, decode_high_level)
 from cfrace.simcf.params import PARAM_BY_NAME, PARAM_TYPES, PARAMS
 
 PROTOCOL_VERSION = 12     #: what the current firmware reports; cflib 0.1.34 needs >= 12 for the supervisor port
@@ -27,23 +28,6 @@ MAX_PAYLOAD = 30
 # ports
 CONSOLE, PARAM, COMMANDER, MEM, LOG, LOCALIZATION, GENERIC_COMMANDER, HL_COMMANDER, SUPERVISOR = 0, 2, 3, 4, 5, 6, 7, 8, 9
 PLATFORM, LINK = 13, 15
-
-#: log variable type codes (firmware log.h; cflib LogTocElement.types): code -> (struct, size)
-LOG_TYPES = {0x01: ("<B", 1), 0x02: ("<H", 2), 0x03: ("<I", 4), 0x04: ("<b", 1), 0x05: ("<h", 2),
-             0x06: ("<i", 4), 0x07: ("<f", 4), 0x08: ("<e", 2)}
-_FLOAT, _U8, _U16, _I8 = 0x07, 0x01, 0x02, 0x04
-
-#: The emulated log TOC, in order: (name, stored type). Values come from SimFleet.log_values.
-LOG_VARS: tuple[tuple[str, int], ...] = tuple(
-    [(f"stateEstimate.{n}", _FLOAT) for n in ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw",
-                                                 "qw", "qx", "qy", "qz")]
-    + [(f"gyro.{n}", _FLOAT) for n in "xyz"]
-    + [("stabilizer.thrust", _FLOAT), ("pm.vbat", _FLOAT), ("pm.state", _I8), ("supervisor.info", _U16),
-       ("sys.canfly", _U8), ("sys.isFlying", _U8), ("sys.isTumbled", _U8)]
-    # motor speeds (group rpm, uint16 revolutions per minute, as the firmware logs them where the drone
-    # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
-    # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
-    + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)])
 
 LOG_MAX_BLOCKS = 16
 LOG_MAX_OPS = 128
@@ -75,25 +59,6 @@ PARAM_CRC = zlib.crc32(b"".join(PARAM_TOC))
 LOG_CRC = zlib.crc32(b"".join(LOG_TOC))
 
 
-@dataclass
-class LogBlock:
-    ops: list = field(default_factory=list)   #: (variable index, fetch type code)
-    period: float = 0.1                       #: s
-    started: bool = False
-    next_due: float = 0.0                     #: simulated time s
-
-    def length(self) -> int:
-        return sum(LOG_TYPES[t][1] for _, t in self.ops)
-
-
-def _pack_value(code: int, value) -> bytes:
-    fmt, size = LOG_TYPES[code]
-    if fmt in ("<f", "<e"):
-        return struct.pack(fmt, float(value))
-    lo, hi = (0, 2 ** (8 * size) - 1) if fmt[1].isupper() else (-(2 ** (8 * size - 1)), 2 ** (8 * size - 1) - 1)
-    return struct.pack(fmt, max(lo, min(hi, int(round(float(value))))))
-
-
 class CrtpEndpoint:
     """The CRTP side of drone ``index`` of a SimFleet: ``handle(datagram) -> [reply datagrams]``."""
 
@@ -122,10 +87,9 @@ class CrtpEndpoint:
             return self._out([packet(LINK, 3)])        # scan probe: answer anything
         handler = {LINK: self._link, PLATFORM: self._platform, PARAM: self._param, LOG: self._log,
                    MEM: self._mem, COMMANDER: self._commander, GENERIC_COMMANDER: self._generic,
-                   SUPERVISOR: self._supervisor, LOCALIZATION: self._localization}.get(port)
+                   SUPERVISOR: self._supervisor, LOCALIZATION: self._localization,
+                   HL_COMMANDER: self._high_level}.get(port)
         if handler is None:
-            if port == HL_COMMANDER:
-                return self._out(self._warn_once("high-level commander"))
             return []
         return self._out(handler(channel, payload) or [])
 
@@ -318,12 +282,44 @@ class CrtpEndpoint:
         return []
 
     def _generic(self, channel: int, payload: bytes) -> list[bytes]:
-        if channel == 0 and payload:
-            if payload[0] == 0:                            # TYPE_STOP
-                self.fleet.stop_setpoint(self.index)
-                return []
+        if not payload:
+            return []
+        if channel == 1:                                   # meta commands
+            if payload[0] == 0 and len(payload) >= 5:      # notify setpoint stop (remain-valid ms: unused)
+                self.fleet.notify_setpoint_stop(self.index)
+            return []
+        if channel != 0:
+            return []
+        if payload[0] == 0:                                # TYPE_STOP
+            self.fleet.stop_setpoint(self.index)
+            return []
+        try:
+            sp = decode_generic(payload[0], payload[1:])
+        except struct.error:
+            return self._warn_once(f"a generic setpoint of type {payload[0]} with a bad length (dropped)")
+        if sp is None:
             return self._warn_once(f"generic setpoint type {payload[0]}")
-        return []                                          # meta: notify-setpoint-stop, ignored
+        try:
+            self.fleet.low_level_setpoint(self.index, sp)
+        except ValueError:
+            return self._warn_once("a setpoint with NaN/inf values (dropped; later ones too)")
+        self.setpoints += 1
+        return []
+
+    def _high_level(self, channel: int, payload: bytes) -> list[bytes]:
+        if channel != 0 or not payload:
+            return []
+        try:
+            decoded = decode_high_level(payload)
+        except struct.error:
+            return self._warn_once(f"a high-level command {payload[0]} with a bad length (dropped)")
+        if decoded is None:
+            return self._warn_once(f"high-level command {payload[0]} (trajectories, spiral)")
+        command, mask, args = decoded
+        if not all(math.isfinite(v) for v in args.values() if isinstance(v, float)):
+            return self._warn_once("a high-level command with NaN/inf values (dropped)")
+        self.fleet.high_level(self.index, command, mask, **args)
+        return []
 
     def _supervisor(self, channel: int, payload: bytes) -> list[bytes]:
         if not payload:
@@ -351,6 +347,13 @@ class CrtpEndpoint:
         return []
 
     def _localization(self, channel: int, payload: bytes) -> list[bytes]:
+        if channel == 0 and len(payload) >= 12:           # external position x, y, z
+            self.fleet.external_position(self.index, struct.unpack_from("<fff", payload, 0))
+            return []
+        if channel == 1 and payload and payload[0] == EXT_POSE and len(payload) >= 29:
+            x, y, z, qx, qy, qz, qw = struct.unpack_from("<7f", payload, 1)
+            self.fleet.external_position(self.index, (x, y, z), (qw, qx, qy, qz))
+            return []
         if channel == 1 and payload:
             if payload[0] == 3:
                 self.fleet.emergency_stop(self.index, "localization emergency stop")
@@ -373,7 +376,7 @@ class CrtpEndpoint:
             values = self.fleet.log_values(self.index)
             stamp = struct.pack("<I", int(t * 1000.0) & 0xFFFFFF)[:3]
             for bid, block in due:
-                data = b"".join(_pack_value(fetch, values[LOG_VARS[var][0]]) for var, fetch in block.ops)
+                data = b"".join(pack_value(fetch, values[LOG_VARS[var][0]]) for var, fetch in block.ops)
                 out.append(packet(LOG, 2, bytes([bid]) + stamp + data))
                 block.next_due += block.period
                 if block.next_due <= t:                    # fell behind: no burst, restart the period

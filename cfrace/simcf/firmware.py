@@ -20,23 +20,31 @@ and cflib 0.1.34 (commander.py):
 * Emergency stop (supervisor command, legacy localization packet, ``stabilizer.stop``, or the
   emergency-stop watchdog): motors off, locked until ``reboot``.
 
-Angle mode uses a proportional attitude loop, rates = 6/s x angle error (the firmware's default
-attitude PID gain Kp = 6 for roll, pitch and yaw), clamped to 720 deg/s; the simulator's own
-body-rate PID then tracks those rates. See docs/simcf.md for what is not emulated.
+Beyond the legacy setpoint: the generic commander's setpoint types (simcf/crtp.py decodes them
+into controller.Setpoint), the cascaded PID controller (simcf/controller.py; the simulator's own
+body-rate PID is the last stage), the high-level commander (simcf/planner.py) with the commander's
+priorities (a low-level setpoint overrides and stops the high-level commander; notify-stop relaxes
+the priority so that it takes over again), and the state estimator (simcf/estimator.py) fed by
+external positions and the simulated decks. See docs/simcf.md for what is not emulated.
 """
 
 from __future__ import annotations
 
+import errno
 import math
 import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from cfrace.drone import DroneProfile, load_profile
+from cfrace.drone import GRAVITY, DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.flight.estimator import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
-from cfrace.simcf.params import PARAM_BY_NAME, coerce_param, default_params
+from cfrace.simcf import planner as hl
+from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
+from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
+from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.track import Track, load_track
 
@@ -46,23 +54,26 @@ MAX_THRUST = 60000         #: counts, the firmware caps the legacy setpoint thru
 WDT_LEVEL = 0.5            #: s without setpoint -> level out
 WDT_SHUTDOWN = 2.0         #: s without setpoint -> motors off, thrust locked
 ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has been fed
-ANGLE_KP = 6.0             #: 1/s, attitude P gain (firmware attitude PID Kp)
-ANGLE_RATE_LIMIT = math.radians(720.0)  #: rad/s, clamp of the angle loop's rate output
-CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the angle loop's period)
+CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the controller's period)
+PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2   #: the commander's setpoint priorities
+CONTROLLERS_EMULATED = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
 
 
-@dataclass
-class Setpoint:
-    """The decoded legacy setpoint, already in body-frame SI terms."""
+@dataclass(frozen=True)
+class BatteryModel:
+    """A 1-cell LiPo for pm.vbat: open-circuit voltage falls linearly with the charge drawn; the
+    terminal voltage sags by the internal resistance times the current, which grows with thrust."""
 
-    roll_rate_mode: bool
-    pitch_rate_mode: bool
-    yaw_rate_mode: bool
-    roll: float       #: rad/s (rate mode) or rad (angle mode), about body +x
-    pitch: float      #: rad/s or rad about body +y (nose down positive)
-    yaw: float        #: rad/s about body +z, or yaw angle rad (angle mode)
-    thrust_counts: int  #: effective counts after lock / min / max
-    thrust: float     #: N, collective
+    volts_full: float = 4.2          #: V, open circuit when full
+    volts_per_charge: float = 1.0    #: V from full to empty (open circuit)
+    charge0: float = 0.9             #: state of charge at boot, 0-1
+    capacity_mah: float = 250.0
+    resistance: float = 0.08         #: ohm, internal
+    idle_amps: float = 0.1           #: A with motors off
+    full_amps: float = 8.0           #: A at full collective thrust
+
+    def volts(self, charge: float, amps: float) -> float:
+        return self.volts_full - self.volts_per_charge * (1.0 - charge) - self.resistance * amps
 
 
 @dataclass
@@ -71,6 +82,7 @@ class DroneFirmware:
 
     params: dict
     auto_armed: bool
+    estimator: PositionEstimator
     thrust_locked: bool = True
     armed: bool = False
     emergency: str = ""              #: reason; non-empty means motors off until reboot
@@ -81,6 +93,13 @@ class DroneFirmware:
     setpoints_received: int = 0
     packets_received: int = 0
     events: list = field(default_factory=list)  #: console lines not yet sent
+    priority: int = PRIORITY_DISABLE             #: of the setpoint in force
+    controller: PidController = field(default_factory=lambda: PidController(ATTITUDE_I_LIMIT, PID_I_LIMIT))
+    planner: hl.Planner = field(default_factory=hl.Planner)
+    control_thrust: float = 0.0                  #: N, what the controller commanded last
+    control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
+    charge: float = 0.9                          #: battery state of charge, 0-1
+    amps: float = 0.0                            #: A, battery current
 
     def __post_init__(self):
         self.armed = self.auto_armed
@@ -121,7 +140,8 @@ class SimFleet:
 
     def __init__(self, track: Track | str, profile: DroneProfile | str, drones: int, *,
                  body_names=None, start_positions=None, seed: int = 0, arming_required: bool = True,
-                 obstacles: bool = True, crash_rules=None, backend: str = "auto", sim=None):
+                 obstacles: bool = True, crash_rules=None, backend: str = "auto", sim=None,
+                 decks=("lighthouse",), battery: BatteryModel | None = None):
         self.track = load_track(track) if isinstance(track, str) else track
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         if drones < 1:
@@ -132,6 +152,12 @@ class SimFleet:
             raise ConfigError(f"simcf: body_names must be {self.n} distinct names, got {names}")
         self.body_names = names
         self.arming_required = bool(arming_required)
+        try:
+            self.decks = check_decks(decks)   #: the simulated positioning decks every drone carries
+        except ValueError as e:
+            raise ConfigError(f"simcf: {e}") from None
+        self.battery = battery or BatteryModel()
+        self.seed = int(seed)
         floor_z = self.profile.collision_box[2] / 2.0
         pos, self._start_yaw = default_start_positions(self.track, self.n, floor_z)
         if start_positions is not None:
@@ -150,9 +176,9 @@ class SimFleet:
         self._steps = 0          # physics steps done since construction
         self._pending = 0.0      # s of requested time not yet simulated (< DT)
         self._cmd_thrust = np.zeros(self.n)   # N, collective thrust commanded in the last chunk
-        self._fw = [DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
-                    for i in range(self.n)]
+        self._fw = [self._boot(i) for i in range(self.n)]
         self.log_hooks: list = []   #: callables drone index -> {log name: value} overriding log_values
+        self._acc = np.zeros((self.n, 3))     # (N, 3) m/s^2, world acceleration over the last chunk
         self._reset_physics()
 
     # ---------------------------------------------------------------- time and state
@@ -183,12 +209,41 @@ class SimFleet:
             for i in range(self.n):
                 self.reboot(i)
 
+    def param_defaults(self, i: int) -> dict:
+        """{name: value} of the parameters whose boot value depends on this fleet: the thrust at
+        hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks."""
+        prof = self.profile
+        out = {"posCtlPid.thrustBase": round(float(prof.thrust_curve.to_counts(prof.weight)))}
+        for axis, pid in (("roll", prof.pid_roll_pitch), ("pitch", prof.pid_roll_pitch), ("yaw", prof.pid_yaw)):
+            out.update({f"pid_rate.{axis}_kp": pid.kp, f"pid_rate.{axis}_ki": pid.ki, f"pid_rate.{axis}_kd": pid.kd})
+        out.update({DECK_PARAMS[d]: 1 for d in self.decks})
+        return out
+
+    def _boot(self, i: int) -> DroneFirmware:
+        params = default_params(i, self.arming_required, self.param_defaults(i))
+        fw = DroneFirmware(params, not self.arming_required, PositionEstimator(self.decks, seed=self.seed * 1009 + i))
+        fw.charge = self.battery.charge0
+        fw.estimator.reset((params["kalman.initialX"], params["kalman.initialY"], params["kalman.initialZ"]))
+        return fw
+
+    def teleport(self, i: int, pos, vel=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0)) -> None:
+        """Put drone i in flight at pos (3,) m with velocity vel (3,) m/s and attitude quat (wxyz), its
+        estimator reset there (scenarios and tests: e.g. a drone finishing a race at 5 m/s)."""
+        with self.lock:
+            i = self._check(i)
+            self.sim.set_drone(i, pos, vel, quat)
+            self._snapshot()
+            est = self._fw[i].estimator
+            est.reset(self._pos[i])
+            est.vel = self._vel[i].copy()
+
     def reboot(self, i: int) -> None:
-        """Power-cycle drone i's firmware: parameters to defaults, thrust locked, disarmed."""
+        """Power-cycle drone i's firmware: parameters to defaults, thrust locked, disarmed, estimator reset."""
         with self.lock:
             old = self._fw[self._check(i)]
-            fw = DroneFirmware(default_params(i, self.arming_required), not self.arming_required)
+            fw = self._boot(i)
             fw.packets_received = old.packets_received
+            fw.charge = old.charge
             fw.events.append("SYS: reboot")
             self._fw[i] = fw
 
@@ -208,27 +263,117 @@ class SimFleet:
             if thrust == 0:
                 fw.thrust_locked = False
             counts = 0 if (fw.thrust_locked or thrust < MIN_THRUST) else min(thrust, MAX_THRUST)
-            newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts else 0.0
             p = fw.params
-            rate_r, rate_p = p["flightmode.stabModeRoll"] == 0, p["flightmode.stabModePitch"] == 0
-            rate_y = p["flightmode.stabModeYaw"] == 0
-            fw.setpoint = Setpoint(rate_r, rate_p, rate_y, math.radians(roll), -math.radians(pitch),
-                                   -math.radians(yawrate) if rate_y else math.radians(yawrate), counts, newtons)
-            self._fresh(fw)
+            modes = [VELOCITY if p[f"flightmode.stabMode{a}"] == 0 else ABS for a in ("Roll", "Pitch", "Yaw")]
+            sp = Setpoint(mode_roll=modes[0], mode_pitch=modes[1], mode_yaw=modes[2], thrust=float(counts),
+                          source="legacy")
+            values = (math.radians(roll), -math.radians(pitch),
+                      -math.radians(yawrate) if modes[2] == VELOCITY else math.radians(yawrate))
+            for k, value in enumerate(values):
+                (sp.rates if modes[k] == VELOCITY else sp.attitude)[k] = value
+            self._low_level(fw, sp)
 
     def stop_setpoint(self, i: int) -> None:
         """The generic commander's STOP setpoint: motors off now; feeds the watchdog, keeps the lock."""
         with self.lock:
-            fw = self._fw[self._check(i)]
-            fw.setpoint = Setpoint(True, True, True, 0.0, 0.0, 0.0, 0, 0.0)
-            self._fresh(fw)
+            self._low_level(self._fw[self._check(i)], Setpoint(source="stop"))
 
-    def _fresh(self, fw: DroneFirmware) -> None:
+    def low_level_setpoint(self, i: int, sp: Setpoint) -> None:
+        """A generic-commander setpoint (decoded by simcf/crtp.py): it overrides the high-level commander."""
+        values = (sp.position, sp.velocity, sp.attitude, sp.rates, [sp.thrust])
+        if not all(np.all(np.isfinite(np.asarray(v, np.float64))) for v in values):
+            raise ValueError(f"simcf: non-finite setpoint for drone {i}")
+        with self.lock:
+            self._low_level(self._fw[self._check(i)], sp)
+
+    def _low_level(self, fw: DroneFirmware, sp: Setpoint) -> None:
+        fw.setpoint = sp
+        fw.priority = PRIORITY_CRTP
+        fw.planner.stop()            # the firmware stops its planner: it forgets its plan
+        self._fresh(fw)
+
+    def notify_setpoint_stop(self, i: int) -> None:
+        """The generic commander's notify-setpoint-stop: the setpoint in force gets the lowest priority,
+        so the high-level commander's next setpoint (its plan, or motors off if it has none) replaces it."""
+        with self.lock:
+            fw = self._fw[self._check(i)]
+            if fw.priority > PRIORITY_HIGHLEVEL:
+                fw.priority = PRIORITY_HIGHLEVEL
+
+    def _fresh(self, fw: DroneFirmware, count: bool = True) -> None:
         fw.last_setpoint_time = self.time
-        fw.setpoints_received += 1
+        fw.setpoints_received += int(count)
         if fw.watchdog in ("level", "shutdown"):
             fw.events.append("CMD: setpoints resumed")
         fw.watchdog = "ok"
+
+    # ---------------------------------------------------------------- high-level commander
+    def high_level(self, i: int, command: str, group_mask: int = 0, **args) -> int:
+        """A high-level commander command: takeoff (height m, yaw rad or None, duration s), land (same),
+        go_to (x, y, z m, yaw rad, duration s, relative, linear), stop, set_group_mask (mask in
+        group_mask). Returns 0, 1 (refused by the planner) or errno EBUSY (the drone cannot fly)."""
+        with self.lock:
+            fw = self._fw[self._check(i)]
+            if command == "set_group_mask":
+                fw.planner.group_mask = int(group_mask)
+                return 0
+            if not fw.planner.in_group(group_mask):
+                return 0
+            if command == "stop":
+                fw.planner.stop()
+                return 0
+            if fw.emergency or not fw.armed:
+                fw.events.append(f"HL: {command} refused, the drone cannot fly (arm it first)")
+                return errno.EBUSY
+            t = self.time
+            est = self._estimate_goal(i)
+            if command in ("takeoff", "land"):
+                yaw = est.yaw if args.get("yaw") is None else float(args["yaw"])
+                fn = fw.planner.takeoff if command == "takeoff" else fw.planner.land
+                return fn(est.pos, est.yaw, float(args["height"]), yaw, float(args["duration"]), t)
+            if command == "go_to":
+                goal = (float(args["x"]), float(args["y"]), float(args["z"]))
+                return fw.planner.go_to(est, bool(args.get("relative")), bool(args.get("linear")), goal,
+                                        float(args["yaw"]), float(args["duration"]), t)
+            raise ValueError(f"simcf: unknown high-level command {command!r}")
+
+    def _estimate_goal(self, i: int) -> hl.Goal:
+        """The estimated state as the planner's start: position, velocity, yaw."""
+        est = self._fw[i].estimator
+        yaw = quat_to_euler(self._quat[i])[2]
+        return hl.Goal(est.pos.copy(), est.vel.copy(), np.zeros(3), yaw, 0.0)
+
+    def _high_level_setpoint(self, i: int) -> None:
+        """Each control tick while the drone can fly: the planner's setpoint, if its priority allows."""
+        fw = self._fw[i]
+        if fw.emergency or not fw.armed:
+            return
+        goal = fw.planner.evaluate(self.time)
+        if fw.priority > PRIORITY_HIGHLEVEL:
+            return
+        if goal is not None:
+            sp = Setpoint(mode_x=ABS, mode_y=ABS, mode_z=ABS, mode_yaw=ABS, source="high-level")
+            sp.position, sp.velocity = goal.pos, goal.vel
+            sp.attitude[2] = goal.yaw
+        elif fw.planner.state == hl.IDLE and fw.watchdog != "idle":
+            sp = Setpoint(source="high-level stop")
+        else:
+            return
+        fw.setpoint, fw.priority = sp, PRIORITY_HIGHLEVEL
+        self._fresh(fw, count=False)
+
+    # ---------------------------------------------------------------- positioning
+    def external_position(self, i: int, pos, quat=None) -> None:
+        """An external position (CRTP localization: mocap via the ground station), m (3,) world; the
+        attitude ``quat`` is accepted and not used (the simulated estimator's attitude is exact)."""
+        with self.lock:
+            fw = self._fw[self._check(i)]
+            fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
+
+    def set_battery(self, i: int, charge: float) -> None:
+        """Set drone i's battery state of charge (0-1), e.g. to test a low-battery landing."""
+        with self.lock:
+            self._fw[self._check(i)].charge = min(1.0, max(0.0, float(charge)))
 
     def note_packet(self, i: int) -> None:
         """Count one CRTP packet received for drone i (called by the server)."""
@@ -247,6 +392,8 @@ class SimFleet:
             fw.params[name] = coerce_param(spec, value)
             if name == "stabilizer.stop" and fw.params[name]:
                 self._emergency(fw, "stabilizer.stop")
+            if name == "stabilizer.controller" and fw.params[name] not in CONTROLLERS_EMULATED:
+                fw.events.append(f"SIMCF: controller {fw.params[name]} is not emulated, PID runs")
             return fw.params[name]
 
     def get_param(self, i: int, name: str) -> float | int:
@@ -313,27 +460,62 @@ class SimFleet:
                     best = min(best, fw.last_setpoint_time + WDT_SHUTDOWN)
         return best
 
+    def _gated(self, fw: DroneFirmware) -> bool:
+        """Motors off whatever the setpoint: emergency, disarmed, no setpoint yet, watchdog shutdown."""
+        return bool(fw.emergency or not fw.armed or fw.setpoint is None or fw.watchdog in ("idle", "shutdown"))
+
     def _command(self, i: int) -> tuple[float, np.ndarray]:
-        """(thrust N, body rates rad/s (3,)) for drone i at the current state."""
+        """(thrust N, body rates rad/s (3,)) drone i commands now (no controller update: for status)."""
         fw = self._fw[i]
-        sp = fw.setpoint
-        if fw.emergency or not fw.armed or sp is None or fw.watchdog in ("idle", "shutdown"):
+        if self._gated(fw) or fw.setpoint.is_stop:
             return 0.0, np.zeros(3)
-        if sp.thrust <= 0.0:
-            return 0.0, np.zeros(3)   # the firmware resets its controller and idles at zero thrust
-        roll, pitch, yaw = quat_to_euler(self._quat[i])
-        if fw.watchdog == "level":
-            rates = np.array([ANGLE_KP * -roll, ANGLE_KP * -pitch, 0.0])
-        else:
-            rates = np.array([
-                sp.roll if sp.roll_rate_mode else ANGLE_KP * (sp.roll - roll),
-                sp.pitch if sp.pitch_rate_mode else ANGLE_KP * (sp.pitch - pitch),
-                sp.yaw if sp.yaw_rate_mode else ANGLE_KP * _wrap(sp.yaw - yaw),
-            ])
-            for k, is_rate in enumerate((sp.roll_rate_mode, sp.pitch_rate_mode, sp.yaw_rate_mode)):
-                if not is_rate:
-                    rates[k] = max(-ANGLE_RATE_LIMIT, min(ANGLE_RATE_LIMIT, rates[k]))
-        return sp.thrust, rates
+        if fw.setpoint.mode_z == DISABLE:
+            return float(self.profile.thrust_curve.to_newtons(fw.setpoint.thrust)), fw.control_rates.copy()
+        return fw.control_thrust, fw.control_rates.copy()
+
+    @staticmethod
+    def _levelled(sp: Setpoint) -> Setpoint:
+        """The commander's watchdog after 500 ms without setpoints: roll, pitch 0, yaw rate 0."""
+        out = Setpoint(**{**sp.__dict__, "attitude": sp.attitude.copy(), "rates": sp.rates.copy()})
+        out.mode_roll = out.mode_pitch = ABS
+        out.attitude[:2] = 0.0
+        out.mode_yaw, out.rates[2] = VELOCITY, 0.0
+        return out
+
+    def _control(self, i: int, dt: float) -> tuple[float, np.ndarray]:
+        """One controller update of drone i over the next dt s: estimator reset request, the
+        high-level commander, then the PID cascade. -> (thrust N, body rates rad/s (3,))."""
+        fw = self._fw[i]
+        p = fw.params
+        if p["kalman.resetEstimation"]:
+            fw.estimator.reset((p["kalman.initialX"], p["kalman.initialY"], p["kalman.initialZ"]))
+            p["kalman.resetEstimation"] = 0          # the firmware clears the request once done
+        self._high_level_setpoint(i)
+        if self._gated(fw):
+            fw.controller.reset()
+            fw.control_thrust, fw.control_rates = 0.0, np.zeros(3)
+            return 0.0, np.zeros(3)
+        sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
+        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, quat_to_euler(self._quat[i]),
+                                             p, dt)
+        newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
+        fw.control_thrust, fw.control_rates = newtons, rates
+        return newtons, rates
+
+    def _after_step(self, dt: float, vel_before: np.ndarray) -> None:
+        """Sensors after dt s of physics: the estimators' prediction and deck measurements, batteries."""
+        t = self.time
+        acc = (self._vel - vel_before) / dt
+        self._acc = acc
+        for i, fw in enumerate(self._fw):
+            p = fw.params
+            fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
+                                 p["kalman.pNPos"])
+            fw.estimator.decks_measure(t, self._pos[i], self._vel[i])
+            b = self.battery
+            load = self._cmd_thrust[i] / self.profile.max_collective_thrust
+            fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
+            fw.charge = max(0.0, fw.charge - fw.amps * dt / 3.6 / b.capacity_mah)
 
     def advance(self, dt: float) -> int:
         """Advance simulated time by dt s (in whole 2 ms physics steps; the remainder carries over).
@@ -351,12 +533,14 @@ class SimFleet:
                 deadline = self._next_deadline(t)
                 if deadline < math.inf:
                     k = max(1, min(k, math.ceil((deadline - t) / DT - 1e-6) + 1))
-                cmds = [self._command(i) for i in range(self.n)]
+                cmds = [self._control(i, k * DT) for i in range(self.n)]
                 self._cmd_thrust = np.array([c[0] for c in cmds])
+                vel_before = self._vel
                 self.sim.step(self._cmd_thrust, np.stack([c[1] for c in cmds]), substeps=k)
                 self._steps += k
                 done += k
                 self._snapshot()
+                self._after_step(k * DT, vel_before)
             for fw in self._fw:
                 self._update_watchdog(fw, self.time)
             return done
@@ -383,8 +567,20 @@ class SimFleet:
                     "crashed": bool(self._crashed[i]), "crash_reason": crash_reason(int(self._reason[i])),
                     "setpoint_age": age,
                     "setpoints_received": fw.setpoints_received, "packets_received": fw.packets_received,
-                    "thrust_counts": fw.setpoint.thrust_counts if fw.setpoint else 0,
-                    "thrust": float(self._command(i)[0])}
+                    "thrust_counts": self._thrust_counts(i),
+                    "thrust": float(self._command(i)[0]),
+                    "setpoint_source": fw.setpoint.source if fw.setpoint else "", "priority": fw.priority,
+                    "high_level": fw.planner.state}
+
+    def _thrust_counts(self, i: int) -> int:
+        """Counts of the thrust in force (the setpoint's, or the velocity controller's), 0 when off."""
+        fw = self._fw[i]
+        thrust = self._command(i)[0]
+        if thrust <= 0.0:
+            return 0
+        if fw.setpoint.mode_z == DISABLE:
+            return int(fw.setpoint.thrust)
+        return int(round(float(self.profile.thrust_curve.to_counts(thrust))))
 
     def supervisor_bitfield(self, i: int) -> int:
         """The firmware's supervisor.info bits (see cflib Supervisor.STATES)."""
@@ -400,7 +596,10 @@ class SimFleet:
             bits |= int(self._tumbled(i)) << 5
             bits |= int(bool(fw.emergency)) << 6                      # locked, reboot required
             bits |= int(bool(self._crashed[i])) << 7
-            bits |= 1 << 10                                           # high-level commander idle
+            state = fw.planner.state
+            bits |= int(state in (hl.FLYING, hl.LANDING)) << 8        # high-level commander active
+            bits |= int(state == hl.FLYING and fw.planner.finished(self.time)) << 9   # its move finished
+            bits |= int(state == hl.DISABLED) << 10                   # it produces no setpoints
             return bits
 
     def _tumbled(self, i: int) -> bool:
@@ -408,30 +607,66 @@ class SimFleet:
         return 1.0 - 2.0 * (x * x + y * y) < 0.0   # body z axis pointing down
 
     def log_values(self, i: int) -> dict:
-        """Values of the emulated log variables for drone i (firmware names and units)."""
+        """Values of the emulated log variables for drone i (firmware names and units: m, m/s, deg,
+        deg/s, g; pitch with the firmware's legacy sign, nose up positive)."""
         with self.lock:
             i = self._check(i)
-            roll, pitch, yaw = quat_to_euler(self._quat[i])
-            w, x, y, z = self._quat[i]
             fw = self._fw[i]
-            pos, vel, om = self._pos[i], self._vel[i], np.degrees(self._omega[i])
+            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(self._quat[i]))
+            w, x, y, z = self._quat[i]
+            est, om = fw.estimator, np.degrees(self._omega[i])
+            var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
+            acc_g = self._acc[i] / GRAVITY
+            body_acc = quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+            vbat = self.battery.volts(fw.charge, fw.amps)
+            counts = self._thrust_counts(i)
+            sp = fw.setpoint or Setpoint()
+            debug = fw.controller.debug
             values = {
-                "stateEstimate.x": pos[0], "stateEstimate.y": pos[1], "stateEstimate.z": pos[2],
-                "stateEstimate.vx": vel[0], "stateEstimate.vy": vel[1], "stateEstimate.vz": vel[2],
-                "stateEstimate.roll": math.degrees(roll), "stateEstimate.pitch": -math.degrees(pitch),
-                "stateEstimate.yaw": math.degrees(yaw),
+                **{f"stateEstimate.{k}": v for k, v in zip(("x", "y", "z", "vx", "vy", "vz"), (*est.pos, *est.vel))},
+                **{f"stateEstimate.{k}": v for k, v in zip(("ax", "ay", "az"), acc_g)},
+                "stateEstimate.roll": roll, "stateEstimate.pitch": -pitch, "stateEstimate.yaw": yaw,
                 "stateEstimate.qw": w, "stateEstimate.qx": x, "stateEstimate.qy": y, "stateEstimate.qz": z,
+                "stabilizer.roll": roll, "stabilizer.pitch": -pitch, "stabilizer.yaw": yaw,
+                "stabilizer.thrust": float(counts),
+                **{f"kalman.state{k}": v for k, v in zip("XYZ", est.pos)},
+                **{f"kalman.stateP{k}": v for k, v in zip("XYZ", est.vel)},
+                **{f"kalman.var{k}": v for k, v in zip("XYZ", var_p)},
+                **{f"kalman.varP{k}": v for k, v in zip("XYZ", var_v)},
+                "kalman.q0": w, "kalman.q1": x, "kalman.q2": y, "kalman.q3": z,
                 "gyro.x": om[0], "gyro.y": om[1], "gyro.z": om[2],
-                "stabilizer.thrust": float(fw.setpoint.thrust_counts if fw.setpoint and self._cmd_thrust[i] > 0 else 0),
-                "pm.vbat": 4.0, "pm.state": 0,
+                "acc.x": body_acc[0], "acc.y": body_acc[1], "acc.z": body_acc[2],
+                "ctrltarget.x": sp.position[0], "ctrltarget.y": sp.position[1], "ctrltarget.z": sp.position[2],
+                "ctrltarget.vx": sp.velocity[0], "ctrltarget.vy": sp.velocity[1], "ctrltarget.vz": sp.velocity[2],
+                "ctrltarget.roll": math.degrees(sp.attitude[0]), "ctrltarget.pitch": -math.degrees(sp.attitude[1]),
+                "ctrltarget.yaw": math.degrees(sp.rates[2]),
+                **{f"controller.{k}": float(debug.get(k, 0.0)) for k in ("cmd_thrust", "roll", "yaw", "rollRate", "yawRate")},
+                "controller.pitch": -float(debug.get("pitch", 0.0)), "controller.pitchRate": float(debug.get("pitchRate", 0.0)),
+                **{f"posCtl.{k}": float(debug.get(k, 0.0)) for k in ("targetVX", "targetVY", "targetVZ", "targetX",
+                                                                     "targetY", "targetZ")},
+                "pm.vbat": vbat, "pm.vbatMV": vbat * 1000.0,
+                "pm.state": 3 if vbat < fw.params["pm.lowVoltage"] else 0,
+                "pm.batteryLevel": 100.0 * fw.charge,
+                "range.zrange": 1000.0 * self._pos[i][2] if "flow" in self.decks else 0.0,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
                 "sys.isTumbled": (info >> 5) & 1,
-                **{f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)},
+                **self._motor_logs(i),
             }
             for hook in self.log_hooks:   # e.g. the thrust stand (simcf/stand.py): pm.vbat, rpm.*, motor.*
                 values.update(hook(i))
             return values
+
+    def _motor_logs(self, i: int) -> dict:
+        """rpm.m1-m4 (rotor speeds, rpm) and motor.m1-m4 (each rotor's thrust as counts of the collective
+        curve), from the simulator's rotor speeds; zeros for a physics without rotor states."""
+        speeds = getattr(self.sim, "motor", None)
+        if speeds is None:
+            return {f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)}
+        w = np.asarray(speeds[i], np.float64)
+        counts = self.profile.thrust_curve.to_counts(4.0 * self.profile.k_eta * w * w)
+        return {**{f"rpm.m{k + 1}": w[k] * 60.0 / (2.0 * math.pi) for k in range(4)},
+                **{f"motor.m{k + 1}": float(counts[k]) if w[k] > 0 else 0.0 for k in range(4)}}
 
     def drain_events(self, i: int) -> list[str]:
         """Console lines produced by drone i since the last call (the server prints them)."""

@@ -21,13 +21,36 @@ PARAM_TYPES = {"int8_t": (0x00, "<b"), "int16_t": (0x01, "<h"), "int32_t": (0x02
                "float": (0x06, "<f"), "uint8_t": (0x08, "<B"), "uint16_t": (0x09, "<H"),
                "uint32_t": (0x0A, "<I")}
 
-#: The emulated parameters, in TOC order.
+def _group(group: str, ctype: str, entries, readonly: bool = False, doc: str = "") -> tuple[ParamSpec, ...]:
+    """ParamSpecs of one group: entries are (name, default) pairs."""
+    return tuple(ParamSpec(f"{group}.{name}", ctype, default, readonly, doc) for name, default in entries)
+
+
+def _gains(axes, suffixes, values) -> list[tuple[str, float]]:
+    """[(axis + suffix, value)] for each axis, e.g. roll_kp, roll_ki, roll_kd."""
+    return [(f"{a}{s}", v) for a, vals in zip(axes, values) for s, v in zip(suffixes, vals)]
+
+
+#: Defaults of the firmware's PID controller (controller_pid.c, attitude_pid_controller.c,
+#: position_controller_pid.c; platform defaults of the Crazyflie 2.x and 2.1 Brushless, which agree
+#: on these): attitude deg -> deg/s, velocity m/s -> deg (roll/pitch) or thrust/1000 (z), position m -> m/s.
+ATTITUDE_GAINS = ((6.0, 3.0, 0.0), (6.0, 3.0, 0.0), (6.0, 1.0, 0.35))          #: roll, pitch, yaw (kp, ki, kd)
+ATTITUDE_I_LIMIT = (20.0, 20.0, 360.0)                                        #: deg s
+VELOCITY_GAINS = ((25.0, 1.0, 0.0), (25.0, 1.0, 0.0), (25.0, 15.0, 0.0))       #: vx, vy, vz
+POSITION_GAINS = ((2.0, 0.0, 0.0), (2.0, 0.0, 0.0), (2.0, 0.5, 0.0))          #: x, y, z
+PID_I_LIMIT = 5000.0                                                          #: the firmware's default
+THRUST_BASE_FIRMWARE = 36000   #: counts, posCtlPid.thrustBase of the Crazyflie 2.x (our default: the profile's hover)
+
+#: The emulated parameters, in TOC order. Defaults marked "profile" are set per drone from its profile
+#: (see default_params); "deck" ones from the simulated drone's positioning decks.
 PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("flightmode.stabModeRoll", "uint8_t", 1, doc="0 rate, 1 angle (firmware default 1)"),
     ParamSpec("flightmode.stabModePitch", "uint8_t", 1, doc="0 rate, 1 angle (firmware default 1)"),
     ParamSpec("flightmode.stabModeYaw", "uint8_t", 0, doc="0 rate (default), 1 angle"),
-    ParamSpec("stabilizer.estimator", "uint8_t", 2, doc="reported only (2 = Kalman); ground truth is used"),
-    ParamSpec("stabilizer.controller", "uint8_t", 1, doc="reported only (1 = PID)"),
+    ParamSpec("stabilizer.estimator", "uint8_t", 2,
+              doc="0 auto, 1 complementary, 2 Kalman: reported; the simulated drone always runs its Kalman filter"),
+    ParamSpec("stabilizer.controller", "uint8_t", 1,
+              doc="0 auto, 1 PID, 2 Mellinger, ...: only PID (0, 1) is emulated; others: a console warning, PID runs"),
     ParamSpec("stabilizer.stop", "uint8_t", 0, doc="nonzero -> emergency stop"),
     ParamSpec("commander.enHighLevel", "uint8_t", 0, doc="accepted, no effect (as in the firmware)"),
     ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
@@ -41,6 +64,27 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("motorPowerSet.m2", "uint16_t", 0, doc="motor 2 command, counts"),
     ParamSpec("motorPowerSet.m3", "uint16_t", 0, doc="motor 3 command, counts"),
     ParamSpec("motorPowerSet.m4", "uint16_t", 0, doc="motor 4 command, counts"),
+    *_group("pid_attitude", "float", _gains(("roll", "pitch", "yaw"), ("_kp", "_ki", "_kd"), ATTITUDE_GAINS),
+            doc="attitude PID: error deg -> rate deg/s"),
+    *_group("pid_rate", "float", _gains(("roll", "pitch", "yaw"), ("_kp", "_ki", "_kd"), ((0, 0, 0),) * 3),
+            readonly=True, doc="profile: the simulator's body-rate PID (read-only here)"),
+    *_group("velCtlPid", "float", _gains(("vx", "vy", "vz"), ("Kp", "Ki", "Kd"), VELOCITY_GAINS),
+            doc="velocity PID: m/s -> roll/pitch deg; z: -> thrust / 1000 counts"),
+    *_group("posCtlPid", "float", _gains("xyz", ("Kp", "Ki", "Kd"), POSITION_GAINS), doc="position PID: m -> m/s"),
+    ParamSpec("posCtlPid.thrustBase", "uint16_t", THRUST_BASE_FIRMWARE, doc="profile: counts at hover"),
+    ParamSpec("posCtlPid.thrustMin", "uint16_t", 20000, doc="counts, least thrust of the velocity controller"),
+    *_group("posCtlPid", "float", (("rLimit", 20.0), ("pLimit", 20.0), ("xVelMax", 1.0), ("yVelMax", 1.0),
+                                   ("zVelMax", 1.0)), doc="deg (limits), m/s (velocities)"),
+    ParamSpec("kalman.resetEstimation", "uint8_t", 0, doc="nonzero: reset the estimator (then set back to 0)"),
+    *_group("kalman", "float", (("pNAcc_xy", 0.5), ("pNAcc_z", 1.0), ("pNVel", 0.0), ("pNPos", 0.0),
+                                ("initialX", 0.0), ("initialY", 0.0), ("initialZ", 0.0), ("initialYaw", 0.0)),
+            doc="process noise (m/s^2, m/s, m) and the state after a reset (m, rad)"),
+    *_group("locSrv", "float", (("extPosStdDev", 0.01), ("extQuatStdDev", 4.5e-3)),
+            doc="std dev of external position (m) and attitude (rad) measurements"),
+    *_group("hlCommander", "float", (("vtoff", 0.5), ("vland", 0.2)), doc="m/s, default take-off / landing speed"),
+    ParamSpec("pm.lowVoltage", "float", 3.2, doc="V, below: pm.state low power"),
+    *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0)), readonly=True,
+            doc="deck: 1 if the simulated drone carries this positioning deck"),
 )
 PARAM_BY_NAME = {p.name: p for p in PARAMS}
 
@@ -60,8 +104,12 @@ def coerce_param(spec: ParamSpec, value) -> float | int:
     return (v - lo) % span + lo
 
 
-def default_params(index: int, arming_required: bool) -> dict:
+def default_params(index: int, arming_required: bool, overrides: dict | None = None) -> dict:
+    """Every parameter's value at boot; ``overrides`` {name: value} replace the table's defaults
+    (the drone's profile and decks: see SimFleet.param_defaults)."""
     values = {p.name: coerce_param(p, p.default) for p in PARAMS}
     values["supervisor.armingReq"] = int(arming_required)
     values["simcf.bodyIndex"] = index
+    for name, value in (overrides or {}).items():
+        values[name] = coerce_param(PARAM_BY_NAME[name], value)
     return values

@@ -12,6 +12,7 @@ import torch
 from cfrace.drone import DroneProfile
 from cfrace.errors import ConfigError
 from cfrace.sim import ckernel
+from cfrace.sim.dynamics import hover_motor_speed
 from cfrace.sim.simulator import REASONS, CrashRules, Simulator
 from cfrace.track import Track
 
@@ -51,6 +52,17 @@ class OneWorld:
                        torch.tensor(vel, dtype=f32)[None], torch.tensor(quat, dtype=f32)[None],
                        torch.tensor(target, dtype=torch.int64)[None])
 
+    def set_drone(self, i: int, pos, vel, quat) -> None:
+        """Put drone i at pos (3,) with velocity vel (3,) and attitude quat (4,) wxyz, body rates 0,
+        rotors at hover speed if airborne (scenarios and tests: a drone already in flight)."""
+        s, f32 = self.sim.state, torch.float32
+        s.pos[0, i] = torch.tensor(pos, dtype=f32)
+        s.vel[0, i] = torch.tensor(vel, dtype=f32)
+        q = torch.tensor(quat, dtype=f32)
+        s.quat[0, i] = q / q.norm()
+        s.omega[0, i], s.pid_int[0, i], s.omega_prev[0, i] = 0.0, 0.0, 0.0
+        s.motor[0, i] = float(hover_motor_speed(self.sim.profile)) if float(pos[2]) > self.sim.z_rest + 1e-3 else 0.0
+
     def step(self, thrust, rates, substeps: int) -> None:
         self.sim.step(torch.tensor(thrust, dtype=torch.float32)[None], torch.tensor(rates, dtype=torch.float32)[None],
                       substeps=substeps)
@@ -66,6 +78,6 @@ def _world_view(part: str, name: str) -> property:
                     doc=f"numpy view of the simulator's {part}.{name} of the one world")
 
 
-for _part, _names in (("state", ("pos", "vel", "quat", "omega")), ("race", ("crashed", "reason"))):
+for _part, _names in (("state", ("pos", "vel", "quat", "omega", "motor")), ("race", ("crashed", "reason"))):
     for _name in _names:
         setattr(OneWorld, _name, _world_view(_part, _name))

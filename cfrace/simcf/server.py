@@ -216,11 +216,11 @@ class SimCrazyflieServer:
 
 def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arming_required: bool = True,
           obstacles: bool = True, body_names=None, seed: int = 0, duration: float | None = None,
-          out=print) -> list[dict]:
+          decks=("lighthouse",), out=print) -> list[dict]:
     """Run simulated Crazyflies until Ctrl-C / SIGTERM (or ``duration`` s). Prints the URIs via ``out``.
     Returns the per-drone packet statistics."""
     fleet = SimFleet(track, profile, drones, body_names=body_names, seed=seed,
-                     arming_required=arming_required, obstacles=obstacles)
+                     arming_required=arming_required, obstacles=obstacles, decks=decks)
     server = SimCrazyflieServer(fleet, base_port=port)
     stop = threading.Event()
     restore = None
@@ -229,7 +229,8 @@ def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arm
     try:
         with server:
             out(f"simulated Crazyflies ({fleet.profile.name}, track {fleet.track.name}, "
-                f"{'arming required' if arming_required else 'auto-armed'}):")
+                f"{'arming required' if arming_required else 'auto-armed'}, "
+                f"decks: {', '.join(fleet.decks) or 'none (external position only)'}):")
             for name, uri in zip(fleet.body_names, server.uris):
                 out(f"  {name}: {uri}")
             out(f"  ground-truth poses: udp://127.0.0.1:{server.pose_port} (mocap source `sim`)")

@@ -1,0 +1,111 @@
+"""The tick's memory for the soft failsafes and the landings (cfrace.flight.tick.TickCore uses it):
+mocap glitches and low-battery time per drone, what lies in a drone's way, starting a drone's
+landing and running one tick of it. docs/flight.md, "Safety" and "Landing"."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
+from cfrace.flight import landing as ld
+
+OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
+GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
+GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
+
+
+def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) -> str:
+    """A stopped drone within ``clearance`` of drone i's straight path from ``pos`` to ``gate`` (3,),
+    at least OPPONENT_AHEAD_M along it ("" if none)."""
+    pos = np.asarray(pos, np.float64)
+    if not np.all(np.isfinite(pos)):
+        return ""
+    seg = gate - pos
+    length = max(float(np.linalg.norm(seg)), 1e-9)
+    for j, o in enumerate(drones):
+        if j == i or not o.stopped or o.frozen_pos is None:
+            continue
+        p = np.asarray(o.frozen_pos, np.float64)
+        u = min(1.0, max(0.0, float((p - pos) @ seg) / (length * length)))
+        # in the way = near the path AHEAD (not beside the drone: at a ground start both stand there)
+        if u * length >= OPPONENT_AHEAD_M and float(np.linalg.norm(pos + u * seg - p)) < clearance:
+            return f"{o.name} down at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
+    return ""
+
+
+class SoftState:
+    """Per drone: when its pose glitched, since when its battery is low; log records to flush."""
+
+    def __init__(self, n: int):
+        self.glitches = [[] for _ in range(n)]   # times of pose dropouts / outliers
+        self.dropping = [False] * n
+        self.outliers = [0] * n
+        self.vbat_low_since: list = [None] * n
+        self.pending_records: list = []           # log records made outside the tick's _records
+
+    def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
+        """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S (start of an episode) or
+        was an outlier."""
+        for i, (d, e) in enumerate(zip(drones, ests)):
+            dropping = float(e.age_s) > GLITCH_DROPOUT_S
+            if dropping and not self.dropping[i]:
+                self.glitches[i].append(t)
+            self.dropping[i] = dropping
+            c = counters[d.body]["outliers"]
+            self.glitches[i] += [t] * max(0, c - self.outliers[i])
+            self.outliers[i] = c
+
+    def recent_glitches(self, i: int, t: float) -> int:
+        return sum(1 for g in self.glitches[i] if t - g <= GLITCH_WINDOW_S)
+
+    def track_battery(self, t: float, links, limit_v: float) -> None:
+        """Since when each drone's battery has been below ``limit_v`` without a break."""
+        for i, link in enumerate(links):
+            if not float(getattr(link, "vbat", math.nan)) < limit_v:
+                self.vbat_low_since[i] = None
+            elif self.vbat_low_since[i] is None:
+                self.vbat_low_since[i] = t
+
+    def low_battery_s(self, i: int, t: float) -> float:
+        return 0.0 if self.vbat_low_since[i] is None else t - self.vbat_low_since[i]
+
+    def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
+        """Drone i stops racing and lands (brake, then the firmware's high-level commander) on a spot
+        clear of the drones already down and of the other landing drones' spots."""
+        d = drones[i]
+        others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
+        others += [o.landing.spot for o in drones if o.landing is not None]
+        stop = ld.stopping_point(est.pos, est.vel, setup.brake.accel_max)
+        try:
+            spot = ld.choose_landing_spots(setup.track, [stop], others, setup.cfg)[0]
+        except ValueError:
+            spot = np.asarray(est.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
+        brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
+        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg)
+        d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
+        self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
+                                                "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
+
+
+def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) -> tuple | None:
+    """One tick of landing drone d (index i): its rate setpoint while braking, else None; its
+    high-level commands appended to out_commands; when it is down (or its landing timed out) the
+    touchdown goes into d.landing_result with "down"."""
+    step = d.landing.step(t, est.pos, est.vel, est.quat)
+    for name, args in step.high_level:
+        out_commands.append((i, name, args))
+    if step.notify_stop:
+        out_commands.append((i, "notify_stop", {}))
+    td = d.landing.touchdown
+    if step.done or (t - d.landing_result["t_start"] > timeout_s):
+        d.landing_result.update(td.as_dict() if td is not None else {})
+        d.landing_result["down"] = bool(step.done)
+        return None
+    if step.rates_dps is None:
+        d.counts, d.thrust_n = 0, 0.0
+        return None
+    counts = int(np.clip(thrust_to_counts(step.thrust_n, d.thrust_curve), FIRMWARE_MIN_THRUST_COUNTS, 60000))
+    d.rates_dps, d.counts, d.thrust_n = tuple(float(r) for r in step.rates_dps), counts, step.thrust_n
+    return (*d.rates_dps, counts)

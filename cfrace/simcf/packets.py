@@ -1,0 +1,130 @@
+"""What the simulated Crazyflie's CRTP packets carry: the log variable table and the decoders of
+the generic commander's setpoints and of the high-level commander's commands (layouts: the
+firmware's crtp_commander_generic.c and crtp_commander_high_level.c, as cflib packs them)."""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+
+from cfrace.simcf.controller import ABS, VELOCITY, Setpoint
+
+#: log variable type codes (firmware log.h; cflib LogTocElement.types): code -> (struct, size)
+LOG_TYPES = {0x01: ("<B", 1), 0x02: ("<H", 2), 0x03: ("<I", 4), 0x04: ("<b", 1), 0x05: ("<h", 2),
+             0x06: ("<i", 4), 0x07: ("<f", 4), 0x08: ("<e", 2)}
+_FLOAT, _U8, _U16, _I8 = 0x07, 0x01, 0x02, 0x04
+
+#: The emulated log TOC, in order: (name, stored type). Values come from SimFleet.log_values.
+LOG_VARS: tuple[tuple[str, int], ...] = tuple(
+    [(f"stateEstimate.{n}", _FLOAT) for n in ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw",
+                                                 "qw", "qx", "qy", "qz")]
+    + [(f"gyro.{n}", _FLOAT) for n in "xyz"]
+    + [("stabilizer.thrust", _FLOAT), ("pm.vbat", _FLOAT), ("pm.state", _I8), ("supervisor.info", _U16),
+       ("sys.canfly", _U8), ("sys.isFlying", _U8), ("sys.isTumbled", _U8)]
+    # motor speeds (group rpm, uint16 revolutions per minute, as the firmware logs them where the drone
+    # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
+    # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
+    + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
+    # the standard groups of the firmware's stabilizer, estimator, controller and power management
+    + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]
+    + [(f"stabilizer.{n}", _FLOAT) for n in ("roll", "pitch", "yaw")]
+    + [(f"acc.{n}", _FLOAT) for n in "xyz"]
+    + [(f"kalman.{n}", _FLOAT) for n in ("stateX", "stateY", "stateZ", "statePX", "statePY", "statePZ",
+                                         "varX", "varY", "varZ", "varPX", "varPY", "varPZ", "q0", "q1", "q2", "q3")]
+    + [(f"ctrltarget.{n}", _FLOAT) for n in ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw")]
+    + [(f"controller.{n}", _FLOAT) for n in ("cmd_thrust", "roll", "pitch", "yaw", "rollRate", "pitchRate", "yawRate")]
+    + [(f"posCtl.{n}", _FLOAT) for n in ("targetVX", "targetVY", "targetVZ", "targetX", "targetY", "targetZ")]
+    + [("pm.vbatMV", _U16), ("pm.batteryLevel", _U8), ("range.zrange", _U16)])
+
+
+EXT_POSE = 8   #: localization generic channel: external pose x y z qx qy qz qw
+
+#: generic commander setpoint types (crtp_commander_generic.c): type -> name; the legacy ones (1, 2, 5)
+#: carry a negated yaw rate (cflib sends -yawrate for firmware with protocol version <= 8)
+GENERIC_TYPES = {1: "velocity_world_legacy", 2: "zdistance_legacy", 5: "hover_legacy", 7: "position",
+                 8: "velocity_world", 9: "zdistance", 10: "hover", 11: "manual"}
+
+
+def decode_generic(kind: int, data: bytes) -> Setpoint | None:
+    """A generic-commander setpoint (payload after the type byte) -> Setpoint; None if the type is not
+    emulated (cppm 3, alt-hold 4, full state 6). Raises struct.error on a short packet."""
+    name = GENERIC_TYPES.get(kind)
+    if name is None:
+        return None
+    sp = Setpoint(source=name)
+    legacy_yaw = -1.0 if name.endswith("_legacy") else 1.0
+    if name == "manual":
+        roll, pitch, yawrate, thrust, rate = struct.unpack_from("<fffHB", data, 0)
+        mode = VELOCITY if rate else ABS
+        sp.mode_roll = sp.mode_pitch = mode
+        target = sp.rates if rate else sp.attitude
+        target[0], target[1] = math.radians(roll), -math.radians(pitch)
+        sp.mode_yaw, sp.rates[2], sp.thrust = VELOCITY, math.radians(yawrate), float(thrust)
+        return sp
+    a, b, c, d = struct.unpack_from("<ffff", data, 0)
+    if name == "position":
+        sp.mode_x = sp.mode_y = sp.mode_z = sp.mode_yaw = ABS
+        sp.position[:] = (a, b, c)
+        sp.attitude[2] = math.radians(d)
+        return sp
+    sp.mode_yaw = VELOCITY
+    if name.startswith("velocity_world"):
+        sp.mode_x = sp.mode_y = sp.mode_z = VELOCITY
+        sp.velocity[:] = (a, b, c)
+        sp.rates[2] = legacy_yaw * math.radians(d)
+    elif name.startswith("zdistance"):
+        sp.mode_roll = sp.mode_pitch = sp.mode_z = ABS
+        sp.attitude[0], sp.attitude[1] = math.radians(a), -math.radians(b)
+        sp.rates[2], sp.position[2] = legacy_yaw * math.radians(c), d
+    else:                                                   # hover: body-frame vx, vy, height
+        sp.mode_x = sp.mode_y = VELOCITY
+        sp.mode_z = ABS
+        sp.velocity[:2], sp.velocity_body = (a, b), True
+        sp.rates[2], sp.position[2] = legacy_yaw * math.radians(c), d
+    return sp
+
+
+def decode_high_level(payload: bytes) -> tuple[str, int, dict] | None:
+    """A high-level commander packet -> (command, group mask, arguments for SimFleet.high_level);
+    None if not emulated. Layouts: crtp_commander_high_level.c. Raises struct.error when short."""
+    cmd = payload[0]
+    if cmd == 0:                                            # set group mask
+        return "set_group_mask", payload[1] if len(payload) > 1 else 0, {}
+    if cmd == 3:                                            # stop
+        return "stop", struct.unpack_from("<B", payload, 1)[0], {}
+    if cmd in (1, 2):                                       # takeoff / land (v1): mask, height, duration
+        mask, height, duration = struct.unpack_from("<Bff", payload, 1)
+        return ("takeoff" if cmd == 1 else "land"), mask, {"height": height, "yaw": 0.0, "duration": duration}
+    if cmd in (7, 8):                                       # takeoff / land (v2): + yaw, use current yaw
+        mask, height, yaw, current, duration = struct.unpack_from("<Bff?f", payload, 1)
+        return ("takeoff" if cmd == 7 else "land"), mask, {"height": height, "yaw": None if current else yaw,
+                                                            "duration": duration}
+    if cmd in (4, 12):                                      # go to (v1 / v2 with linear)
+        if cmd == 4:
+            mask, relative, x, y, z, yaw, duration = struct.unpack_from("<BBfffff", payload, 1)
+            linear = 0
+        else:
+            mask, relative, linear, x, y, z, yaw, duration = struct.unpack_from("<BBBfffff", payload, 1)
+        return "go_to", mask, {"x": x, "y": y, "z": z, "yaw": yaw, "duration": duration,
+                               "relative": bool(relative), "linear": bool(linear)}
+    return None
+
+
+@dataclass
+class LogBlock:
+    ops: list = field(default_factory=list)   #: (variable index, fetch type code)
+    period: float = 0.1                       #: s
+    started: bool = False
+    next_due: float = 0.0                     #: simulated time s
+
+    def length(self) -> int:
+        return sum(LOG_TYPES[t][1] for _, t in self.ops)
+
+
+def pack_value(code: int, value) -> bytes:
+    fmt, size = LOG_TYPES[code]
+    if fmt in ("<f", "<e"):
+        return struct.pack(fmt, float(value))
+    lo, hi = (0, 2 ** (8 * size) - 1) if fmt[1].isupper() else (-(2 ** (8 * size - 1)), 2 ** (8 * size - 1) - 1)
+    return struct.pack(fmt, max(lo, min(hi, int(round(float(value))))))

@@ -1,0 +1,21 @@
+"""Helpers for tests that drive simulated Crazyflies with the real cflib client."""
+
+import time
+
+from cflib.crazyflie import Crazyflie
+from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
+
+
+def connect(uri):
+    """A SyncCrazyflie without a TOC cache (every test reads the TOCs over the wire)."""
+    return SyncCrazyflie(uri, cf=Crazyflie(rw_cache=None))
+
+
+def wait_for(cond, timeout=2.0):
+    """Poll cond() every 10 ms until it is true or timeout s pass; its last value."""
+    t_end = time.monotonic() + timeout
+    while time.monotonic() < t_end:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()

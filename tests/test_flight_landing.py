@@ -1,0 +1,158 @@
+"""Landing spots, braking from race speed and the hand-over to the firmware's high-level commander."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cfrace.flight.landing import (BrakeController, LandingConfig, LandingSetup, Touchdown, candidate_spots,
+                                   choose_landing_spots,
+                                   gate_footprints, stopping_point, _obstacle_dist, _seg_point_dist)
+from cfrace.flight.link import packet_values
+from cfrace.simcf.firmware import SimFleet
+from cfrace.track import load_track
+
+
+def clear_of_everything(track, spot, cfg):
+    a = track.arena
+    assert a.x[0] + cfg.wall_margin_m - 1e-9 <= spot[0] <= a.x[1] - cfg.wall_margin_m + 1e-9
+    assert a.y[0] + cfg.wall_margin_m - 1e-9 <= spot[1] <= a.y[1] - cfg.wall_margin_m + 1e-9
+    for g0, g1 in gate_footprints(track):
+        assert _seg_point_dist(g0, g1, np.asarray(spot)[None])[0] >= cfg.gate_clearance_m - 1e-9
+    assert _obstacle_dist(track, np.asarray(spot)[None])[0] >= cfg.obstacle_clearance_m - 1e-9
+
+
+def test_spots_are_free_near_the_stop_and_apart():
+    track = load_track("lemniscate")
+    cfg = LandingConfig()
+    cand = candidate_spots(track, cfg)
+    assert len(cand) > 100
+    # both drones stopping at the same place just past gate 1 (inside its frame's clearance)
+    stops = np.array([[0.2, 5.25], [0.3, 5.3]])
+    spots = choose_landing_spots(track, stops, others=[[1.0, 4.0]], cfg=cfg)
+    for s in spots:
+        clear_of_everything(track, s, cfg)
+        assert np.linalg.norm(s - [1.0, 4.0]) >= cfg.drone_separation_m
+    assert np.linalg.norm(spots[0] - spots[1]) >= cfg.drone_separation_m
+    assert np.linalg.norm(spots[0] - stops[0]) < 1.5 and np.linalg.norm(spots[1] - stops[1]) < 1.5
+    with pytest.raises(ValueError, match="no free landing spot"):
+        choose_landing_spots(track, stops, others=cand, cfg=cfg)
+
+
+def test_a_spot_is_not_reached_through_a_gate_or_an_obstacle():
+    track = load_track("lemniscate")
+    # just before gate 0 (at x 1.5, y 3.5, its frame spans x 0.8-2.2): the nearest spots beyond the
+    # frame must not be chosen by flying through it
+    stop = np.array([1.5, 3.7])
+    spot = choose_landing_spots(track, [stop])[0]
+    g0, g1 = gate_footprints(track)[0]
+    from cfrace.flight.landing import _segments_cross
+    assert not _segments_cross(stop, spot, g0, g1)
+
+
+def test_stopping_point():
+    assert stopping_point([0, 0, 1], [4.0, 0, 0], 8.0) == pytest.approx([1.0, 0.0, 1.0])
+
+
+def rate_setpoint(fleet, i, rates_dps, thrust_n):
+    """What the flight link sends: body rates and thrust counts, as the legacy packet."""
+    counts = int(np.clip(fleet.profile.thrust_curve.to_counts(thrust_n), 1000, 60000))
+    fleet.handle_setpoint(i, *packet_values(*rates_dps), counts)
+
+
+@pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
+def test_brake_hand_over_and_land_from_race_speed(profile):
+    """A drone crossing the lemniscate's finish (gate 5, 1.5 m before the arena's wall) at 5 m/s towards
+    the wall: braked in rate mode from its state, then the high-level commander (go-to the spot,
+    land), all on the simulated firmware. On the ground within 5 s, softly, on its spot, never out
+    of the fence."""
+    track = load_track("lemniscate")
+    fleet = SimFleet(track, profile, 1, arming_required=True, decks=())
+    fleet.arm(0, True)
+    for name in ("flightmode.stabModeRoll", "flightmode.stabModePitch"):
+        fleet.set_param(0, name, 0)
+    fleet.handle_setpoint(0, 0, 0, 0, 0)                                   # unlock
+    yaw = -math.pi / 2
+    fleet.teleport(0, (-2.0, 3.4, 0.75), (0.0, -5.0, 0.0), (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)))
+    prof = fleet.profile
+    brake = LandingSetup.for_race(track, prof).brake       # what the flight loop brakes with
+    cfg = LandingConfig()
+    s = fleet.state(0)
+    spot = choose_landing_spots(track, [stopping_point(s["pos"], s["vel"], brake.accel_max)], cfg=cfg)[0]
+    clear_of_everything(track, spot, cfg)
+    touch = Touchdown(ground_z=prof.collision_box[2] / 2)
+    t0, t, phase, phase_t, lowest_y = fleet.time, 0.0, "brake", 0.0, math.inf
+    while t < 6.0:
+        s = fleet.state(0)
+        fleet.external_position(0, s["pos"])                              # the mocap stream (item 1)
+        if phase == "brake":
+            rates, thrust = brake.command(s["pos"], s["vel"], s["quat"])
+            rate_setpoint(fleet, 0, rates, thrust)
+            if np.linalg.norm(s["vel"]) < cfg.brake_done_mps or t > cfg.brake_max_s:
+                dist = float(np.linalg.norm(spot - s["pos"][:2]))
+                duration = max(1.0, dist / cfg.approach_speed_mps)
+                fleet.high_level(0, "go_to", x=spot[0], y=spot[1], z=cfg.approach_height_m, yaw=yaw,
+                                 duration=duration)
+                fleet.notify_setpoint_stop(0)
+                phase, phase_t, brake_end = "approach", t + duration, t
+        elif phase == "approach" and t >= phase_t:
+            fleet.high_level(0, "land", height=cfg.land_height_m, yaw=None, duration=cfg.descent_s)
+            phase = "land"
+        assert fleet.status(0)["thrust"] > 0.0 or phase == "land"     # no gap in the hand-over
+        fleet.advance(0.01)
+        t = fleet.time - t0
+        s = fleet.state(0)
+        lowest_y = min(lowest_y, s["pos"][1])
+        if touch.update(t, s["pos"], s["vel"]):
+            break
+    assert touch.t is not None and touch.t < 5.0, (touch.t, phase)
+    assert abs(touch.vz) <= 0.5 and np.linalg.norm(touch.place[:2] - spot) < 0.15, touch.as_dict()
+    assert brake_end < 0.8 and lowest_y > track.arena.y[0] - 0.1         # stopped before the fence (0.3 m)
+    fleet.advance(cfg.descent_s)
+    assert fleet.status(0)["thrust"] == 0.0 and not fleet.status(0)["crashed"]
+
+
+def test_landing_pilot_flies_the_sequence():
+    """The pilot's steps applied to the simulated firmware: two drones finishing side by side."""
+    from cfrace.flight.landing import LandingPilot
+    track = load_track("lemniscate")
+    fleet = SimFleet(track, "cf2x_paper", 2, arming_required=True, decks=())
+    yaw = -math.pi / 2
+    q = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    for i in range(2):
+        fleet.arm(i, True)
+        for name in ("flightmode.stabModeRoll", "flightmode.stabModePitch"):
+            fleet.set_param(i, name, 0)
+        fleet.handle_setpoint(i, 0, 0, 0, 0)
+        fleet.teleport(i, (-2.2 + 0.4 * i, 3.4, 0.75), (0.0, -4.5, 0.0), q)
+    prof = fleet.profile
+    stops = [stopping_point(fleet.state(i)["pos"], fleet.state(i)["vel"], 12.0) for i in range(2)]
+    spots = choose_landing_spots(track, stops)
+    setup = LandingSetup.for_race(track, prof)
+    pilots = [LandingPilot(BrakeController(**setup.brake.__dict__), spots[i], setup.ground_z) for i in range(2)]
+    done = [False, False]
+    for _ in range(600):
+        for i, pilot in enumerate(pilots):
+            s = fleet.state(i)
+            fleet.external_position(i, s["pos"])
+            step = pilot.step(fleet.time, s["pos"], s["vel"], s["quat"])
+            if step.rates_dps is not None:
+                rate_setpoint(fleet, i, step.rates_dps, step.thrust_n)
+            for name, args in step.high_level:
+                assert fleet.high_level(i, name, **args) == 0
+            if step.notify_stop:
+                fleet.notify_setpoint_stop(i)
+            if step.done and not done[i]:
+                fleet.stop_setpoint(i)
+                fleet.arm(i, False)
+                done[i] = True
+        if all(done):
+            break
+        fleet.advance(0.01)
+    assert all(done)
+    for i, pilot in enumerate(pilots):
+        td = pilot.touchdown
+        assert td.t is not None and td.t < 5.0 and abs(td.vz) <= 0.5, td.as_dict()
+        assert np.linalg.norm(fleet.state(i)["pos"][:2] - spots[i]) < 0.15
+        assert not fleet.status(i)["crashed"] and fleet.status(i)["thrust"] == 0.0
+    assert np.linalg.norm(spots[0] - spots[1]) >= LandingConfig().drone_separation_m

@@ -1,0 +1,79 @@
+"""Whole races through the flight stack (lockstep dry-run, shipped policies) that end on the ground:
+every drone lands softly inside the arena; with --start hover the drones take off to their start
+positions first and hold them within 0.1 m; ours still beats DS."""
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+from cfrace.flight.config import FlightConfig
+from cfrace.flight.dryrun import dry_run
+from cfrace.flight.flightlog import read_log
+from test_flight_faults import check_landings
+
+
+@pytest.mark.parametrize("start", ["ground", "hover"])
+def test_race_ends_with_every_drone_landed(tmp_path, start):
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf2x_paper", laps=1, quiet=True,
+                       timeout_s=30.0, log=tmp_path / "r.mcap", start=start)
+    result = dry_run(cfg, lockstep=True).to_json()
+    assert result["end"] == "finished" and result["winner"] == "ego", result["laps"]
+    assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
+    assert all(not d["crashed"] and d["motors_off"] for d in result["drones_final"])
+    if start == "hover":
+        assert max(result["hover_start"]["hold_error_m"]) <= 0.1
+    else:
+        assert "hover_start" not in result
+    data = read_log(tmp_path / "r.mcap")
+    landed = {m["drone"]: m for _, m in data.messages("/landing")}
+    assert set(landed) == {"ego", "opp"} and all(abs(m["vz_mps"]) <= 0.5 for m in landed.values())
+    texts = [m.get("text", "") for _, m in data.messages("/event")]
+    assert sum(t.startswith("go_to") for t in texts) == 2 and sum(t == "notify_stop" for t in texts) == 2
+
+
+def test_no_landing_keeps_the_old_stop(tmp_path):
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf2x_paper", laps=1, quiet=True,
+                       timeout_s=30.0, landing=False)
+    result = dry_run(cfg, lockstep=True).to_json()
+    assert result["end"] == "finished" and all(d["landing"] is None for d in result["drones"])
+
+
+def test_fly_check_against_sim_serve(tmp_path):
+    """`cfrace fly --check` (pre-flight checks) against `cfrace sim serve` in another process, real time."""
+    serve = subprocess.Popen([sys.executable, "-m", "cfrace", "sim", "serve", "--track", "lemniscate", "--drones",
+                              "2", "--port", "19760", "--decks", "none", "--profile", "cf21bl"],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        t_end = time.monotonic() + 30
+        while "Ctrl-C" not in serve.stdout.readline():
+            assert time.monotonic() < t_end and serve.poll() is None
+        cmd = [sys.executable, "-m", "cfrace", "fly", "--track", "lemniscate", "--ego", "ours", "--opp", "ds",
+               "--uris", "udp://127.0.0.1:19760,udp://127.0.0.1:19761", "--mocap", "sim://127.0.0.1:19759",
+               "--profile", "cf21bl", "--check", "--json", str(tmp_path / "check.json")]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+        assert done.returncode == 0, done.stdout + done.stderr
+        lines = done.stdout.splitlines()
+        assert sum(line.startswith("ok") for line in lines) == 10, lines
+        bad = subprocess.run(cmd[:-2] + ["--bodies", "cf2,cf1"], capture_output=True, text=True, timeout=120,
+                             cwd=tmp_path)
+        assert bad.returncode == 2 and "rose most" in bad.stdout, bad.stdout + bad.stderr
+    finally:
+        serve.terminate()
+        serve.wait(10)
+
+
+def test_real_time_race_lands_through_the_link_keeper(tmp_path):
+    """Real time, real cflib over UDP through the link keeper process: the poses, the go-to, the
+    notify-stop and the land reach the simulated drones, which land."""
+    from test_flight_faults import PROFILE
+    from cfrace.flight.holdpolicy import make_hold_policy
+    ego = make_hold_policy(tmp_path / "ego.onnx", "race42", "lemniscate", False)
+    opp = make_hold_policy(tmp_path / "opp.onnx", "solo36", "lemniscate", False)
+    cfg = FlightConfig(track="lemniscate", ego=str(ego), opp=str(opp), profile=PROFILE, quiet=True, timeout_s=2.0,
+                       log=tmp_path / "rt.mcap")
+    result = dry_run(cfg, lockstep=False).to_json()
+    assert result["end"] == "timeout"
+    assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
+    assert result["loop"]["poses_sent"] > 300
