@@ -37,7 +37,9 @@ LATENCY_COMP_DEFAULT_S = 0.010
 #: the largest value each safety limit may take (the one rule for the command line and the config
 #: file): beyond these a limit no longer limits anything in a room
 SAFETY_MAX = {"geofence_margin_m": 10.0, "floor_z_m": 2.0, "floor_grace_s": 3600.0, "tilt_max_deg": 180.0,
-              "speed_max_mps": 50.0, "mocap_stale_s": 1.0, "link_timeout_s": 5.0, "overrun_stop_s": 1.0}
+              "speed_max_mps": 50.0, "mocap_stale_s": 1.0, "link_timeout_s": 5.0, "overrun_stop_s": 1.0,
+              "fence_soft_m": 10.0, "mocap_glitches": 1000.0, "opponent_clearance_m": 10.0, "low_battery_v": 5.0,
+              "low_battery_s": 60.0}
 TIMEOUT_MAX_S = 3600.0   #: s, the longest race and the longest connect / mocap wait
 
 
