@@ -79,7 +79,9 @@ def print_result(result: dict, con: Console = out) -> None:
     for d in result.get("drones_final") or []:
         con.print(f"  {d['body']}: motors {'off' if d['motors_off'] else 'ON'}, thrust {d['thrust_counts']} counts, "
                   f"armed {d['armed']}, watchdog {d['watchdog']}")
-    if result.get("log"):
+    if result.get("log_error"):
+        console.print(f"error: flight log incomplete: {result['log_error']}", highlight=False)
+    elif result.get("log"):
         con.print(f"flight log: {result['log']}")
 
 
@@ -103,10 +105,44 @@ def write_json(result: dict, path: Path | None) -> None:
     path.write_text(json.dumps(_clean(result), indent=1, default=str, allow_nan=False) + "\n")
 
 
-def exit_code(result: dict) -> int:
-    from cfrace.flight.runner import EXIT_CODES
+def exit_code(result: dict, late_signal: str | None = None) -> int:
+    """The command's exit code (cfrace.flight.runner.result_exit_code)."""
+    from cfrace.flight.runner import result_exit_code
 
-    return EXIT_CODES.get(result.get("operator_kill") or "", 0) if result.get("end") == "operator_kill" else 0
+    return result_exit_code(result, late_signal)
+
+
+def finish(run, json_out: Path | None) -> None:
+    """Run the race (run() -> RaceResult), print it, write its JSON and exit with its code; a
+    signal after the race no longer interrupts the printing and the writing."""
+    from cfrace.flight.runner import SignalGuard
+
+    check_writable(json_out, "--json")
+    with SignalGuard() as guard:
+        result = run().to_json()
+        guard.after = True
+        print_result(result)
+        write_json(result, json_out)
+    code = exit_code(result, guard.late)
+    if code:
+        sys.exit(code)
+
+
+def check_writable(path: Path | None, what: str) -> None:
+    """ConfigError (one line) unless ``path`` can be written; checked before anything flies."""
+    if path is None:
+        return
+    from cfrace.errors import ConfigError
+
+    existed = path.exists()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "ab"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot write there ({exc.strerror or exc})") from None
+    if not existed:
+        path.unlink()
 
 
 def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:
@@ -239,9 +275,4 @@ def register(app: typer.Typer) -> None:
         if check or hover:
             return first_flight_cmd(cfg, check, [int(v) for v in split_list(hover_drones) or ()] if hover else [],
                                     json_out)
-        result = fly(resolve_race(cfg), console=console, announce=announce).to_json()
-        print_result(result)
-        write_json(result, json_out)
-        code = exit_code(result)
-        if code:
-            sys.exit(code)
+        finish(lambda: fly(resolve_race(cfg), console=console, announce=announce), json_out)

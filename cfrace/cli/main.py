@@ -23,6 +23,6 @@ def main() -> None:
     except CfraceError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(exc.exit_code)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        sys.exit(143 if str(exc) == "SIGTERM" else 130)

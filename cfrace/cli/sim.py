@@ -83,7 +83,7 @@ def dry_run_cmd(
                                      help="Stream each drone's mocap pose to it (external position)."),
 ):
     """Race 2 (--ego/--opp) or N (--policies, --drones) simulated Crazyflies through the whole flight stack."""
-    from cfrace.cli.flight import exit_code, print_result, race_policies, write_json
+    from cfrace.cli.flight import finish, race_policies
     from cfrace.flight.config import FlightConfig, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race, training_profile
@@ -96,14 +96,39 @@ def dry_run_cmd(
                        timeout_s=timeout_s, quiet=quiet or lockstep, rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3,
                        velocity_alpha=velocity_alpha, loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
                        start=start, landing=landing, pose_stream=pose_stream)
-    result = dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
-                     mocap_latency_s=mocap_latency_ms / 1e3, console=console,
-                     setup=resolve_race(cfg, the_track)).to_json()
-    print_result(result)
-    write_json(result, json_out)
-    code = exit_code(result)
-    if code:
-        sys.exit(code)
+    finish(lambda: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
+                           mocap_latency_s=mocap_latency_ms / 1e3, console=console,
+                           setup=resolve_race(cfg, the_track)), json_out)
+
+
+@sim_app.command("faults")
+def faults_cmd(
+    track: str = typer.Option("lemniscate", help="Track (its shipped ours / ds policies race)."),
+    processes: bool = typer.Option(True, "--processes/--no-processes",
+                                   help="Also kill -9 `cfrace fly` and cut a link, with `cfrace sim serve` "
+                                        "and `cfrace fly` as separate processes (about 30 s more)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON."),
+):
+    """Every fault and bad-input scenario through the real stack, as one table (docs/flight.md)."""
+    from dataclasses import asdict
+
+    from rich.table import Table
+
+    from cfrace.flight.faultsuite import HEADER, run_suite
+
+    rows = run_suite(track, processes)
+    table = Table(title=f"faults and bad inputs, {track}")
+    for col in HEADER:
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        table.add_row(*r.cells())
+    out.print(table)
+    if json_out is not None:
+        json_out.write_text(json.dumps([asdict(r) for r in rows], indent=1, default=str) + "\n")
+    failed = [r.scenario for r in rows if not r.passed]
+    if failed:
+        console.print(f"error: {len(failed)} scenario(s) failed: {', '.join(failed)}", highlight=False)
+        sys.exit(1)
 
 
 @sim_app.command("replay")
