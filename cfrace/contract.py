@@ -14,6 +14,7 @@ the trainer import it).
 from __future__ import annotations
 
 import json
+import math
 
 from cfrace.env.observations import LAYOUTS
 from cfrace.errors import PolicyError
@@ -23,6 +24,8 @@ ACTION_DIM = 4        #: [a0 collective thrust, a1 a2 a3 body rates], each in [-
 NORM_EPS = 1e-4       #: added to the running variance before the square root (std floor 0.01)
 NORM_CLIP = 10.0      #: normalised observations are clipped to +-NORM_CLIP
 POLICY_HZ = 50.0      #: Hz, the rate policies are trained and evaluated at (metadata policy_hz)
+MAX_POLICY_HZ = 1000.0       #: Hz, the highest policy_hz a file may state (the loop runs at most 1 kHz)
+MAX_THRUST_WEIGHTS = 10.0    #: the highest max_thrust_weights a file may state (a flight checks the profile's)
 POLICY_DT = 1.0 / POLICY_HZ   #: s, one action holds this long (0.02)
 
 METHODS = ("ours", "ds", "ss", "dm")      #: the paper's four reward schemes
@@ -104,11 +107,13 @@ def validate_meta(meta: dict, where: str) -> dict:
     if layout.world_position != out["obstacles"]:
         raise PolicyError(f"{where}: obs_layout {layout.name} does not fit obstacles={out['obstacles']}")
     rates = out["max_rates_deg"]
-    if len(rates) != 3 or not all(isinstance(v, (int, float)) and v > 0 for v in rates):
-        raise PolicyError(f"{where}: metadata max_rates_deg={rates!r} should be 3 positive numbers")
+    if len(rates) != 3 or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < math.inf
+                                  for v in rates):
+        raise PolicyError(f"{where}: metadata max_rates_deg={rates!r} should be 3 finite positive numbers")
     out["max_rates_deg"] = [float(v) for v in rates]
-    if out["max_thrust_weights"] <= 0 or out["policy_hz"] <= 0:
-        raise PolicyError(f"{where}: metadata max_thrust_weights and policy_hz must be > 0")
+    for key, hi in (("max_thrust_weights", MAX_THRUST_WEIGHTS), ("policy_hz", MAX_POLICY_HZ)):
+        if not 0 < out[key] <= hi:   # False for NaN
+            raise PolicyError(f"{where}: metadata {key}={out[key]!r} should be a number in (0, {hi:g}]")
     return out
 
 

@@ -16,6 +16,8 @@ import numpy as np
 from cfrace.paths import TRACKS_DIR
 from cfrace.yamlcfg import Reader, open_named
 
+ARENA_MAX_M = 1000.0   #: m, the largest arena coordinate a track may have (a room, not a fence to nowhere)
+
 
 @dataclass(frozen=True)
 class GateGeometry:
@@ -188,7 +190,8 @@ def load_track(name_or_path: str | Path) -> Track:
         obstacles.append(Obstacle(o.vector("center", 2), o.vector("size", 3, positive=True), o.number("yaw", 0.0)))
         o.done()
     ar = r.mapping("arena")
-    arena = Arena(ar.vector("x", 2), ar.vector("y", 2), ar.number("z_max", positive=True))
+    arena = Arena(ar.vector("x", 2, min=-ARENA_MAX_M, max=ARENA_MAX_M),
+                  ar.vector("y", 2, min=-ARENA_MAX_M, max=ARENA_MAX_M), ar.number("z_max", positive=True, max=ARENA_MAX_M))
     ar.done()
     sp = r.mapping("spawn", {})
     d = Spawn()

@@ -3,6 +3,22 @@ import pytest
 import torch
 
 
+@pytest.fixture(autouse=True)
+def signal_handlers_back():
+    """A command run in-process (`fly`, `sim dry-run`) ignores SIGINT/SIGTERM after its race, as the
+    process is about to exit (cfrace.flight.runner.SignalGuard): put them back after each test, so
+    that later tests and the subprocesses they start get the usual ones."""
+    import signal
+    import threading
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    if threading.current_thread() is threading.main_thread():
+        for s, h in saved.items():
+            if h is not None:
+                signal.signal(s, h)
+
+
 @pytest.fixture
 def one_torch_thread():
     """Shared 2-core machine: one intra-op thread avoids oversubscription (10x slower otherwise)."""

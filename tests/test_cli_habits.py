@@ -32,8 +32,10 @@ def main_run(args: list[str]) -> None:
 
 
 def run(args: list[str], capsys=None) -> tuple[int, str, str]:
-    """cfrace in this process: (exit code, stdout, stderr)."""
+    """cfrace in this process: (exit code, stdout, stderr); SIGINT/SIGTERM handled as before it
+    (a race's command ignores them after the race, as its process is about to exit)."""
     argv, sys.argv = sys.argv, ["cfrace", *args]
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         main()
         code = 0
@@ -41,6 +43,8 @@ def run(args: list[str], capsys=None) -> tuple[int, str, str]:
         code = int(exc.code or 0)
     finally:
         sys.argv = argv
+        for s, h in handlers.items():
+            signal.signal(s, h)
     if capsys is None:
         return code, "", ""
     out = capsys.readouterr()
@@ -100,9 +104,13 @@ def test_serve_fly_and_dry_run_agree_on_obstacles_and_profile(tmp_path, capsys):
 
 def test_a_race_with_every_drone_stopped_does_not_exit_0(capsys):
     code, out, _ = run(["sim", "dry-run", *RACE, "--lockstep", "--timeout-s", "3", "--json", "-",
-                        "--faults", "geofence@0.5:ego,geofence@0.5:opp"], capsys)
+                        "--faults", "nan_policy@0.5:ego,nan_policy@0.5:opp"], capsys)
     assert json.loads(out)["end"] == "all_stopped"
     assert code == 3
+    # a check that stops every drone at once (the pose/command consistency check here) exits 3 too
+    code, out, _ = run(["sim", "dry-run", *RACE, "--lockstep", "--timeout-s", "3", "--json", "-",
+                        "--profile", "trained", "--faults", "replay_poses@2"], capsys)
+    assert json.loads(out)["end"] == "pose_mismatch" and code == 3
 
 
 def test_swarm_options_with_the_profile_rule_config_and_json_dash(tmp_path, capsys):

@@ -201,10 +201,11 @@ def _free_port():
 def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, tmp_path, monkeypatch, capsys):
     _, log = lockstep_run
     args = dict(track="lemniscate", ego=pols["ego"], opp=pols["opp"], uris=",".join(server.uris),
-                mocap=f"replay://{log}", profile=PROFILE, log=str(tmp_path / "f.mcap"), bodies="cf1,cf2")
+                mocap=f"sim://127.0.0.1:{server.pose_port}", profile=PROFILE, log=str(tmp_path / "f.mcap"),
+                bodies="cf1,cf2")
     expect = {"unknown_body": "unknown mocap body 'cf9'", "mismatched_onnx": "trained on track 'complex'",
               "corrupt_onnx": "not a valid ONNX model", "malformed_replay": "not an MCAP flight log",
-              "truncated_replay": "replay://", "radio_without_crazyradio": "no Crazyradio found",
+              "truncated_replay": "replay://", "radio_without_crazyradio": "recorded poses belong to the recorded drones",
               "udp_nothing_listening": "nothing listens there",
               "loop_cpu_missing": "loop_cpu: CPU 4095 is not available to this process",
               "rt_priority_bad": "rt_priority: must be in [0, 99], got 120"}[case]
@@ -218,11 +219,14 @@ def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, t
     elif case == "malformed_replay":
         (tmp_path / "bad.mcap").write_bytes(b"hello, this is not mcap" * 5)
         args["mocap"] = f"replay://{tmp_path / 'bad.mcap'}"
+        args["uris"] = "null://ego,null://opp"     # recorded poses fly no live link
     elif case == "truncated_replay":
         (tmp_path / "cut.mcap").write_bytes(log.read_bytes()[:40])
         args["mocap"] = f"replay://{tmp_path / 'cut.mcap'}"
+        args["uris"] = "null://ego,null://opp"
     elif case == "radio_without_crazyradio":
         args["uris"] = "radio://0/80/2M/E7E7E7E7E7,radio://0/80/2M/E7E7E7E7E8"
+        args["mocap"] = f"replay://{log}?speed=0"  # refused before the radio: recorded poses, live links
     elif case == "udp_nothing_listening":
         args["uris"] = f"udp://127.0.0.1:{_free_port()},{server.uris[1]}"
     elif case == "loop_cpu_missing":
@@ -239,17 +243,17 @@ def test_fly_refuses_bad_input_with_one_line(case, pols, lockstep_run, server, t
     assert "Traceback" not in err
     for s in server.stats():               # nothing was sent to the simulated drones that do exist
         assert s["setpoints"] == 0, s
-    if case != "udp_nothing_listening":
+    if case not in ("udp_nothing_listening", "unknown_body"):   # (the sim:// pose stream needs no link)
         assert all(server.fleet.status(i)["packets_received"] == 0 for i in range(2))
 
 
-def test_fly_cli_subprocess_unreachable_uri(pols, lockstep_run):
-    """The installed command, a real process: one line, exit code 2."""
-    _, log = lockstep_run
+def test_fly_cli_subprocess_unreachable_uri(pols, server):
+    """The installed command, a real process: one line, exit code 2 (the poses of simulated drones,
+    links to where no drone is)."""
     p1, p2 = _free_port(), _free_port()
     r = subprocess.run([sys.executable, "-c", "from cfrace.cli.main import main; main()", "fly", "--track", "lemniscate", "--ego", pols["ego"],
                         "--opp", pols["opp"], "--uris", f"udp://127.0.0.1:{p1},udp://127.0.0.1:{p2}",
-                        "--mocap", f"replay://{log}", "--profile", PROFILE, "--quiet",
+                        "--mocap", f"sim://127.0.0.1:{server.pose_port}", "--profile", PROFILE, "--quiet",
                         "--log", str(pols["dir"] / "x.mcap")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines() == [f"error: udp://127.0.0.1:{p1}: nothing listens there (connection refused)"]

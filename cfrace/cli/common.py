@@ -22,11 +22,6 @@ DEFAULT_PROFILE = "cf21bl"
 #: `--profile trained`: the profile the ego policy was trained for (its metadata drone_profile)
 TRAINED = "trained"
 
-#: exit codes of `fly` / `sim dry-run` besides 0 (docs/flight.md, "Exit codes")
-EXIT_ALL_STOPPED = 3      #: every drone was stopped by a safety check: no one finished
-EXIT_ERROR = 1            #: the race raised (the error is in the result)
-
-
 _json_stream = None   #: the real stdout once human output went to stderr (json_to_stdout)
 
 
@@ -106,16 +101,9 @@ def choose_profile(profile: str | None, track=None, ego: str | None = None, obst
     return profile, "--profile"
 
 
-def race_exit_code(result: dict) -> int:
-    """0 when the race ran to an end someone could win; 130/143 after Ctrl-C / SIGTERM;
-    EXIT_ALL_STOPPED when the safety checks stopped every drone; EXIT_ERROR when it raised."""
-    from cfrace.flight.runner import EXIT_CODES
+def race_exit_code(result: dict, late_signal: str | None = None) -> int:
+    """The exit code of `fly` / `sim dry-run` after a race (cfrace.flight.runner.result_exit_code:
+    0, 3 when the safety checks stopped every drone, 74, 130 / 143, 1)."""
+    from cfrace.flight.runner import result_exit_code
 
-    end = result.get("end")
-    if end == "operator_kill" or result.get("operator_kill"):
-        return EXIT_CODES.get(result.get("operator_kill") or "", EXIT_ERROR)
-    if end in ("finished", "timeout"):
-        return 0
-    if end == "error":
-        return EXIT_ERROR
-    return EXIT_ALL_STOPPED      # all_stopped, or a safety check that stopped every drone at once
+    return result_exit_code(result, late_signal)

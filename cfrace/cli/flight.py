@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, write_json
+from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, to_stdout, write_json
 from cfrace.errors import ConfigError
 
 console = Console(stderr=True)
@@ -74,7 +74,9 @@ def print_result(result: dict, con: Console = out) -> None:
         con.print(f"  {final_state(d)}", highlight=False)
     if result.get("profile_rule"):
         con.print(f"drone profile {result.get('profile')}: {result['profile_rule']}", highlight=False)
-    if result.get("log"):
+    if result.get("log_error"):
+        console.print(f"error: flight log incomplete: {result['log_error']}", highlight=False)
+    elif result.get("log"):
         con.print(f"flight log: {result['log']}")
 
 
@@ -121,6 +123,22 @@ def loop_table(loop: dict, title: str | None = None) -> Table:
         t.add_row(f"inference {name} (ONNX)", _ms(s))
     t.add_row("skipped ticks", str(loop.get("skipped", 0)))
     return t
+
+
+def check_writable(path: Path | None, what: str) -> None:
+    """ConfigError (one line) unless ``path`` can be written (`-`: stdout, always); checked before
+    anything flies."""
+    if path is None or to_stdout(path):
+        return
+    existed = path.exists()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "ab"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot write there ({exc.strerror or exc})") from None
+    if not existed:
+        path.unlink()
 
 
 def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:
@@ -282,11 +300,18 @@ def fly_config(config: Path | None, mocap: str | None, profile: str | None, **op
 
 def race_and_report(race, rule: str, json_out: Path | None) -> None:
     """Fly ``race(announce)`` (`fly`, `sim dry-run`), print its result, write its JSON and exit with
-    its code (cfrace.cli.common.race_exit_code); ``rule``: why this drone profile."""
-    result = race(lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
-    print_result(result, human_console(json_out))
-    write_json(result, json_out)
-    code = race_exit_code(result)
+    its code (cfrace.cli.common.race_exit_code); ``rule``: why this drone profile. The --json path
+    is checked before anything flies; a signal after the race no longer interrupts the printing
+    and the writing (it only sets the exit code)."""
+    from cfrace.flight.runner import SignalGuard
+
+    check_writable(json_out, "--json")
+    with SignalGuard() as guard:
+        result = race(lambda meta: announce(meta | {"profile_rule": rule})).to_json() | {"profile_rule": rule}
+        guard.after = True
+        print_result(result, human_console(json_out))
+        write_json(result, json_out)
+    code = race_exit_code(result, guard.late)
     if code:
         sys.exit(code)
 

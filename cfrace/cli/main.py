@@ -76,7 +76,7 @@ def _usage_error(exc: cx.UsageError, args: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: user-facing errors as one line and exit code 2; Ctrl-C exits 130."""
+    """Entry point: user-facing errors as one line and exit code 2; Ctrl-C exits 130, SIGTERM 143."""
     args = fill_optional_values(list(sys.argv[1:] if argv is None else argv))
     json_to_stdout(args)
     try:
@@ -100,13 +100,20 @@ def _run(args: list[str]) -> int:
         return _usage_error(exc, args)
     except typer.Exit as exc:
         return exc.exit_code
-    except typer.Abort:      # click turns Ctrl-C into Abort outside standalone mode
+    except (typer.Abort, KeyboardInterrupt) as exc:   # click turns Ctrl-C into Abort outside standalone mode
         print("interrupted", file=sys.stderr)
-        return 130
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        return _interrupt_code(exc)
     except cx.ClickException as exc:
         print(f"error: {exc.format_message()}", file=sys.stderr)
         return exc.exit_code
     return code if isinstance(code, int) else 0
+
+
+def _interrupt_code(exc: BaseException) -> int:
+    """143 when the interrupt was a SIGTERM turned into KeyboardInterrupt("SIGTERM") (the flight
+    stack's signal handlers), else 130 (Ctrl-C)."""
+    while exc is not None:
+        if isinstance(exc, KeyboardInterrupt):
+            return 143 if str(exc) == "SIGTERM" else 130
+        exc = exc.__cause__ or exc.__context__
+    return 130

@@ -134,6 +134,35 @@ def _room(config: Path | None, profile: str | None, obstacles: bool | None, trac
     return room, obstacles, name, rule
 
 
+@sim_app.command("faults")
+def faults_cmd(
+    track: str = typer.Option("lemniscate", help="Track (its shipped ours / ds policies race)."),
+    processes: bool = typer.Option(True, "--processes/--no-processes",
+                                   help="Also kill -9 `cfrace fly` and cut a link, with `cfrace sim serve` "
+                                        "and `cfrace fly` as separate processes (about 30 s more)."),
+    json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON (- : to stdout)."),
+):
+    """Every fault and bad-input scenario through the real stack, as one table (docs/flight.md)."""
+    from dataclasses import asdict
+
+    from rich.table import Table
+
+    from cfrace.flight.faultsuite import HEADER, run_suite
+
+    rows = run_suite(track, processes)
+    table = Table(title=f"faults and bad inputs, {track}")
+    for col in HEADER:
+        table.add_column(col, overflow="fold")
+    for r in rows:
+        table.add_row(*r.cells())
+    out.print(table)
+    write_json([asdict(r) for r in rows], json_out)
+    failed = [r.scenario for r in rows if not r.passed]
+    if failed:
+        console.print(f"error: {len(failed)} scenario(s) failed: {', '.join(failed)}", highlight=False)
+        sys.exit(1)
+
+
 @sim_app.command("replay")
 def replay_cmd(
     log: Path = typer.Argument(..., help="A flight log written by cfrace fly / cfrace sim dry-run."),

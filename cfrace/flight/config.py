@@ -15,6 +15,7 @@ Unknown keys are errors (cfrace.yamlcfg.Reader).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
@@ -37,6 +38,23 @@ def drone_names(n: int) -> tuple[str, ...]:
 #: right amount, and compensation kept them flying at latencies where they fell without it
 #: (docs/flight.md, "Mocap latency").
 LATENCY_COMP_DEFAULT_S = 0.010
+
+
+#: the largest value each safety limit may take (the one rule for the command line and the config
+#: file): beyond these a limit no longer limits anything in a room
+SAFETY_MAX = {"geofence_margin_m": 10.0, "floor_z_m": 2.0, "floor_grace_s": 3600.0, "tilt_max_deg": 180.0,
+              "speed_max_mps": 50.0, "mocap_stale_s": 1.0, "link_timeout_s": 5.0, "overrun_stop_s": 1.0,
+              "fence_soft_m": 10.0, "mocap_glitches": 1000.0, "opponent_clearance_m": 10.0, "low_battery_v": 5.0,
+              "low_battery_s": 60.0, "min_separation_m": 5.0}
+TIMEOUT_MAX_S = 3600.0   #: s, the longest race and the longest connect / mocap wait
+
+
+def _limit(name: str, value, hi: float, lo: float = 0.0, *, lo_open: bool = False) -> None:
+    """ConfigError unless value is a finite number in [lo, hi] (or (lo, hi])."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
+        and (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        raise ConfigError(f"{name}: must be a finite number in {'(' if lo_open else '['}{lo:g}, {hi:g}], got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -63,11 +81,7 @@ class SafetyConfig:
 
     def __post_init__(self):
         for f in fields(self):
-            v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and v >= 0 and v == v):
-                raise ConfigError(f"safety.{f.name}: must be a number >= 0, got {v!r}")
-        if self.tilt_max_deg > 180:
-            raise ConfigError(f"safety.tilt_max_deg: must be <= 180, got {self.tilt_max_deg}")
+            _limit(f"safety.{f.name}", getattr(self, f.name), SAFETY_MAX[f.name])
 
 
 @dataclass(frozen=True)
@@ -118,8 +132,10 @@ class FlightConfig:
         if self.landing and not self.pose_stream:
             raise ConfigError("landing needs pose_stream on: the firmware lands from the mocap poses it is sent "
                               "(use --no-landing with --no-pose-stream)")
-        if self.laps < 1:
-            raise ConfigError(f"laps: must be >= 1, got {self.laps}")
+        if not (isinstance(self.laps, int) and not isinstance(self.laps, bool) and 1 <= self.laps <= 1000):
+            raise ConfigError(f"laps: must be a whole number in 1..1000, got {self.laps!r}")
+        for key in ("timeout_s", "connect_timeout_s", "mocap_timeout_s"):
+            _limit(key, getattr(self, key), TIMEOUT_MAX_S, lo_open=True)
         n = len(self.specs)
         if not 2 <= n <= MAX_DRONES:
             raise ConfigError(f"policies: a race needs 2 to {MAX_DRONES} drones, got {n}")
@@ -145,8 +161,6 @@ class FlightConfig:
         object.__setattr__(self, "rt_priority", parse_rt_priority(self.rt_priority))
         if self.foxglove_port is not None and not (0 <= self.foxglove_port < 65536):
             raise ConfigError(f"foxglove_port: must be a TCP port 0-65535, got {self.foxglove_port}")
-        if self.timeout_s <= 0:
-            raise ConfigError(f"timeout_s: must be > 0, got {self.timeout_s}")
 
     @property
     def dt(self) -> float:
@@ -209,7 +223,10 @@ def load_flight_file(path: str | Path) -> dict:
             except ConfigError as exc:
                 raise r.fail(key, str(exc).removeprefix(f"{key}: ")) from None
     if r.has("laps"):
-        out["laps"] = int(r.number("laps", min=1))
+        laps = r.number("laps", min=1)
+        if laps != int(laps):
+            raise r.fail("laps", f"must be a whole number, got {laps:g}")
+        out["laps"] = int(laps)
     for key in ("obstacles", "landing", "pose_stream"):
         if r.has(key):
             v = r.raw(key)
@@ -218,7 +235,7 @@ def load_flight_file(path: str | Path) -> dict:
             out[key] = v
     if r.has("safety"):
         s = r.mapping("safety")
-        kw = {f.name: s.number(f.name, min=0.0) for f in fields(SafetyConfig) if s.has(f.name)}
+        kw = {f.name: s.number(f.name, min=0.0, max=SAFETY_MAX[f.name]) for f in fields(SafetyConfig) if s.has(f.name)}
         s.done()
         out["safety"] = SafetyConfig(**kw)
     r.done()

@@ -21,6 +21,7 @@ from dataclasses import replace
 from cfrace.errors import LinkError
 from cfrace.flight.clock import LockstepClock, RealClock
 from cfrace.flight.config import FlightConfig
+from cfrace.flight.consistency import STILL_S
 from cfrace.flight.faults import FaultInjector, UdpCutRelay, parse_faults
 from cfrace.flight.link import DirectSimLink
 from cfrace.flight.links import link_factory, stop_log_path
@@ -40,7 +41,8 @@ def _final_status(fleet) -> list[dict]:
         s = fleet.status(i)
         out.append({"body": name, "motors_off": s["thrust"] == 0.0, "thrust_n": s["thrust"],
                     "thrust_counts": s["thrust_counts"], "armed": s["armed"], "locked": s["locked"],
-                    "watchdog": s["watchdog"], "emergency_stopped": s["emergency_stopped"], "crashed": s["crashed"]})
+                    "watchdog": s["watchdog"], "emergency_stopped": s["emergency_stopped"], "crashed": s["crashed"],
+                    "pos": [round(float(v), 4) for v in fleet.state(i)["pos"]]})
     return out
 
 
@@ -77,7 +79,7 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
         return injector.wrap_mocap(source) if injector is not None else source
 
     keeper_links = link_factory(uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
-                                clock=link_clock)
+                                rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu, clock=link_clock)
 
     def link(i: int, uri: str):
         if uri.startswith("sim://"):
@@ -93,7 +95,8 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
 
     prewarm_s = 0.0 if lockstep and not lockstep_warm_calls else cfg.prewarm_s
     return RaceIO(open_mocap=mocap, open_link=link, clock=clock, link_clock=link_clock, prewarm_s=prewarm_s,
-                  uris=tuple(uris), hooks=injector, wait=fleet.advance if lockstep else time.sleep)
+                  uris=tuple(uris), hooks=injector, still_s=0.0 if lockstep else STILL_S,
+                  wait=fleet.advance if lockstep else time.sleep)
 
 
 def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=("sim://0", "sim://1"),

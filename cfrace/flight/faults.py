@@ -6,14 +6,21 @@ opp, e.g. ``mocap_dropout_short@3.0,link_loss@2.0:opp,sigterm@5``. Kinds:
     mocap_dropout_short  no mocap frame at all for 80 ms (below mocap_stale_s): ride through
     mocap_dropout_long   the drone's body missing from every frame for 1 s: stale -> stop it
     pose_outlier         one frame puts the drone's body 1 m off: the estimator must reject it
-    geofence             from T the drone's policy output is replaced by full thrust straight
-                         up: it really leaves the fence, the geofence must stop it
+    geofence             from T the drone's policy output is replaced by a climb: level
+                         attitude, GEOFENCE_CLIMB_MPS upwards (well below the speed limit), so
+                         that it really leaves the fence through its ceiling and the geofence,
+                         not the speed or tilt rule, must stop it
     nan_policy           from T the drone's policy outputs NaN
     link_loss            from T nothing gets through the drone's link either way (a UDP relay
                          drops every datagram; lockstep: the direct link goes silent)
     stall_50ms           the loop thread blocks for 50 ms once (missed ticks are skipped)
     stall_200ms          ... for 200 ms (beyond overrun_stop_s: stop all)
     sigterm / sigint     the process sends itself SIGTERM / SIGINT (the real signal handlers)
+    swap_bodies          from T the two drones' mocap bodies are swapped (a labelling mistake):
+                         each drone is steered on the other's poses; the consistency check
+                         (poses must move with the commands) must stop them
+    replay_poses         from T the mocap source replays the frames it gave REPLAY_BACK_S
+                         earlier, in order (recorded poses): the consistency check must stop them
 
 Soft failsafes (the drone lands, docs/flight.md "Safety"):
 
@@ -33,15 +40,20 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cfrace.drone import GRAVITY
 from cfrace.errors import ConfigError
 from cfrace.flight.mocap import MocapFrame, Pose
 
 KINDS = ("mocap_dropout_short", "mocap_dropout_long", "pose_outlier", "geofence", "nan_policy", "link_loss",
-         "stall_50ms", "stall_200ms", "sigterm", "sigint", "mocap_glitchy", "low_battery", "operator_land")
+         "stall_50ms", "stall_200ms", "sigterm", "sigint", "swap_bodies", "replay_poses", "mocap_glitchy",
+         "low_battery", "operator_land")
+REPLAY_BACK_S = 1.0      #: s, how far back the replay_poses fault replays
 GLITCH_SPACING_S = 0.3
 SHORT_DROPOUT_S = 0.08
 LONG_DROPOUT_S = 1.0
 OUTLIER_OFFSET = np.array([0.8, 0.0, 0.6])   #: m, 1 m off
+GEOFENCE_CLIMB_MPS = 4.0     #: m/s, the geofence fault's climb
+LEVEL_GAIN = 6.0             #: 1/s, body rate per rad of tilt of the geofence fault's levelling
 
 
 @dataclass(frozen=True)
@@ -83,6 +95,7 @@ class FaultyMocap:
     def __init__(self, source, injector: "FaultInjector"):
         self.source, self.inj = source, injector
         self.name = getattr(source, "name", "mocap")
+        self.recorded: list = []     #: (t, poses) of the frames given, for replay_poses
 
     def open(self, timeout_s: float = 5.0) -> None:
         self.source.open(timeout_s)
@@ -99,7 +112,15 @@ class FaultyMocap:
             return None
         t = self.inj.t
         poses = dict(frame.poses)
+        self.recorded.append((t, poses))
         for f in self.inj.faults:
+            if f.kind == "replay_poses" and t >= f.t:
+                back = [p for tt, p in self.recorded if tt <= t - REPLAY_BACK_S]
+                poses = dict(back[-1]) if back else poses
+            if f.kind == "swap_bodies" and t >= f.t:
+                a, b = self.inj.bodies["ego"], self.inj.bodies["opp"]
+                if a in poses and b in poses:
+                    poses[a], poses[b] = poses[b], poses[a]
             body = self.inj.bodies[f.drone]
             if f.kind == "mocap_dropout_short" and f.t <= t < f.t + SHORT_DROPOUT_S:
                 return None
@@ -171,6 +192,7 @@ class FaultInjector:
         self.cutters: dict[str, object] = {}          # drone name -> callable that cuts its link
         self.drainers: dict[str, object] = {}         # drone name -> callable that empties its battery (sim)
         self.log: list[dict] = []
+        self.loop = None                              # the flight loop (before_tick)
 
     def wrap_mocap(self, source):
         return FaultyMocap(source, self) if self.faults else source
@@ -203,6 +225,7 @@ class FaultInjector:
 
     def before_tick(self, loop, t: float) -> None:
         self.t = t
+        self.loop = loop
         for f in self.faults:
             if f not in self.fired and t >= f.t:
                 self._fire(loop, f)
@@ -216,5 +239,18 @@ class FaultInjector:
                 if f.kind == "nan_policy":
                     return np.full(4, np.nan, np.float32)
                 if f.kind == "geofence":
-                    return np.array([1.0, 0.0, 0.0, 0.0], np.float32)
+                    return self.climb(drone)
         return act
+
+    def climb(self, drone) -> np.ndarray:
+        """The action that levels the drone and climbs at GEOFENCE_CLIMB_MPS (its estimate this tick)."""
+        est = self.loop.core.last_ests[[d.name for d in self.loop.drones].index(drone.name)]
+        rot = np.asarray(est.rot, np.float64)
+        b3 = rot[:, 2]
+        axis = np.cross(b3, [0.0, 0.0, 1.0])                   # world: turn b3 towards up
+        rates = LEVEL_GAIN * (rot.T @ axis)                     # rad/s, body frame
+        k = np.radians(drone.meta["max_rates_deg"])
+        hover = drone.mass * GRAVITY / max(float(b3[2]), 0.5)
+        thrust = hover * (1.0 + 0.5 * (GEOFENCE_CLIMB_MPS - float(est.vel[2])))
+        a0 = 2.0 * thrust / drone.setpoint_map.scale - 1.0
+        return np.clip(np.array([a0, *(rates / k)], np.float32), -1.0, 1.0)

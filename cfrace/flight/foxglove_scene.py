@@ -324,6 +324,13 @@ class SceneSink:
         self.close()
 
 
+def log_write_error(sink) -> OSError | None:
+    """The flight log file's first write error (FlightLog.error) behind what open_sink returned:
+    a FlightLog, a SceneSink around one (its own ``error`` is the scene's) or None."""
+    log = sink.log if isinstance(sink, SceneSink) else sink
+    return None if log is None else log.error
+
+
 def open_sink(log_path, meta: dict, track, fence, bodies: list[str], obstacles: bool,
               foxglove_port: int | None = None, scene: bool = True):
     """The flight's log sink: a FlightLog at log_path (None: no file), the Foxglove scene in it when

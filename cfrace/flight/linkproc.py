@@ -27,6 +27,7 @@ every REPORT_S and on every change of connection or stop).
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import socket
@@ -40,6 +41,7 @@ from pathlib import Path
 
 from cfrace.errors import LinkError
 from cfrace.flight.link import LinkQuality
+from cfrace.flight.realtime import set_fifo
 
 REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
 SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
@@ -51,7 +53,7 @@ _POSE = struct.Struct("<cB7f")          # b"p", drone, x, y, z (m), qw, qx, qy, 
 class _Keeper:
     """The child's state: its links, which drones fly, when the loop was last heard."""
 
-    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None):
+    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0):
         from cfrace.flight.link_cflib import CflibLink   # cflib only in the keeper
 
         self.conn, self.heartbeat_s = conn, float(heartbeat_s)
@@ -62,6 +64,7 @@ class _Keeper:
         self.last_heard = time.monotonic()
         self.last_report = 0.0
         self.changed = False
+        self.rt_priority = rt_priority   #: SCHED_FIFO for all the keeper's threads from the first setpoint
 
     def stop(self, i: int, why: str) -> None:
         """Stop drone i now and record where and when the stop was sent."""
@@ -72,7 +75,8 @@ class _Keeper:
             self.dead[i] = True
         self.changed = True
         rec = {"drone": i, "uri": self.links[i].uri, "why": why, "was_flying": was_flying,
-               "t_mono": t_mono, "t_wall": t_wall, "stop_sent_s": time.monotonic() - t_mono}
+               "t_mono": t_mono, "t_wall": t_wall, "stop_sent_s": time.monotonic() - t_mono,
+               "since_loop_s": t_mono - self.last_heard}   # since the loop's last message
         if self.stop_log is not None:
             self.stop_log.write(json.dumps(rec) + "\n")
         if why != "loop" and was_flying:
@@ -114,6 +118,9 @@ class _Keeper:
         """One message from the loop; False once the keeper must end."""
         kind = msg[:1]
         if kind == b"s":
+            if self.rt_priority:   # the race has started: as the loop, its links do not wait behind
+                set_fifo(self.rt_priority)   # the machine's ordinary jobs (cfrace.flight.realtime)
+                self.rt_priority = 0
             _, i, p, q, r, counts = _SETPOINT.unpack(msg)
             if not self.dead[i]:
                 self.links[i].send(p, q, r, counts)
@@ -176,10 +183,21 @@ class _Keeper:
             self.stop_log.close()
 
 
-def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None) -> None:
+def _pin(cpus) -> None:
+    """The keeper's CPUs (not the loop's), before any cflib thread starts (they inherit them)."""
+    try:
+        if cpus:
+            os.sched_setaffinity(0, set(cpus))
+    except (OSError, AttributeError):
+        pass   # not permitted / not Linux
+
+
+def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0,
+                cpus=None) -> None:
     """The keeper process's entry point."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    keeper = _Keeper(conn, uris, heartbeat_s, stop_log)
+    _pin(cpus)
+    keeper = _Keeper(conn, uris, heartbeat_s, stop_log, rt_priority)
 
     def on_term(signum, frame):
         keeper.stop_all("sigterm")
@@ -197,8 +215,10 @@ def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None)
 class LinkKeeper:
     """The loop's end: spawns the keeper on the first connect; ``link(i)`` is drone i's Link."""
 
-    def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None):
+    def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None, rt_priority: int = 0,
+                 cpus=None):
         self.uris = list(uris)
+        self.rt_priority, self.cpus = int(rt_priority), sorted(cpus) if cpus else None
         self.heartbeat_s = float(heartbeat_s)
         self.stop_log = str(stop_log) if stop_log else None
         if self.stop_log:   # beside the flight log, whose folder (default flights/) may not exist yet
@@ -221,7 +241,8 @@ class LinkKeeper:
         # a plain child process (not multiprocessing's spawn, which re-imports the parent's main
         # script): `python -m cfrace.flight.linkproc FD` with one end of a socket pair
         here, there = socket.socketpair()
-        args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log})
+        args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log,
+                           "rt_priority": self.rt_priority, "cpus": self.cpus})
         self._proc = subprocess.Popen([sys.executable, "-m", "cfrace.flight.linkproc", str(there.fileno()), args],
                                       pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL)
         there.close()
@@ -354,4 +375,5 @@ class KeptLink:
 
 if __name__ == "__main__":
     _opts = json.loads(sys.argv[2])
-    keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"])
+    keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"],
+                _opts["rt_priority"], _opts["cpus"])

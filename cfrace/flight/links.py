@@ -33,14 +33,19 @@ def stop_log_path(log: Path | None) -> Path | None:
     return None if log is None else Path(log).with_suffix(".stops.jsonl")
 
 
-def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None,
+def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None, rt_priority="auto", loop_cpu="off",
                  clock=time.monotonic) -> Callable[[int, str], Link]:
     """open_link(i, uri) for a race: every cflib URI's link lives in ONE link keeper process
     (cfrace.flight.linkproc: it stops every drone when the loop's process dies or goes silent for
-    heartbeat_s); other URIs as ``open_link``."""
+    heartbeat_s), scheduled as the flight process's other threads (the CPUs other than the loop's,
+    SCHED_FIFO one below the loop's where permitted: cfrace.flight.realtime); other URIs as
+    ``open_link``."""
+    from cfrace.flight import realtime
     from cfrace.flight.linkproc import LinkKeeper
 
-    keeper = LinkKeeper(uris, heartbeat_s=heartbeat_s, stop_log=stop_log)
+    prio = realtime.resolve_rt_priority(rt_priority)
+    keeper = LinkKeeper(uris, heartbeat_s=heartbeat_s, stop_log=stop_log, rt_priority=max(1, prio - 1) if prio else 0,
+                        cpus=realtime.other_cpus(realtime.resolve_loop_cpu(loop_cpu)))
 
     def make(i: int, uri: str) -> Link:
         if uri.startswith(CFLIB_SCHEMES):
@@ -50,3 +55,18 @@ def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None,
         return open_link(uri, clock=clock)
 
     return make
+
+
+def wait_heard(links, link_clock, limit_s: float, timeout_s: float = 2.0) -> None:
+    """Until every live link has heard its drone within ``limit_s`` (LinkError after timeout_s): a
+    link silent since before the start would be stopped at once by the first tick."""
+    end = time.monotonic() + timeout_s
+    while True:
+        now = link_clock()
+        silent = [k for k in links if not k.uri.startswith("null://") and not k.quality.rx_age(now) < limit_s]
+        if not silent:
+            return
+        if time.monotonic() > end:
+            raise LinkError(f"{silent[0].uri}: the drone has not answered for "
+                            f"{silent[0].quality.rx_age(now):.1f} s before the start")
+        time.sleep(0.01)

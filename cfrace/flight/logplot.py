@@ -81,7 +81,8 @@ def trajectories(data: FlightLogData) -> dict[str, dict[str, np.ndarray]]:
             d["vel"].append(vel if _vec_ok(vel) else [np.nan] * 3)
     if not out:
         for t, msg in data.messages("/mocap/pose"):
-            for body, p in (msg.get("poses") or {}).items():
+            poses = msg.get("poses")
+            for body, p in (poses.items() if isinstance(poses, dict) else ()):
                 if isinstance(p, dict) and _vec_ok(p.get("pos")):
                     d = out.setdefault(body, {"t": [], "pos": [], "vel": []})
                     d["t"].append(float(msg.get("t_src", t)))

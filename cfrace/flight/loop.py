@@ -57,10 +57,11 @@ class FlightLoop:
                  clock, fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, log=None, view=None,
                  faults=None, kill: KillSwitch | None = None, link_log_every: int = 10, link_clock=None,
                  prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None, landing=None,
-                 hover_start: bool = False, pose_stream: bool = False):
+                 hover_start: bool = False, pose_stream: bool = False, consistency: bool = True):
         self.core = TickCore(drones=drones, estimator=estimator, progress=progress, obs_builder=obs_builder,
                              fence=fence, safety_cfg=safety_cfg, laps=laps, timeout_s=timeout_s, dt=clock.dt,
-                             filters=faults, limits=limits, landing=landing, hover_start=hover_start)
+                             filters=faults, limits=limits, landing=landing, hover_start=hover_start,
+                             consistency=consistency)
         self.pose_stream = bool(pose_stream)   #: send each drone its mocap pose (external position) every frame
         self.poses_sent = 0                    #: poses sent to the drones (all drones together)
         self.mocap, self.clock, self.log, self.view, self.faults = mocap, clock, log, view, faults

@@ -123,8 +123,8 @@ class TickTimes:
 
 _RACE_FIELDS = ("duration_s", "operator_kill", "rt_fifo", "loop_cpu", "track", "profile", "loop", "safety_events",
                 "drones", "estimator", "laps", "lap_times")
-_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "sim", "hover_start", "landings",
-                   "separation_at_stop")
+_WAY_OUT_FIELDS = ("error", "drones_final", "drones_final_error", "faults", "log", "log_error", "sim", "hover_start",
+                   "landings", "separation_at_stop")
 
 
 @dataclass
@@ -152,6 +152,7 @@ class RaceResult:
     drones_final_error: str | None = None
     faults: list | None = None                       #: what the fault injection did (dry-run)
     log: str | None = None                           #: the flight log's path
+    log_error: str | None = None                     #: why the flight log is incomplete (a write error)
     sim: dict | None = None                          #: the simulated drones' server figures (real-time dry-run)
     hover_start: dict | None = None                  #: --start hover: how well the drones held their start
     landings: dict | None = None                     #: drone name -> its landing (reason, spot, touchdown) or None

@@ -43,9 +43,18 @@ def frame_to_msg(frame: MocapFrame) -> dict:
 
 
 def frame_from_msg(msg: dict) -> MocapFrame:
-    """Inverse of frame_to_msg."""
-    poses = {b: Pose(np.asarray(p["pos"], dtype=np.float64), np.asarray(p["quat"], dtype=np.float64))
-             for b, p in msg["poses"].items()}
+    """Inverse of frame_to_msg; ValueError saying what is wrong in a malformed message."""
+    if not isinstance(msg, dict) or not isinstance(msg.get("poses"), dict):
+        raise ValueError("a /mocap/pose message needs 'poses': {body: {pos, quat}}, got "
+                         f"{type(msg.get('poses') if isinstance(msg, dict) else msg).__name__}")
+    poses = {}
+    for b, p in msg["poses"].items():
+        if not isinstance(p, dict):
+            raise ValueError(f"the pose of body {b!r} should be {{pos, quat}}, got {type(p).__name__}")
+        pos, quat = np.asarray(p["pos"], dtype=np.float64), np.asarray(p["quat"], dtype=np.float64)
+        if pos.shape != (3,) or quat.shape != (4,):
+            raise ValueError(f"the pose of body {b!r} should have 3 pos and 4 quat numbers")
+        poses[b] = Pose(pos, quat)
     return MocapFrame(t=float(msg["t_src"]), poses=poses, seq=int(msg["seq"]))
 
 

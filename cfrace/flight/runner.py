@@ -5,12 +5,18 @@ Order (nothing is sent to a drone before every check passed):
   1. track, drone profile, both policies loaded and checked (cfrace.flight.setup.resolve_race,
      done by the caller: PolicyError / ConfigError);
   2. the mocap source opened and every body seen (MocapError: unknown body);
-  3. every link connected (LinkError: no answer / no Crazyradio / nothing listening);
+  3. every link connected (LinkError: no answer / no Crazyradio / nothing listening), then the
+     poses watched for RaceIO.still_s: they must not move while nothing is armed (MocapError:
+     the pose source does not belong to these drones; cfrace.flight.consistency);
   4. every link set up (rate mode params, arming, zero-thrust unlock), then the loop.
 Every exit after step 2 (race end, exception, Ctrl-C, SIGTERM, safety) goes through one finally
 block that stops every drone, closes the links and the mocap source and closes the log with a
 /summary. SIGINT/SIGTERM during the race ask the loop to stop everything on its next tick
-(<= 10 ms); a second signal raises KeyboardInterrupt at once (the finally still stops them).
+(<= 10 ms); before the race (connecting, setting up) a signal raises KeyboardInterrupt at once
+(the finally still stops every drone); once the loop has ended, signals are only recorded
+(``operator_kill``, the exit code): nothing interrupts the stop sequence and the log's close.
+A flight log that cannot be written refuses the race before the set-up; a write error during the
+flight is the result's ``log_error`` (and the exit code's, EXIT_CODES["log_error"]).
 """
 
 from __future__ import annotations
@@ -21,15 +27,19 @@ import signal
 import time
 import sys
 import threading
+import time
 from dataclasses import asdict
 from typing import Callable
 
 
-from cfrace.errors import ConfigError
+from cfrace.errors import LogError
 from cfrace.flight import realtime
 from cfrace.flight import safety as sf
+from cfrace.flight.consistency import check_still
+from cfrace.flight.links import wait_heard
+from cfrace.flight.swarm import check_take_off_separation
 from cfrace.flight.estimator import PoseEstimator
-from cfrace.flight.foxglove_scene import open_sink
+from cfrace.flight.foxglove_scene import log_write_error, open_sink
 from cfrace.flight.landing import LandingSetup
 from cfrace.flight.loopfigures import loop_figures
 from cfrace.flight.loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
@@ -38,7 +48,26 @@ from cfrace.flight.procedures import hover_start, hover_start_positions
 from cfrace.flight.progress import FastRaceProgress
 from cfrace.flight.setup import RaceIO, RaceSetup, real_io
 
-EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143}
+#: exit codes of `fly` / `sim dry-run` besides 0 (docs/flight.md, "Exit codes"); 74: EX_IOERR
+EXIT_CODES = {"SIGINT": 130, "SIGTERM": 143, "log_error": 74, "all_stopped": 3, "error": 1}
+
+
+def result_exit_code(result: dict, late_signal: str | None = None) -> int:
+    """A race's exit code from its JSON, the one rule of `fly` and `sim dry-run`: 143 / 130 when the
+    operator's signal ended or followed the race (also while its result was written: late_signal);
+    74 when the flight log could not be written; 1 when the race raised; 0 when it ran to an end
+    someone could win (finished, time-out); else 3: the safety checks stopped every drone."""
+    signal_name = result.get("operator_kill") or late_signal
+    end = result.get("end")
+    if signal_name or end == "operator_kill":
+        return EXIT_CODES.get(signal_name or "", 130)
+    if result.get("log_error"):
+        return EXIT_CODES["log_error"]
+    if end == "error":
+        return EXIT_CODES["error"]
+    if end in ("finished", "timeout"):
+        return 0
+    return EXIT_CODES["all_stopped"]     # all_stopped, or a check that stopped every drone at once
 
 
 def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
@@ -73,19 +102,18 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
 
 
 class _Signals:
-    """SIGINT/SIGTERM -> operator kill while the loop runs; KeyboardInterrupt otherwise or on a repeat."""
+    """SIGINT/SIGTERM -> the operator kill. Before the loop runs (``may_raise()`` true) it also
+    raises KeyboardInterrupt; while the loop runs the loop stops every drone on its next tick;
+    after it, nothing is interrupted (the stop sequence and the log's close run to their end)."""
 
-    def __init__(self, kill: KillSwitch, loop_ref: list):
-        self.kill, self.loop_ref, self.old = kill, loop_ref, {}
+    def __init__(self, kill: KillSwitch, may_raise: Callable[[], bool]):
+        self.kill, self.may_raise, self.old = kill, may_raise, {}
 
     def _handler(self, signum, frame):
         name = signal.Signals(signum).name
-        loop = self.loop_ref[0] if self.loop_ref else None
-        if loop is not None and loop.running and self.kill.reason is None:
-            self.kill.request(name)
-            return
         self.kill.request(name)
-        raise KeyboardInterrupt(name)
+        if self.may_raise():
+            raise KeyboardInterrupt(name)
 
     def _land_handler(self, signum, frame):
         self.kill.request_land(signal.Signals(signum).name)
@@ -102,32 +130,41 @@ class _Signals:
             signal.signal(s, h)
 
 
+class SignalGuard:
+    """SIGINT/SIGTERM around a whole command (`cfrace fly`, `cfrace sim dry-run`): before and during
+    the race a signal interrupts (the race's own handling takes over while it runs); once ``after``
+    is set (the race is over, its result is being printed and written) a signal is only recorded in
+    ``late``, so the JSON and the exit code still come out, and from the guard's end to the exit
+    signals are ignored."""
+
+    def __init__(self):
+        self.late: str | None = None
+        self.after = False
+        self.old: dict = {}
+
+    def _handler(self, signum, frame):
+        name = signal.Signals(signum).name
+        self.late = self.late or name
+        if not self.after:
+            raise KeyboardInterrupt(name)
+
+    def __enter__(self) -> "SignalGuard":
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self.old[s] = signal.signal(s, self._handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, h in self.old.items():   # after the race the command only exits: signals are ignored
+            signal.signal(s, signal.SIG_IGN if self.after else h)
+
+
 def _quietly(call: Callable[[], object]) -> None:
     """Call, ignoring any exception (clean-up on the way out: every step must run)."""
     try:
         call()
     except Exception:  # noqa: BLE001
         pass
-
-
-class _Unread:
-    """A lockstep mocap source with one frame handed back: the loop's first read gets the source's
-    newest frame, or this one when the source has nothing newer (it makes one per tick). Not for
-    real time: there new frames keep coming and a handed-back one would be old (a stale pose)."""
-
-    def __init__(self, source, frame):
-        self.source, self.frame = source, frame
-
-    def read(self, timeout_s: float = 0.02):
-        if self.frame is None:
-            return self.source.read(timeout_s)
-        newer = self.source.read(0.0)
-        out = newer if newer is not None else self.frame
-        self.frame = None
-        return out
-
-    def __getattr__(self, name):
-        return getattr(self.source, name)
 
 
 class RaceRun:
@@ -141,7 +178,8 @@ class RaceRun:
         real_time = io.clock.realtime
         self.loop_cpu = realtime.resolve_loop_cpu(cfg.loop_cpu) if real_time else None
         rt_priority = realtime.resolve_rt_priority(cfg.rt_priority) if real_time else 0
-        self.kill, self.loop_ref = KillSwitch(), []
+        self.kill = KillSwitch()
+        self.phase = "open"    #: open (before the loop), fly, shut_down
         self.links, self.mocap, self.log, self.view = [], None, None, None
         self.result = RaceResult()
         self.meta = {"track": setup.track.name, "obstacles": cfg.obstacles, "laps": cfg.laps,
@@ -154,9 +192,10 @@ class RaceRun:
                      **(extra_meta or {})}
 
     def run(self) -> RaceResult:
-        with _Signals(self.kill, self.loop_ref):
+        with _Signals(self.kill, lambda: self.phase == "open"):
             try:
                 loop = self._open()
+                self.phase = "fly"
                 self._fly(loop)
             except BaseException as exc:
                 self.result.error = f"{type(exc).__name__}: {exc}"
@@ -164,7 +203,10 @@ class RaceRun:
                     self.result.operator_kill = self.kill.reason
                 raise
             finally:
+                self.phase = "shut_down"
                 self._shut_down()
+            if self.kill.reason is not None:
+                self.result.operator_kill = self.kill.reason
         return self.result
 
     def _open(self) -> FlightLoop:
@@ -177,34 +219,25 @@ class RaceRun:
             self.links.append(io.open_link(i, uri))
         for link in self.links:
             link.connect(cfg.connect_timeout_s)
+        if io.still_s > 0:     # before anything is armed: the poses must not move on their own
+            check_still(self.mocap, list(cfg.bodies), io.still_s)
         # the flight log and/or the live Foxglove server (cfrace.flight.foxglove_scene)
         self.log = open_sink(cfg.log, self.meta, self.setup.track, self.setup.fence, list(cfg.bodies), cfg.obstacles,
                              cfg.foxglove_port, scene=cfg.foxglove_scene)
         server = getattr(self.log, "server", None)
+        if (error := log_write_error(self.log)) is not None:    # e.g. a full disk: its first write failed
+            raise LogError(f"cannot write flight log {cfg.log}: {error.strerror or error}")
         if self.announce is not None:
             self.announce(self.meta | {"fence": self.setup.fence, "foxglove": server.url if server else None})
         for link in self.links:
             link.setup()
+        if io.still_s > 0:    # real links: every drone answered just now, or the race does not start
+            wait_heard(self.links, self.io.link_clock, self.setup.cfg.safety.link_timeout_s / 2.0)
         return self._loop()
 
     def _check_separation(self) -> None:
-        """Take-off rule of the swarm (cfrace.flight.safety): every pair at least min_separation_m
-        apart on the first frame that shows every body, else ConfigError; nothing was sent yet."""
-        cfg = self.setup.cfg
-        if len(cfg.bodies) < 2 or cfg.safety.min_separation_m <= 0:
-            return
-        t_end = time.monotonic() + cfg.mocap_timeout_s
-        while time.monotonic() < t_end:
-            frame = self.mocap.read(0.05)
-            if frame is not None and all(b in frame.poses for b in cfg.bodies):
-                close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m)
-                if close:
-                    pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
-                    raise ConfigError(f"drones too close to take off ({pairs}; at least "
-                                      f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
-                if not self.io.clock.realtime:   # a lockstep source makes one frame per tick: hand it back
-                    self.mocap = _Unread(self.mocap, frame)
-                return
+        """The swarm's take-off rule (swarm.check_take_off_separation); nothing was sent yet."""
+        self.mocap = check_take_off_separation(self.mocap, self.setup.cfg, self.io.clock.realtime)
 
     def _drones(self) -> list[Drone]:
         s = self.setup
@@ -232,7 +265,6 @@ class RaceRun:
                           prewarm_s=io.prewarm_s, limits=s.limits,
                           landing=LandingSetup.for_race(s.track, s.profile) if cfg.landing else None,
                           hover_start=cfg.start == "hover", pose_stream=cfg.pose_stream)
-        self.loop_ref.append(loop)
         return loop
 
     def _hover_start(self) -> dict:
@@ -302,6 +334,8 @@ class RaceRun:
             self.log.close({k: v for k, v in doc.items() if k != "loop"} | {"loop": doc.get("loop")})
             if self.setup.cfg.log is not None:
                 result.log = str(self.setup.cfg.log)
+            if (error := log_write_error(self.log)) is not None:
+                result.log_error = f"{self.setup.cfg.log}: {error.strerror or error}"
 
 
 def run_race(setup: RaceSetup, io: RaceIO, *, extra_meta=None, settle=None, console=None,

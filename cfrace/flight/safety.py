@@ -17,6 +17,8 @@ Which event stops what (docs/flight.md explains why):
 | non_finite    | one drone | NaN/inf in its estimate, observation or action                    |
 | command       | one drone | the setpoint about to be sent is non-finite or beyond the drone   |
 |               |           | profile's body rates / the uint16 thrust counts (CommandLimits)   |
+| pose_mismatch | all       | a drone's poses do not move with its commands (consistency.py):   |
+|               |           | the pose source does not belong to the drones (swap, replay)      |
 | link_lost     | one drone | its link reports disconnected or silent for link_timeout_s        |
 | gate_crash    | one drone | it crossed its target gate's plane in the frame (a crash)         |
 | loop_overrun  | all       | a tick started later than overrun_stop_s after its deadline       |
@@ -135,6 +137,7 @@ class DroneInputs(NamedTuple):
     link_rx_age_s: float       #: s since the last packet from the drone
     gate_crash: bool = False   #: crossed the target gate plane inside the frame this tick
     command: tuple | None = None   #: (p, q, r deg/s, thrust counts) about to be sent, None if none
+    pose_mismatch: str | None = None   #: why its poses do not move with its commands (consistency.py)
     landing: bool = False      #: the drone is landing (racing and soft rules off)
     mocap_glitches: int = 0    #: pose dropouts and outliers of this body within the last 2 s
     blocked: str = ""          #: what lies in its way to the next gate (a downed drone), "" if nothing
@@ -195,6 +198,8 @@ def check_drone(i: int, d: DroneInputs, t: float, dt: float, fence: Fence, cfg: 
         problem = limits.problem(d.command)
         if problem is not None:
             bad("command", f"setpoint not sent: {problem}")
+    if d.pose_mismatch:   # the pose source does not belong to the drones (a swap, a replay): all of them
+        bad("pose_mismatch", d.pose_mismatch, STOP_ALL)
     if not d.est_valid or not (d.est_age_s <= cfg.mocap_stale_s):
         bad("mocap_stale", f"no valid pose for {d.est_age_s * 1e3:.0f} ms (limit {cfg.mocap_stale_s * 1e3:.0f} ms)")
     elif d.est_age_s > 2.5 * dt:

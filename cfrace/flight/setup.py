@@ -19,6 +19,7 @@ from cfrace.env.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
 from cfrace.flight.clock import RealClock
 from cfrace.flight.config import FlightConfig
+from cfrace.flight.consistency import STILL_S
 from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.safety import CommandLimits, Fence
@@ -115,18 +116,37 @@ class RaceIO:
     prewarm_s: float
     uris: tuple[str, ...]
     hooks: object | None = None
+    still_s: float = 0.0    #: s the poses must stay still before the set-up (0: no check; consistency.check_still)
     wait: Callable[[float], None] | None = None   #: lets time pass outside the loop (None: time.sleep)
+
+
+def check_pose_source(mocap: str, uris) -> None:
+    """A pose source must belong to the drones it steers: recorded poses (replay://) fly no link
+    but null:// ones, the in-process simulator's (sim) only its own sim:// drones, and the pose
+    stream of `cfrace sim serve` (sim://HOST:PORT) only its simulated drones over udp://."""
+    real = [u for u in uris if not u.startswith("null://")]
+    if mocap.startswith("replay://") and real:
+        raise ConfigError(f"--mocap {mocap}: recorded poses belong to the recorded drones, not to {real[0]} "
+                          f"(a replay flies null:// links only)")
+    if mocap == "sim" and any(not u.startswith("sim://") for u in real):
+        raise ConfigError("--mocap sim: the in-process simulator's poses steer its own sim:// drones only")
+    if mocap.startswith("sim://") and any(not u.startswith("udp://") for u in real):
+        raise ConfigError(f"--mocap {mocap}: the poses of `cfrace sim serve` belong to its simulated drones "
+                          f"(udp:// links), not to {next(u for u in real if not u.startswith('udp://'))}")
 
 
 def real_io(cfg: FlightConfig) -> RaceIO:
     """Real drones: cflib links to cfg.uris held by the link keeper process, the mocap source
-    cfg.mocap, the wall clock."""
+    cfg.mocap, the wall clock; the poses must be still before the set-up (consistency.check_still)."""
     from cfrace.flight.radio import check_radios
 
     if len(cfg.uris) != len(cfg.specs):
         raise ConfigError(f"--uris: need {len(cfg.specs)} link URIs (one per drone), got {list(cfg.uris)}")
+    check_pose_source(cfg.mocap, cfg.uris)
     check_radios(cfg.uris, cfg.rate_hz)
-    links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log))
+    links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
+                         rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu)
     return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
                   open_link=links, clock=RealClock(cfg.dt), link_clock=time.monotonic,
-                  prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris))
+                  prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris),
+                  still_s=STILL_S if any(not u.startswith("null://") for u in cfg.uris) else 0.0)

@@ -42,20 +42,25 @@ class SoftState:
         self.glitches = [[] for _ in range(n)]   # times of pose dropouts / outliers
         self.dropping = [False] * n
         self.outliers = [0] * n
+        self.rejecting = [False] * n              # the last tick rejected an outlier (an episode runs)
         self.vbat_low_since: list = [None] * n
         self.pending_records: list = []           # log records made outside the tick's _records
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
-        """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S (start of an episode) or
-        was an outlier."""
+        """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S, or began to be rejected
+        as an outlier: one glitch per episode. Outliers tick after tick are one episode (a pose source
+        that jumped, e.g. replayed frames), which the consistency check judges (pose_mismatch), so a
+        soft landing does not start on poses that belong to no drone."""
         for i, (d, e) in enumerate(zip(drones, ests)):
             dropping = float(e.age_s) > GLITCH_DROPOUT_S
             if dropping and not self.dropping[i]:
                 self.glitches[i].append(t)
             self.dropping[i] = dropping
             c = counters[d.body]["outliers"]
-            self.glitches[i] += [t] * max(0, c - self.outliers[i])
-            self.outliers[i] = c
+            rejected = c > self.outliers[i]
+            if rejected and not self.rejecting[i]:
+                self.glitches[i].append(t)
+            self.rejecting[i], self.outliers[i] = rejected, c
 
     def recent_glitches(self, i: int, t: float) -> int:
         return sum(1 for g in self.glitches[i] if t - g <= GLITCH_WINDOW_S)

@@ -17,6 +17,8 @@ import time
 import numpy as np
 
 from cfrace.env.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
+from cfrace.errors import ConfigError
+from cfrace.flight import safety as sf
 
 
 class OpponentPicker:
@@ -67,3 +69,42 @@ def batched_step(core, group: list[int], ests: list) -> tuple[list[float], float
     for i, o, a in zip(group, obs, acts):
         core._act(i, o, a.copy())
     return obs_s, infer
+
+
+class _Unread:
+    """A lockstep mocap source with one frame handed back: the loop's first read gets the source's
+    newest frame, or this one when the source has nothing newer (it makes one per tick). Not for
+    real time: there new frames keep coming and a handed-back one would be old (a stale pose)."""
+
+    def __init__(self, source, frame):
+        self.source, self.frame = source, frame
+
+    def read(self, timeout_s: float = 0.02):
+        if self.frame is None:
+            return self.source.read(timeout_s)
+        newer = self.source.read(0.0)
+        out = newer if newer is not None else self.frame
+        self.frame = None
+        return out
+
+    def close(self) -> None:
+        self.source.close()
+
+
+def check_take_off_separation(mocap, cfg, realtime: bool):
+    """Take-off rule of the swarm (cfrace.flight.safety): every pair of cfg.bodies at least
+    cfg.safety.min_separation_m apart on the first frame that shows every body, else ConfigError.
+    Returns the mocap source to read from (a lockstep source gets the frame it made handed back)."""
+    if len(cfg.bodies) < 2 or cfg.safety.min_separation_m <= 0:
+        return mocap
+    t_end = time.monotonic() + cfg.mocap_timeout_s
+    while time.monotonic() < t_end:
+        frame = mocap.read(0.05)
+        if frame is not None and all(b in frame.poses for b in cfg.bodies):
+            close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m)
+            if close:
+                pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
+                raise ConfigError(f"drones too close to take off ({pairs}; at least "
+                                  f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
+            return mocap if realtime else _Unread(mocap, frame)
+    return mocap

@@ -6,8 +6,7 @@ the time the estimator predicts to, each link's figures (LinkInputs) and the ope
 request; its state is the race's own (estimator, race progress, the drones' last actions and
 stops, which safety violations are active). It returns a TickOut: the setpoint to send to each
 drone (or None), the drones to stop now, the safety decision, the new safety events and the log
-records of the tick. The runner (cfrace.flight.loop.FlightLoop) owns the clock, the mocap source,
-the links and the log and does the I/O around it.
+records of the tick. The runner (cfrace.flight.loop.FlightLoop) owns clock, mocap, links and log.
 """
 
 from __future__ import annotations
@@ -22,6 +21,7 @@ import numpy as np
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight import landing as ld
 from cfrace.flight import safety as sf
+from cfrace.flight.consistency import ConsistencyMonitor
 from cfrace.flight.softsafe import SoftState, blocked_by, land_step
 from cfrace.flight.swarm import OpponentPicker, batched_step, due_groups
 from cfrace.flight.loopstate import Drone, ObservationBuilder
@@ -80,7 +80,7 @@ class TickCore:
     def __init__(self, *, drones: list[Drone], estimator, progress, obs_builder: ObservationBuilder,
                  fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, dt: float, filters=None,
                  limits: sf.CommandLimits | None = None, landing: ld.LandingSetup | None = None,
-                 hover_start: bool = False):
+                 hover_start: bool = False, consistency: bool = True):
         self.landing = landing   #: None: every stop cuts the motors (no landing)
         self.hover_start = hover_start   #: drones hover (high-level commander) until their first inference
         self.race_over: tuple | None = None   #: (end, winner, t) once the race is decided; landings may follow
@@ -92,6 +92,9 @@ class TickCore:
         self.events: list[dict] = []
         self._active: set = set()        # (kind, drone) of violations currently present
         self._outliers = {d.body: 0 for d in drones}
+        #: do the poses move with the commands (off only for scripted poses in unit tests)
+        self.consistency = ConsistencyMonitor(len(drones), dt, drones[0].mass) if drones and consistency else None
+        self.mismatch: list = [None] * len(drones)   #: per drone: why its poses do not fit its commands
         self.t = 0.0
         self.last_ests: list | None = None
         self.last_frame = None
@@ -185,7 +188,8 @@ class TickCore:
                 command=None if d.stopped or d.landing is not None else (*d.rates_dps, d.counts),
                 landing=d.landing is not None or not soft,
                 mocap_glitches=self.soft.recent_glitches(i, t), blocked=self._blocked(i, ests),
-                vbat=float(getattr(links[i], "vbat", math.nan)), vbat_low_s=self.soft.low_battery_s(i, t))
+                vbat=float(getattr(links[i], "vbat", math.nan)), vbat_low_s=self.soft.low_battery_s(i, t),
+                pose_mismatch=self.mismatch[i])
                 for i, (d, e) in enumerate(zip(self.drones, ests))))
 
     # ------------------------------------------------------------------ the tick
@@ -210,6 +214,8 @@ class TickCore:
                 times, call_s = batched_step(self, group, ests)
                 for i, o in zip(group, times):
                     obs_t[i], infer[i] = o, call_s
+        if self.consistency is not None:
+            self.mismatch = self.consistency.update_all(self.drones, ests)
         if self.landing is not None:
             self.soft.count_glitches(self.drones, ests, t, self.estimator.counters)
             self.soft.track_battery(t, links, self.safety_cfg.low_battery_v)
@@ -387,5 +393,8 @@ class TickCore:
                         "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
                         "landing": d.landing_result,
                         "speed_max": round(d.speed_max, 3),
+                        "pose_residual_max": None if self.consistency is None else
+                        {"rate_dps": round(self.consistency.worst[i][0], 1),
+                         "dv_of_limit": round(self.consistency.worst[i][1], 3)},
                         "speed_mean": round(d.speed_sum / d.speed_n, 3) if d.speed_n else None})
         return out

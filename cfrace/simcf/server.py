@@ -23,6 +23,7 @@ from cfrace.simcf.firmware import SimFleet
 from cfrace.simcf.poses import SUBSCRIPTION_TTL, encode_frame
 
 log = logging.getLogger(__name__)
+ERROR_LOG_EVERY_S = 1.0    #: s, bad packets are reported at most this often (one line each)
 
 LOOPBACK = ("127.0.0.1", "localhost")
 MAX_CATCH_UP = 0.1   #: s, the most simulated time one clock tick may add (beyond it the sim lags)
@@ -51,6 +52,7 @@ class SimCrazyflieServer:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self.ports: list[int] = []
+        self._last_error_log = -ERROR_LOG_EVERY_S
         self.pose_port: int | None = None
         self.overruns = 0          #: clock ticks that had to drop time (simulation slower than real time)
         self.sim_lag = 0.0         #: s of wall-clock time not simulated because of overruns
@@ -146,9 +148,14 @@ class SimCrazyflieServer:
             self._peers[i] = addr
             try:
                 replies = self.endpoints[i].handle(data)
-            except Exception:   # a bad packet must not kill the drone
+            except Exception as exc:   # a bad packet must not kill the drone: one line, at most 1/s
                 self.errors += 1
-                log.exception("simcf: error handling packet %r for drone %d", data[:8], i)
+                now = time.monotonic()
+                if now - self._last_error_log >= ERROR_LOG_EVERY_S:
+                    self._last_error_log = now
+                    log.warning("simcf: drone %d dropped a bad packet (%d bytes, header 0x%02x): %s "
+                                "(%d bad packets so far)", i, len(data), data[0] if data else 0,
+                                " ".join(str(exc).split())[:120], self.errors)
                 continue
             self._send(i, replies)
 

@@ -1,0 +1,148 @@
+"""Do the poses move with the commands? The check that a pose source belongs to the drones it steers.
+
+A drone in rate mode does, by the drone model (cfrace.sim.dynamics, the firmware's rate loop):
+- turn at the body rates it is told, a few ticks late (the rate controller and the rotors);
+- accelerate by its collective thrust along its body z axis, minus gravity (drag is small at
+  these speeds against thrusts of up to 3 g).
+
+Per drone, while it is not stopped, over the last WINDOW_S (near the floor, any pose of the window
+below AIRBORNE_Z_M, only the upward part of the thrust residual counts: the floor holds a drone
+up, never down, and turns it in no predictable way):
+- rate residual: the mean body rate the poses show (the rotation between the window's first and
+  last attitude over its length) against the mean of the rates commanded LAG_S earlier, deg/s;
+- thrust residual: the velocity change the poses show against the one the commanded thrusts give
+  along the poses' own attitudes (sum of (R e3 T / m - g e3) dt), m/s; its limit grows with the
+  commanded thrust impulse (sum of T / m dt): at full thrust and full rates the rotors saturate and
+  the drone gets less than it was told, and drag grows with speed.
+Either above its limit for MISMATCH_TICKS ticks in a row is a mismatch: the drone is stopped
+(safety kind ``pose_mismatch``). Replayed or simulated poses of other drones, or two swapped mocap
+bodies, show rates and velocity changes that the commands do not explain. The limits were set
+against the shipped policies' races (`python benchmarks/consistency_races.py`: docs/flight.md,
+"Poses that do not belong to the drones").
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+from cfrace.drone import GRAVITY
+from cfrace.errors import MocapError
+from cfrace.flight.landing import BRAKE
+
+WINDOW_S = 0.1           #: s, the window the residuals average over
+LAG_S = 0.02             #: s, commanded rates show in the poses this much later (rate loop + rotors)
+AIRBORNE_Z_M = 0.2       #: m, below this the floor may hold the drone: no check
+RATE_LIMIT_DPS = 300.0   #: deg/s, mean body-rate residual over the window that counts as a mismatch
+DV_LIMIT_MPS = 1.2       #: m/s, velocity-change residual over the window that counts as a mismatch ...
+DV_LIMIT_REL = 1.2       #: ... plus this times the commanded thrust impulse over the window (m/s)
+MISMATCH_TICKS = 5       #: ticks in a row above a limit before the drone is stopped
+STILL_S = 0.3            #: s the poses are watched before take-off
+STILL_M = 0.05           #: m a body may move in that time (mocap noise) while its drone is told nothing
+
+
+def _rotvec(r_from: np.ndarray, r_to: np.ndarray) -> np.ndarray:
+    """Body-frame rotation vector (rad) that turns attitude r_from into r_to (world-from-body)."""
+    rel = r_from.T @ r_to
+    c = max(-1.0, min(1.0, (float(np.trace(rel)) - 1.0) / 2.0))
+    angle = math.acos(c)
+    axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+    s = 2.0 * math.sin(angle)
+    return axis * (angle / s) if s > 1e-9 else axis * 0.5
+
+
+class ConsistencyMonitor:
+    """Per drone: the recent poses and commands, the residuals, and whether they disagree."""
+
+    def __init__(self, n: int, dt: float, mass: float):
+        self.dt, self.mass = float(dt), float(mass)
+        self.window = max(2, int(round(WINDOW_S / self.dt)))
+        self.lag = int(round(LAG_S / self.dt))
+        size = self.window + self.lag + 1
+        self.hist = [deque(maxlen=size) for _ in range(n)]   # (pos, vel, rot, rates rad/s, thrust N)
+        self.over = [0] * n
+        self.worst = [[0.0, 0.0] for _ in range(n)]   #: per drone: largest rate residual, dv residual / limit
+
+    def residuals(self, i: int) -> tuple[float, float, float] | None:
+        """(rate residual deg/s, velocity-change residual m/s, its limit m/s) of drone i, or None
+        (not enough history)."""
+        h = self.hist[i]
+        if len(h) < h.maxlen:
+            return None
+        airborne = min(float(p[2]) for p, *_ in h) >= AIRBORNE_Z_M
+        w, lag = self.window, self.lag
+        last, first = h[-1], h[-1 - w]
+        rate_res = 0.0
+        if airborne:
+            omega_obs = _rotvec(first[2], last[2]) / (w * self.dt)
+            omega_cmd = np.mean([h[-1 - lag - j][3] for j in range(w)], axis=0)
+            rate_res = math.degrees(float(np.linalg.norm(omega_obs - omega_cmd)))
+        dv_obs = last[1] - first[1]
+        dv_exp, impulse = np.zeros(3), 0.0
+        for j in range(w):           # the thrust commanded lag ticks before each step, along its attitude
+            rot, thrust = h[-1 - j][2], h[-1 - j - lag][4]
+            dv_exp += (rot[:, 2] * (thrust / self.mass) - (0.0, 0.0, GRAVITY)) * self.dt
+            impulse += thrust / self.mass * self.dt
+        dv_res = float(np.linalg.norm(dv_obs - dv_exp)) if airborne else max(0.0, float(dv_exp[2] - dv_obs[2]))
+        return rate_res, dv_res, DV_LIMIT_MPS + DV_LIMIT_REL * impulse
+
+    def update_all(self, drones, ests) -> list[str | None]:
+        """update() for every drone of the tick (cfrace.flight.loopstate.Drone): judged while it flies
+        on body rates, racing or braking before a landing (the high-level commander's moves are not)."""
+        return [self.update(i, e, d.rates_dps, d.thrust_n,
+                            not d.stopped and (d.action is not None if d.landing is None else d.landing.phase == BRAKE))
+                for i, (d, e) in enumerate(zip(drones, ests))]
+
+    def update(self, i: int, est, rates_dps, thrust_n: float, flying: bool) -> str | None:
+        """Add drone i's newest estimate and the command sent with it; a detail text when the poses
+        and the commands have disagreed for MISMATCH_TICKS ticks, else None."""
+        if not flying or not est.valid:
+            self.hist[i].clear()
+            self.over[i] = 0
+            return None
+        rates = np.radians(np.asarray(rates_dps, dtype=np.float64))
+        self.hist[i].append((np.array(est.pos, np.float64), np.array(est.vel, np.float64),
+                             np.array(est.rot, np.float64), rates, float(thrust_n)))
+        res = self.residuals(i)
+        if res is None:
+            self.over[i] = 0
+            return None
+        rate_res, dv_res, dv_limit = res
+        worst = self.worst[i]
+        worst[0], worst[1] = max(worst[0], rate_res), max(worst[1], dv_res / dv_limit)
+        if rate_res > RATE_LIMIT_DPS or dv_res > dv_limit:
+            self.over[i] += 1
+        else:
+            self.over[i] = 0
+        if self.over[i] >= MISMATCH_TICKS:
+            return (f"the poses do not move with the commands: body rates off by {rate_res:.0f} deg/s "
+                    f"(limit {RATE_LIMIT_DPS:g}), velocity change off by {dv_res:.2f} m/s (limit {dv_limit:.2f}) "
+                    f"over {self.window * self.dt * 1e3:.0f} ms")
+        return None
+
+
+def check_still(mocap, bodies: list[str], seconds: float = STILL_S, clock=None) -> None:
+    """Before take-off (the drones lie on the floor and are told nothing): every body's pose must
+    stay within STILL_M for ``seconds``; MocapError naming the body otherwise (replayed or simulated
+    poses of a flight, or poses of other drones, move)."""
+    import time
+
+    clock = clock or time.monotonic
+    first: dict = {}
+    end = clock() + seconds
+    while clock() < end:
+        frame = mocap.read(0.02)
+        time.sleep(0.01)   # an in-process source answers at once: leave the GIL to the drones' threads
+        if frame is None:
+            continue
+        for b in bodies:
+            pose = frame.poses.get(b)
+            if pose is None:
+                continue
+            first.setdefault(b, pose.pos.copy())
+            moved = float(np.linalg.norm(pose.pos - first[b]))
+            if not moved <= STILL_M:
+                raise MocapError(f"mocap body {b} moved {moved:.2f} m in {seconds:g} s before take-off while its "
+                                 f"drone was told nothing: these poses do not belong to the drones that would fly")
