@@ -300,7 +300,7 @@ class TickCore:
                 out.events.append(self.event(t, sf.Violation(
                     "pose_outlier", i, sf.NONE, f"mocap pose of {d.body} rejected as an outlier ({c} so far)")))
             e = out.ests[i]
-            if not d.stopped and e.valid:
+            if not d.stopped and d.landing is None and e.valid:   # racing: the speeds of the race alone
                 s = float(np.linalg.norm(e.vel))
                 d.speed_max = max(d.speed_max, s)
                 d.speed_sum += s
