@@ -22,9 +22,7 @@ flight is the result's ``log_error`` (and the exit code's, EXIT_CODES["log_error
 from __future__ import annotations
 
 import gc
-import time
 import signal
-import time
 import sys
 import threading
 import time
@@ -148,10 +146,18 @@ class SignalGuard:
         if not self.after:
             raise KeyboardInterrupt(name)
 
+    def _unraisable(self, u) -> None:
+        """A signal's KeyboardInterrupt raised where it cannot propagate (a weakref or finalizer
+        callback during the race's teardown) is already in ``late``; anything else is printed."""
+        if isinstance(u.exc_value, KeyboardInterrupt) and self.late is not None:
+            return
+        self.old_unraisable(u)
+
     def __enter__(self) -> "SignalGuard":
         if threading.current_thread() is threading.main_thread():
             for s in (signal.SIGINT, signal.SIGTERM):
                 self.old[s] = signal.signal(s, self._handler)
+            self.old_unraisable, sys.unraisablehook = sys.unraisablehook, self._unraisable
         return self
 
     def __exit__(self, *exc) -> None:
