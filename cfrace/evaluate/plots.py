@@ -202,15 +202,20 @@ def plot_heatmap(path: Path, names: list[str], win: list[list[float | None]], dr
     ax.set_xlabel("opponent (column)")
     ax.set_ylabel("policy (row)")
     fig.colorbar(im, ax=ax, label="win rate [%]", shrink=0.8)
+    return _finish(fig, ax, path, title)
+
+
+
+def _finish(fig, ax, path, title: str | None) -> Path:
+    """The figure's optional title, layout and PNG at ``path`` (folders made); the figure closed."""
     if title:
         ax.set_title(title, fontsize=9)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _plt().close(fig)
     return path
-
 
 def _race_place(track_pos: np.ndarray, places_final: np.ndarray, stopped: np.ndarray) -> np.ndarray:
     """(T, D) place over time of one recorded race: by distance along the race line (1 = ahead);
@@ -283,11 +288,4 @@ def plot_ratings(path: Path, names: list[str], rating: list[float], mean_place: 
                 ha="center", va="bottom", fontsize=8)
     ax.set_ylabel("rating (Elo scale)")
     ax.grid(axis="y", alpha=0.3)
-    if title:
-        ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _finish(fig, ax, path, title)
