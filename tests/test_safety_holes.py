@@ -329,3 +329,15 @@ def test_fault_suite_rows_pass_and_catch_a_replay(tmp_path):
     assert FAULT_T <= row.detected_s <= FAULT_T + 0.3 and row.stopped_s <= FAULT_T + 0.3
     table = markdown([row])
     assert table.count("\n") == 2 and "| fault replay_poses@2 (ego) |" in table and "| pass |" in table
+
+
+def test_fault_suite_knows_every_fault_and_times_a_landing(tmp_path):
+    """Every fault kind has its expected detection in the suite (a kind without one ended
+    `cfrace sim faults` with a KeyError); a soft failsafe's row says when its landing touched down."""
+    from cfrace.flight.faults import KINDS
+    from cfrace.flight.faultsuite import EXPECT, FAULT_T, dry_run_row
+
+    assert set(EXPECT) == set(KINDS)
+    row = dry_run_row("low_battery", "lemniscate", tmp_path)
+    assert row.passed and row.exit_code == 0, row
+    assert FAULT_T < row.detected_s < row.stopped_s and row.distance_m < 5.0, row

@@ -43,7 +43,9 @@ EXPECT = {"mocap_dropout_short": ("mocap_dropout", "none", 0), "mocap_dropout_lo
           "nan_policy": ("non_finite", "stop_drone", 0), "link_loss": ("link_lost", "stop_drone", 0),
           "stall_50ms": ("tick_skipped", "none", 0), "stall_200ms": ("loop_overrun", "stop_all", 0),
           "sigterm": ("operator_kill", "stop_all", 143), "sigint": ("operator_kill", "stop_all", 130),
-          "swap_bodies": ("pose_mismatch", "stop_all", 0), "replay_poses": ("pose_mismatch", "stop_all", 0)}
+          "swap_bodies": ("pose_mismatch", "stop_all", 0), "replay_poses": ("pose_mismatch", "stop_all", 0),
+          "mocap_glitchy": ("mocap_degraded", "land_drone", 0), "low_battery": ("low_battery", "land_drone", 0),
+          "operator_land": ("operator_land", "land_all", 3)}   # every drone landed: the race's all-stopped code
 #: faults injected at another time than FAULT_T: two mocap bodies swapped from the start (a labelling
 #: mistake; swapped mid-race, the jump itself trips the speed rule first)
 FAULT_AT = {"swap_bodies": 0.0}
@@ -107,7 +109,11 @@ def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
     ok = {(want_kind, want_action), ALSO.get(kind)}
     ev = next((e for e in res["safety_events"] if (e["kind"], e["action"]) in ok and e["t"] >= at - 1e-9), None)
     row.detected_s = None if ev is None else ev["t"]
-    stopped_by_fault = [d for d in res["drones"] if d["stopped"] and d["stop_t"] is not None and d["stop_t"] < RACE_S]
+    if want_action.startswith("land"):   # a soft failsafe: "stopped at" is when its landings touched down
+        stopped_by_fault = [d for d in res["drones"] if (d.get("landing") or {}).get("reason") == want_kind
+                            and d["landing"]["down"]]
+    else:
+        stopped_by_fault = [d for d in res["drones"] if d["stopped"] and d["stop_t"] is not None and d["stop_t"] < RACE_S]
     row.stopped_s = max(d["stop_t"] for d in stopped_by_fault) if want_action != "none" and stopped_by_fault else None
     data = read_log(log)
     row.log_complete = bool(data.complete)
@@ -115,7 +121,8 @@ def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
     if ev is not None and ev["action"] == "stop_all" and want_code == 0:   # a safety check stopped every drone
         want_code = EXIT_CODES["all_stopped"]
     if ev is not None and want_action != "none":
-        row.distance_m = _dry_run_distance(data, res, ev)
+        row.distance_m = _dry_run_distance(data, res, ev, {d["name"] for d in stopped_by_fault}
+                                           if want_action.startswith("land") else None)
     motors_off = all(d["motors_off"] for d in res["drones_final"] or [])
     row.passed = (ev is not None and row.log_complete and motors_off
                   and row.exit_code == want_code and (want_action == "none" or row.stopped_s is not None))
@@ -123,15 +130,15 @@ def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
     return row
 
 
-def _dry_run_distance(data, res: dict, ev: dict) -> float:
-    """Largest straight-line distance of a stopped drone from its ground-truth pose at the
-    detection to where it came to rest (drones_final)."""
+def _dry_run_distance(data, res: dict, ev: dict, names: set[str] | None = None) -> float:
+    """Largest straight-line distance of a stopped drone (of ``names``, if given) from its
+    ground-truth pose at the detection to where it came to rest (drones_final)."""
     frames = [(t, m) for t, m in data.messages("/mocap/pose")]
     t_ev = ev["t"]
     at = min(frames, key=lambda f: abs(f[0] - t_ev))[1]["poses"]
     out = 0.0
     for d, fin in zip(res["drones"], res["drones_final"]):
-        if d["stopped"] and fin.get("pos") is not None and d["body"] in at:
+        if d["stopped"] and (names is None or d["name"] in names) and fin.get("pos") is not None and d["body"] in at:
             out = max(out, float(np.linalg.norm(np.asarray(fin["pos"]) - np.asarray(at[d["body"]]["pos"]))))
     return out
 
