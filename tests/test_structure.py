@@ -129,20 +129,16 @@ LONG_FILES = {
     "simcf/firmware.py": "the simulated firmware's one state machine (setpoints, watchdog, arming, params)",
 }
 LONG_FUNCTIONS = {
-    "cli/flight.py:register": "the `fly` command's option list (typer signature); the body is a few calls",
-    "cli/flight.py:fly_cmd": "the same: the `fly` command's option list; the body is a few calls",
-    "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list (typer signature); the body is a few calls",
-    "cli/train.py:train_cmd": "the `train` command's option list; in the trainer's files, restructured with them",
-    "cli/logs.py:info_cmd": "one table of a log's summary, printed row by row",
-    "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper; in the trainer's files",
-    "rl/train.py:train": "the training loop with budgets, logs and resume; in the trainer's files",
-    "sim/simulator.py:_substep": "the torch reference of one physics step, kept in the order of kernel.c",
-    "evaluate/rollout.py:rollout": "the evaluation rollout, one loop over policy steps",
-    "evaluate/plots.py:race_plots": "one figure with its panels",
-    "flight/estimator.py:_ingest": "the per-frame estimator update, kept in one place for the 100 Hz tick",
-    # landed from other branches during the consolidation; their owners split them when they next change
-    "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
-    "cli/calibrate.py:thrust_cmd": "the `calibrate thrust` command's option list (typer signature)",
+    # typer command signatures: one parameter per option, with its help; the bodies are short
+    "cli/flight.py:register": "holds the `fly` command (defined inside it): its option list",
+    "cli/flight.py:fly_cmd": "the `fly` command's option list; the body resolves the config and calls fly",
+    "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list; the body calls dry_run",
+    "cli/train.py:train_cmd": "the `train` command's option list (the trainer's files, restructured with them)",
+    "sim/simulator.py:_substep": "the torch reference of one physics step, kept in kernel.c's order to compare them",
+    # the trainer's files, being split with the trainer's restructuring
+    "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper",
+    "rl/train.py:train": "the training loop with budgets, logs and resume",
+    "rl/ippo.py:ppo_update": "the PPO update with mixed precision",
 }
 
 
@@ -162,3 +158,7 @@ def test_no_long_files_or_functions_beyond_the_justified_ones():
     assert long_files <= set(LONG_FILES), f"files over 400 lines: {sorted(long_files - set(LONG_FILES))}"
     assert long_functions <= set(LONG_FUNCTIONS), \
         f"functions over 60 lines: {sorted(long_functions - set(LONG_FUNCTIONS))}"
+    # an exception that no longer applies is dropped from the list, so that the list stays what is long
+    assert set(LONG_FILES) <= long_files, f"no longer over 400 lines: {sorted(set(LONG_FILES) - long_files)}"
+    assert set(LONG_FUNCTIONS) <= long_functions, \
+        f"no longer over 60 lines: {sorted(set(LONG_FUNCTIONS) - long_functions)}"

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import signal
 import threading
 import time
@@ -73,10 +72,9 @@ def thrust_cmd(
 ):
     """Step the motors through cflib's motor test parameters, read force and torque from the CAN sensor
     and the battery / motor speed from the drone's log, fit, and write a complete drone profile."""
-    from cfrace.calibrate.fit import compare, fit_recording, profile_dict, write_profile
-    from cfrace.calibrate.plots import plot_fits, summary_lines
-    from cfrace.calibrate.procedure import QUICK_PLAN, Plan, run_stand
+    from cfrace.calibrate.procedure import QUICK_PLAN, Plan
     from cfrace.calibrate.sensor import load_sensor
+    from cfrace.calibrate.thrust import calibrate_thrust
     from cfrace.drone import load_profile
 
     spec = load_sensor(sensor)            # bad input fails here, before anything starts
@@ -94,42 +92,10 @@ def thrust_cmd(
         raise ConfigError(f"--out {out_path}: exists (pass --force to overwrite)")
     if simulate is None and (uri is None or bus is None):
         raise ConfigError("--uri and --bus are required (or --simulate PROFILE to try it on a simulated stand)")
-    plan = QUICK_PLAN if quick else Plan()
-    name = out_path.stem
-    folder = report or Path("runs") / "calibrate" / name
-    _say(f"stand plan: {len(plan.levels)} levels up and down, all motors then M"
-         + ", M".join(str(m + 1) for m in plan.motors) + f" alone, {plan.tau_repeats} lag-step pairs; about "
-         f"{plan.duration():.0f} s")
-    t0 = time.monotonic()
-    if simulate is not None:
-        from cfrace.simcf.stand import SimStand
-
-        bus = bus or "can://virtual/stand"
-        with SimStand(profile=true_profile, sensor=spec, bus=bus, seed=seed) as stand:
-            _say(f"simulated stand: {simulate} on {stand.uri}, sensor {spec.name} on {bus}")
-            rec = run_stand(stand.uri, spec, bus, plan, confirmed=confirm, out=_say)
-    else:
-        rec = run_stand(uri, spec, bus, plan, confirmed=confirm, out=_say)
-    run_s = time.monotonic() - t0
-    fit = fit_recording(rec)
-    write_profile(out_path, profile_dict(fit, base_profile, name, rec.info))
-    written = load_profile(out_path)       # the strict loader: what train / eval / sim / fly will read
-    plots = plot_fits(fit, rec, folder, true_profile)
-    for line in summary_lines(fit):
-        _say(line)
-    result = {"profile": str(out_path), "run_s": run_s, "samples": fit.samples, "log_packets": fit.log_packets,
-              "info": rec.info, "gamma": fit.gamma, "gamma_fitted": fit.gamma_fitted, "k_eta": written.k_eta,
-              "k_m": written.k_m, "tau_m": written.tau_m, "motor_speed": list(written.motor_speed),
-              "thrust_curve": {"counts": list(written.thrust_curve.counts), "newtons": list(written.thrust_curve.newtons)},
-              "plots": [str(p) for p in plots]}
-    if true_profile is not None:
-        cmp = compare(written, true_profile)
-        result["compare"] = {"truth": true_profile.name, **cmp}
-        _say(f"against {true_profile.name}: thrust curve within {cmp['curve_max_err_pct_fs']:.2f} % of full scale "
-             f"(worst at {cmp['curve_worst_counts']} counts), k_m {cmp['k_m_err_pct']:.2f} %, tau_m "
-             f"{cmp['tau_m_err_pct']:.2f} %, k_eta {cmp['k_eta_err_pct']:.2f} %")
-    (folder / "report.json").write_text(json.dumps(result, indent=1) + "\n")
-    _say(f"wrote {out_path} ({run_s:.0f} s on the stand); plots and report.json in {folder}")
+    folder = report or Path("runs") / "calibrate" / out_path.stem
+    result = calibrate_thrust(out_path, spec, QUICK_PLAN if quick else Plan(), base_profile, true_profile, folder,
+                              uri=uri, bus=bus, simulate=simulate, seed=seed, confirmed=confirm, say=_say)
+    _say(f"wrote {out_path} ({result['run_s']:.0f} s on the stand); plots and report.json in {folder}")
     _say(f"fly with it: cfrace fly ... --profile {out_path}; train on it: cfrace train ... --profile {out_path}")
 
 

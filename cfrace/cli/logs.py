@@ -48,46 +48,13 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
     else:
         state = "[yellow]not closed (no /summary)[/yellow]"
     console.print(f"[bold]{file}[/bold]: {state}, duration {s.duration_s:.2f} s")
-
-    meta = Table(title="meta", show_header=False)
-    meta.add_column("key")
-    meta.add_column("value", overflow="fold")
-    for key in _META_SHOWN:
-        if key in data.meta:
-            meta.add_row(key, _short(data.meta[key]))
-    console.print(meta)
-
-    topics = Table(title="messages per topic")
-    topics.add_column("topic")
-    topics.add_column("count", justify="right")
-    topics.add_column("encoding (schema)")
-    for topic, n in s.counts.items():
-        enc, schema, _ = data.channels.get(topic, ("", "", ""))
-        topics.add_row(topic, str(n), f"{enc} ({schema})" if schema else enc)
-    console.print(topics)
-
+    console.print(_key_value_table("meta", {k: data.meta[k] for k in _META_SHOWN if k in data.meta}))
+    console.print(_topics_table(data, s.counts))
     if s.loop:
         console.print(loop_table(s.loop))
-
-    if s.safety:
-        events = Table(title=f"safety events ({len(s.safety)})")
-        for col in ("t s", "who", "kind", "action", "detail"):
-            events.add_column(col)
-        for e in s.safety[:_MAX_EVENTS]:
-            events.add_row(f"{e.t:.2f}", e.who, e.kind, e.action, _short(e.detail, 80))
-        console.print(events)
-        if len(s.safety) > _MAX_EVENTS:
-            console.print(f"... and {len(s.safety) - _MAX_EVENTS} more safety events")
-    else:
-        console.print("safety events: none")
-
+    _print_safety(console, s.safety)
     if s.race:
-        race = Table(title="race result", show_header=False)
-        race.add_column("key")
-        race.add_column("value", overflow="fold")
-        for key, value in s.race.items():
-            race.add_row(str(key), _short(value))
-        console.print(race)
+        console.print(_key_value_table("race result", s.race))
     else:
         console.print("race result: none recorded")
     if data.bad_messages:
@@ -98,6 +65,43 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
                                "schema": data.channels.get(t, ("", ""))[1]} for t, n in s.counts.items()},
                 "loop": s.loop, "safety_events": [asdict(e) for e in s.safety], "race": s.race,
                 "bad_messages": data.bad_messages}, json_out)
+
+
+def _key_value_table(title: str, values: dict) -> Table:
+    """Two columns, no header: each key and its value shortened to one line."""
+    table = Table(title=title, show_header=False)
+    table.add_column("key")
+    table.add_column("value", overflow="fold")
+    for key, value in values.items():
+        table.add_row(str(key), _short(value))
+    return table
+
+
+def _topics_table(data, counts: dict[str, int]) -> Table:
+    """Messages per topic with the channel's encoding and schema (``data``: a read flight log)."""
+    topics = Table(title="messages per topic")
+    topics.add_column("topic")
+    topics.add_column("count", justify="right")
+    topics.add_column("encoding (schema)")
+    for topic, n in counts.items():
+        enc, schema, _ = data.channels.get(topic, ("", "", ""))
+        topics.add_row(topic, str(n), f"{enc} ({schema})" if schema else enc)
+    return topics
+
+
+def _print_safety(console: Console, safety: list) -> None:
+    """The first _MAX_EVENTS safety events as a table, and how many more there were."""
+    if not safety:
+        console.print("safety events: none")
+        return
+    events = Table(title=f"safety events ({len(safety)})")
+    for col in ("t s", "who", "kind", "action", "detail"):
+        events.add_column(col)
+    for e in safety[:_MAX_EVENTS]:
+        events.add_row(f"{e.t:.2f}", e.who, e.kind, e.action, _short(e.detail, 80))
+    console.print(events)
+    if len(safety) > _MAX_EVENTS:
+        console.print(f"... and {len(safety) - _MAX_EVENTS} more safety events")
 
 
 @log_app.command("plot")

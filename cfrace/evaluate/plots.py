@@ -117,9 +117,6 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
                s: RunSummary, races: int, profile: dict) -> list[Path]:
     """race_trajectories.png (a: ego vs a live opponent, b: vs a crashed one, coloured by speed) and
     speed.png (the ego's speed over time in both, with max and mean)."""
-    from matplotlib.colors import Normalize
-
-    plt = _plt()
     plot_dir = Path(plot_dir)
     plot_dir.mkdir(parents=True, exist_ok=True)
     recorded = [w for w in rec.recorded if w < races]
@@ -129,8 +126,22 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
     cases = [("a", "live opponent", live_w)] + ([("b", "crashed opponent", crash_w)] if crash_w is not None else [])
     traces = {c: _trace(rec, w, 0) for c, _, w in cases}
     vmax = max([float(tr[1].max()) for tr in traces.values() if tr[1].size] + [1.0])
+    names = (entrants[0].name, entrants[1].name)
+    traj = _race_trajectories(plot_dir / "race_trajectories.png", track, obstacles, names, rec, s, races, cases,
+                              traces, vmax)
+    speed = _race_speeds(plot_dir / "speed.png", names[0], rec, s, races, profile, cases, traces, vmax)
+    return [traj, speed]
+
+
+def _race_trajectories(path: Path, track: Track, obstacles: bool, names: tuple[str, str], rec: Recording,
+                       s: RunSummary, races: int, cases: list, traces: dict, vmax: float) -> Path:
+    """One top view per case (tag, label, world): the ego's path coloured by speed (0..vmax m/s), the
+    opponent's dashed."""
+    from matplotlib.colors import Normalize
+
+    plt = _plt()
     norm = Normalize(0.0, vmax)
-    ego, opp = entrants[0].name, entrants[1].name
+    ego, opp = names
     fig, axes = plt.subplots(1, len(cases), figsize=(6.0 * len(cases), 6.8), squeeze=False, layout="constrained")
     lc = None
     for ax, (tag, label, w) in zip(axes[0], cases):
@@ -145,12 +156,19 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
         ax.set_title(f"({tag}) {ego} vs {label}, {_race_name(w, races)}\n{_lap_text(s, w, 0)}", fontsize=9)
     if lc is not None:
         fig.colorbar(lc, ax=list(axes[0]), label=f"{ego} speed [m/s]", shrink=0.8)
-    traj = plot_dir / "race_trajectories.png"
-    fig.savefig(traj, dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
+    return path
 
+
+def _race_speeds(path: Path, ego: str, rec: Recording, s: RunSummary, races: int, profile: dict, cases: list,
+                 traces: dict, vmax: float) -> Path:
+    """The ego's speed over time, one panel per case, with this race's and all such races' max / mean
+    (``profile``: the speed profile's aggregates by case), laps and the opponent's crash marked."""
+    plt = _plt()
     fig, axes = plt.subplots(len(cases), 1, figsize=(9.0, 3.2 * len(cases)), squeeze=False, sharex=True)
     keys = {"a": "vs_live_opponent", "b": "vs_crashed_opponent"}
+    fmt = lambda x: "–" if x is None else f"{x:.2f}"
     for ax, (tag, label, w) in zip(axes[:, 0], cases):
         _, v, t = traces[tag]
         st = speed_stats(v, np.ones_like(v, bool))
@@ -165,7 +183,6 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
         if down.size and t.size and rec.t[down[0]] <= t[-1]:
             ax.axvline(rec.t[down[0]], color="red", lw=1.0, ls="--", label="opponent crashed")
             ax.legend(loc="lower right", fontsize=7)
-        fmt = lambda x: "–" if x is None else f"{x:.2f}"
         ax.set_title(f"({tag}) {ego} vs {label}, {_race_name(w, races)}: this race max "
                      f"{fmt(st['max_mps'])} / mean {fmt(st['mean_mps'])} m/s; all {agg['races']} such races max "
                      f"{fmt(agg['max_mps'])} / mean {fmt(agg['mean_mps'])} m/s", fontsize=8)
@@ -175,10 +192,9 @@ def race_plots(plot_dir: Path, track: Track, obstacles: bool, entrants: list[Ent
     axes[-1, 0].set_xlabel("time [s] (green: lap completed)")
     axes[-1, 0].set_xlim(0.0, max([float(tr[2][-1]) for tr in traces.values() if tr[2].size] + [0.1]))
     fig.tight_layout()
-    speed = plot_dir / "speed.png"
-    fig.savefig(speed, dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    return [traj, speed]
+    return path
 
 
 def plot_heatmap(path: Path, names: list[str], win: list[list[float | None]], draw: list[list[float | None]],

@@ -16,6 +16,7 @@ The loop ends when every world has stopped or at the time limit.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,6 +105,115 @@ def parked_opponent(track: Track, profile: DroneProfile) -> torch.Tensor:
     return torch.tensor([a.x[0], a.y[0], profile.collision_box[2] / 2.0], dtype=torch.float32)
 
 
+@dataclass(frozen=True)
+class _Field:
+    """What every step of one rollout reads: the policies' slots, the race line, the constants."""
+    groups: list               # (entrant, iw, idr, tw, td) per entrant with slots: worlds and drones (numpy, torch)
+    rules: set                 # opponent rules in use (more than two drones)
+    opponent_rule: str         # for policies without their own
+    gates: torch.Tensor        # (G, 3) m
+    cum: torch.Tensor          # race line (cfrace.env.observations.polyline)
+    lap_len: torch.Tensor
+    start_gate: torch.Tensor   # (W,) int64
+    parked: torch.Tensor       # (3,) m, the opponent of a policy flying alone
+    off_thrust: float          # N, motors off
+    profile: DroneProfile
+    rec_ids: torch.Tensor      # (K,) recorded worlds
+    touch: float               # m, drone-drone contact distance
+    eye: torch.Tensor          # (D, D) bool, a drone with itself
+
+
+def _field(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[Entrant], assign: np.ndarray,
+           starts: Starts, record: tuple[int, ...], opponent_rule: str) -> _Field:
+    groups = []
+    for p, e in enumerate(entrants):
+        iw, idr = np.nonzero(assign == p)
+        if iw.size == 0:
+            continue
+        groups.append((e, iw, idr, torch.as_tensor(iw), torch.as_tensor(idr)))
+    d = assign.shape[1]
+    rules = {e.meta.get("opponent_rule", opponent_rule) for e, *_ in groups if e.layout.opponent} if d > 2 else set()
+    gates = torch.as_tensor(track.gate_array(), dtype=torch.float32)
+    cum, lap_len = polyline(gates)
+    off_thrust, _ = action_to_command(np.asarray(OFF_ACTION, np.float32), profile.mass, profile.max_thrust_weights,
+                                      profile.max_rates_deg)
+    return _Field(groups, rules, opponent_rule, gates, cum, lap_len, starts.target[:, 0].to(torch.int64),
+                  parked_opponent(track, profile), off_thrust, profile, torch.as_tensor(record, dtype=torch.int64),
+                  2.0 * (sim.radius + CONTACT_MARGIN), torch.eye(d, dtype=torch.bool))
+
+
+def _new_recording(n_steps: int, w: int, d: int, record: tuple[int, ...], laps: int) -> Recording:
+    shape = (n_steps, w, d)
+    return Recording(np.zeros(0), np.zeros(shape, bool), np.zeros(shape, np.float32),
+                     np.full(shape, np.nan, np.float32), np.zeros(shape, bool), np.zeros(shape, bool),
+                     np.zeros(shape, np.int8), np.zeros(shape, bool), np.zeros((n_steps, len(record), d, 3), np.float32),
+                     tuple(record), np.zeros((w, d), np.int64), laps,
+                     track_pos=np.zeros((n_steps, len(record), d), np.float32),
+                     pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
+
+
+def _commands(f: _Field, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every slot's command for the next step: thrust (W, D) N, body rates (W, D, 3) deg/s; one
+    onnxruntime call per policy for all its slots; non-finite actions become motors off (counted in
+    ``nan_actions`` (W, D))."""
+    w, d = sim.pos.shape[:2]
+    off = np.asarray(OFF_ACTION, np.float32)
+    thrust = np.full((w, d), f.off_thrust, np.float32)
+    rates = np.zeros((w, d, 3), np.float32)
+    pos, vel, rot, target = sim.pos, sim.vel, sim.rot(), sim.race.target
+    tpos = track_position(f.gates, f.cum, f.lap_len, f.start_gate, sim.race.gates_passed, target, pos)
+    opp = {rule: choose_opponents(pos, tpos, ~sim.race.crashed, rule) for rule in f.rules}
+    for e, iw, idr, tw, td in f.groups:
+        opp_pos = opp_vel = None
+        if e.layout.opponent:
+            if d > 2:
+                oi = opp[e.meta.get("opponent_rule", f.opponent_rule)][tw, td]
+                opp_pos, opp_vel = pos[tw, oi], vel[tw, oi]
+            elif d == 2:
+                opp_pos, opp_vel = pos[tw, 1 - td], vel[tw, 1 - td]
+            else:
+                opp_pos, opp_vel = f.parked.expand(iw.shape[0], 3), torch.zeros(iw.shape[0], 3)
+        obs = build_observation(pos[tw, td], vel[tw, td], rot[tw, td], target[tw, td], sim.gate_corners,
+                                e.layout, opp_pos, opp_vel)
+        act = e.policy(obs.numpy())                      # one onnxruntime call for all its slots
+        bad = ~np.isfinite(act).all(-1)
+        if bad.any():
+            act[bad] = off
+            np.add.at(nan_actions, (iw[bad], idr[bad]), 1)
+        th, rt = action_to_command(act, f.profile.mass, e.meta["max_thrust_weights"], e.meta["max_rates_deg"])
+        thrust[iw, idr], rates[iw, idr] = th, rt
+    return torch.from_numpy(thrust), torch.from_numpy(rates)
+
+
+def _record(r: Recording, step: int, f: _Field, sim: Simulator, ev, active: torch.Tensor,
+            prev_pairs: torch.Tensor) -> torch.Tensor:
+    """Write step ``step``'s figures into ``r`` (``ev``: the simulator's events of the step, ``active``
+    (W, D): racing during it); returns the drone pairs in contact (W, D, D) for the next step."""
+    race = sim.race
+    lap_now = (ev.laps > 0) & active
+    r.active[step] = active.numpy()
+    r.speed[step] = torch.linalg.vector_norm(sim.vel, dim=-1).numpy()
+    r.lap_stamp[step] = torch.where(lap_now, race.lap_start, float("nan")).numpy()
+    r.contact[step] = ev.contact.numpy()
+    r.crashed_now[step] = ev.crashed_now.numpy()
+    r.reason[step] = ev.reason.numpy().astype(np.int8)
+    r.crashed[step] = race.crashed.numpy()
+    if sim.pos.shape[1] > 1:  # drone-drone contacts by pair: within contact distance at the step's end, both racing
+        dist = torch.cdist(sim.pos, sim.pos)
+        pairs = (dist < f.touch) & ev.contact.unsqueeze(-1) & ev.contact.unsqueeze(-2) & ~f.eye
+        racing = active.unsqueeze(-1) & active.unsqueeze(-2)
+        r.pair_contacts += (pairs & ~prev_pairs & racing).numpy()
+        partner = torch.where(pairs, dist, torch.inf).argmin(-1)
+        hit = ev.crashed_now & active & pairs.any(-1)
+        r.crash_partner[hit.numpy()] = partner[hit].numpy()
+        prev_pairs = pairs
+    if len(f.rec_ids):
+        r.pos[step] = sim.pos[f.rec_ids].numpy()
+        r.track_pos[step] = track_position(f.gates, f.cum, f.lap_len, f.start_gate, race.gates_passed, race.target,
+                                           sim.pos)[f.rec_ids].numpy()
+    return prev_pairs
+
+
 def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list[Entrant], assign: np.ndarray,
             starts: Starts, laps: int, time_limit_s: float | None = None, record: tuple[int, ...] = (),
             seed: int = 0, threads: int | None = None, until_all: bool = False,
@@ -111,8 +221,6 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     """Fly every world to the end; ``assign`` (W, D) int: entrant index per slot, -1 = motors off.
     ``opponent_rule``: who a policy without its own ``opponent_rule`` metadata observes when there
     are more than two drones (cfrace.env.observations.choose_opponents)."""
-    import time
-
     assign = np.asarray(assign, dtype=np.int64)
     w, d = assign.shape
     limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
@@ -120,29 +228,8 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     # one simulator thread by default: on a shared 2-core machine OpenMP threads mostly wait on each other
     sim = Simulator(track, profile, w, d, obstacles=obstacles, seed=seed, threads=threads or 1)
     sim.reset(torch.arange(w), starts.pos, quat=starts.quat, target=starts.target)
-    parked = parked_opponent(track, profile)
-    groups = []
-    for p, e in enumerate(entrants):
-        iw, idr = np.nonzero(assign == p)
-        if iw.size == 0:
-            continue
-        groups.append((e, iw, idr, torch.as_tensor(iw), torch.as_tensor(idr)))
-    rules = {e.meta.get("opponent_rule", opponent_rule) for e, *_ in groups if e.layout.opponent} if d > 2 else set()
-    gates = torch.as_tensor(track.gate_array(), dtype=torch.float32)
-    cum, lap_len = polyline(gates)
-    start_gate = starts.target[:, 0].to(torch.int64)
-    touch = 2.0 * (sim.radius + CONTACT_MARGIN)
-    eye = torch.eye(d, dtype=torch.bool)
-    off = np.asarray(OFF_ACTION, np.float32)
-    off_thrust, _ = action_to_command(off, profile.mass, profile.max_thrust_weights, profile.max_rates_deg)
-    rec_ids = torch.as_tensor(record, dtype=torch.int64)
-    shape = (n_steps, w, d)
-    r = Recording(np.zeros(0), np.zeros(shape, bool), np.zeros(shape, np.float32),
-                  np.full(shape, np.nan, np.float32), np.zeros(shape, bool), np.zeros(shape, bool),
-                  np.zeros(shape, np.int8), np.zeros(shape, bool), np.zeros((n_steps, len(record), d, 3), np.float32),
-                  tuple(record), np.zeros((w, d), np.int64), laps,
-                  track_pos=np.zeros((n_steps, len(record), d), np.float32),
-                  pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
+    f = _field(track, profile, sim, entrants, assign, starts, record, opponent_rule)
+    r = _new_recording(n_steps, w, d, record, laps)
     prev_pairs = torch.zeros(w, d, d, dtype=torch.bool)
     finished = torch.zeros(w, d, dtype=torch.bool)
     over = torch.zeros(w, dtype=torch.bool)
@@ -151,54 +238,9 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     with torch.no_grad():
         for step in range(n_steps):
             active = ~sim.race.crashed & ~finished & ~over.unsqueeze(-1)
-            thrust = np.full((w, d), off_thrust, np.float32)
-            rates = np.zeros((w, d, 3), np.float32)
-            pos, vel, rot, target = sim.pos, sim.vel, sim.rot(), sim.race.target
-            tpos = track_position(gates, cum, lap_len, start_gate, sim.race.gates_passed, target, pos)
-            opp = {rule: choose_opponents(pos, tpos, ~sim.race.crashed, rule) for rule in rules}
-            for e, iw, idr, tw, td in groups:
-                opp_pos = opp_vel = None
-                if e.layout.opponent:
-                    if d > 2:
-                        oi = opp[e.meta.get("opponent_rule", opponent_rule)][tw, td]
-                        opp_pos, opp_vel = pos[tw, oi], vel[tw, oi]
-                    elif d == 2:
-                        opp_pos, opp_vel = pos[tw, 1 - td], vel[tw, 1 - td]
-                    else:
-                        opp_pos, opp_vel = parked.expand(iw.shape[0], 3), torch.zeros(iw.shape[0], 3)
-                obs = build_observation(pos[tw, td], vel[tw, td], rot[tw, td], target[tw, td], sim.gate_corners,
-                                        e.layout, opp_pos, opp_vel)
-                act = e.policy(obs.numpy())                      # one onnxruntime call for all its slots
-                bad = ~np.isfinite(act).all(-1)
-                if bad.any():
-                    act[bad] = off
-                    np.add.at(r.nan_actions, (iw[bad], idr[bad]), 1)
-                th, rt = action_to_command(act, profile.mass, e.meta["max_thrust_weights"], e.meta["max_rates_deg"])
-                thrust[iw, idr], rates[iw, idr] = th, rt
-            thrust, rates = torch.from_numpy(thrust), torch.from_numpy(rates)
-            ev = sim.step(thrust, rates, SUBSTEPS)
+            ev = sim.step(*_commands(f, sim, r.nan_actions), SUBSTEPS)
+            prev_pairs = _record(r, step, f, sim, ev, active, prev_pairs)
             race = sim.race
-            lap_now = (ev.laps > 0) & active
-            r.active[step] = active.numpy()
-            r.speed[step] = torch.linalg.vector_norm(sim.vel, dim=-1).numpy()
-            r.lap_stamp[step] = torch.where(lap_now, race.lap_start, float("nan")).numpy()
-            r.contact[step] = ev.contact.numpy()
-            r.crashed_now[step] = ev.crashed_now.numpy()
-            r.reason[step] = ev.reason.numpy().astype(np.int8)
-            r.crashed[step] = race.crashed.numpy()
-            if d > 1:  # drone-drone contacts by pair: within contact distance at the step's end, both racing
-                dist = torch.cdist(sim.pos, sim.pos)
-                pairs = (dist < touch) & ev.contact.unsqueeze(-1) & ev.contact.unsqueeze(-2) & ~eye
-                racing = active.unsqueeze(-1) & active.unsqueeze(-2)
-                r.pair_contacts += (pairs & ~prev_pairs & racing).numpy()
-                partner = torch.where(pairs, dist, torch.inf).argmin(-1)
-                hit = ev.crashed_now & active & pairs.any(-1)
-                r.crash_partner[hit.numpy()] = partner[hit].numpy()
-                prev_pairs = pairs
-            if len(record):
-                r.pos[step] = sim.pos[rec_ids].numpy()
-                r.track_pos[step] = track_position(gates, cum, lap_len, start_gate, race.gates_passed, race.target,
-                                                   sim.pos)[rec_ids].numpy()
             finished |= (race.laps >= laps) & active
             over |= (race.crashed | finished).all(-1) if until_all else finished.any(-1) | (race.crashed | finished).all(-1)
             if bool(over.all()):

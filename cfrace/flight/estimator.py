@@ -145,18 +145,29 @@ class PoseEstimator:
             return
         if _dist(p, tr.pos) > self._limit(dt):
             c["outliers"] += 1
-            if tr.out_pos is not None and t > tr.out_t and _dist(p, tr.out_pos) <= self._limit(t - tr.out_t):
-                tr.out_run += 1
-            else:
-                tr.out_run = 1
-            if tr.out_run >= self.reacquire_after:
-                d = t - tr.out_t
-                vel = ((px - tr.out_pos[0]) / d, (py - tr.out_pos[1]) / d, (pz - tr.out_pos[2]) / d)
-                self._tracks[body] = _Track(p, q, t, now, vel=vel, samples=2)
-                c["reacquired"] += 1
-            else:
-                tr.out_pos, tr.out_t = p, t
-            return
+            self._outlier(body, tr, p, q, t, now)
+        else:
+            self._accept(tr, p, q, t, now, dt)
+
+    def _outlier(self, body: str, tr: _Track, p: tuple, q: tuple, t: float, now: float) -> None:
+        """A pose too far from the track: remembered; the ``reacquire_after``-th in a row that agree
+        with each other restart the track at the newest (velocity from the last two)."""
+        if tr.out_pos is not None and t > tr.out_t and _dist(p, tr.out_pos) <= self._limit(t - tr.out_t):
+            tr.out_run += 1
+        else:
+            tr.out_run = 1
+        if tr.out_run >= self.reacquire_after:
+            d = t - tr.out_t
+            vel = ((p[0] - tr.out_pos[0]) / d, (p[1] - tr.out_pos[1]) / d, (p[2] - tr.out_pos[2]) / d)
+            self._tracks[body] = _Track(p, q, t, now, vel=vel, samples=2)
+            self.counters[body]["reacquired"] += 1
+        else:
+            tr.out_pos, tr.out_t = p, t
+
+    def _accept(self, tr: _Track, p: tuple, q: tuple, t: float, now: float, dt: float) -> None:
+        """An accepted pose ``dt`` s after the last: filtered velocity, sign-continuous quaternion,
+        filtered body rates (only used to predict the attitude, ``lead_s`` > 0)."""
+        px, py, pz = p
         ox, oy, oz = tr.pos
         rx, ry, rz = (px - ox) / dt, (py - oy) / dt, (pz - oz) / dt
         if tr.samples == 1:
