@@ -22,6 +22,7 @@ from cfrace.env.observations import DEFAULT_OPPONENT_RULE, OPPONENT_RULES
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import common_profile, load_entrants, load_race_track
 from cfrace.evaluate.metrics import solo_metrics
+from cfrace.evaluate.plots import field_plots, plot_ratings
 from cfrace.evaluate.rating import fit_ratings, pairwise, placings, winners
 from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
 from cfrace.sim.simulator import REASONS
@@ -144,8 +145,6 @@ def race_field(track_name: str, entrants: list[str], obstacles: bool = False, ra
                          s.crashed, s.crash_reason, rec.crash_partner, np.triu(rec.pair_contacts.sum(0), 1),
                          [solo_metrics(s, slice(None), k) for k in range(n)], recording=rec)
     if plot_dir is not None:
-        from cfrace.evaluate.plots import field_plots
-
         result.plots = field_plots(plot_dir, track, obstacles, result.entrants, rec, places)
     result.wall_s = time.perf_counter() - t0
     return result
@@ -216,8 +215,6 @@ def free_for_all(policies: list[str], track_name: str, field_size: int = 4, obst
                               [float(r) for r in rating], [int((won == i).sum()) for i in range(p)], entered,
                               mean_place, pair_rate)
     if plot is not None:
-        from cfrace.evaluate.plots import plot_ratings
-
         title = (f"{track.name}: free-for-all, fields of {field_size}, {races} races per heat x {len(heats)} heats")
         result.plots = [plot_ratings(plot, result.policies, result.rating, result.mean_place, title)]
     result.wall_s = time.perf_counter() - t0

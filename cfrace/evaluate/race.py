@@ -9,6 +9,7 @@ opponent; each is fed the observation layout its own metadata names.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from itertools import combinations
 from pathlib import Path
@@ -20,6 +21,7 @@ import torch
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant, common_profile, load_entrants, load_race_track
 from cfrace.evaluate.metrics import RunSummary, finish_speed, race_outcomes, race_rates, solo_metrics, speed_stats
+from cfrace.evaluate.plots import plot_heatmap, race_plots
 from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
 
 PLOT_RACES = 4        #: races whose positions are recorded for the plots
@@ -82,8 +84,6 @@ def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: in
          plot_dir: Path | None = None, threads: int | None = None, start: str = "gate") -> RaceResult:
     """``races`` head-to-head races of ``ego`` (drone 0) against ``opp`` (drone 1); ``start`` as in
     start_poses ("gate": in the air before a random gate; "ground": side by side on the floor)."""
-    import time
-
     t0 = time.perf_counter()
     if races < 1 or laps < 1:
         raise ConfigError("races and laps must be >= 1")
@@ -107,8 +107,6 @@ def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: in
     result = RaceResult(track.name, obstacles, races, laps, seed, limit, entrants[0].name, entrants[1].name,
                         outcomes, swapped, _drone_stats(s, live, 0), _drone_stats(s, live, 1), recording=rec)
     if plot_dir is not None:
-        from cfrace.evaluate.plots import race_plots
-
         result.speed_profile = speed_profile(rec, s, races)
         result.plots = race_plots(plot_dir, track, obstacles, entrants, rec, s, races, result.speed_profile)
     result.wall_s = time.perf_counter() - t0
@@ -194,8 +192,6 @@ def tournament(policies: list[str], track_name: str, obstacles: bool = False, ra
     Cell [i][j] is i's win rate against j; the ordered pair (j, i) is the same races seen from j.
     ``pair_runner`` (same arguments and result as tournament_pairs) races the pairs elsewhere, e.g.
     spread over Ray workers (cfrace.sweep.ray_tournament)."""
-    import time
-
     t0 = time.perf_counter()
     if len(policies) < 2:
         raise ConfigError("a tournament needs at least 2 policies")
@@ -219,8 +215,6 @@ def tournament(policies: list[str], track_name: str, obstacles: bool = False, ra
     result = TournamentResult(track.name, obstacles, races, laps, seed, [e.name for e in entrants], win, draw,
                               pair_rows)
     if heatmap is not None:
-        from cfrace.evaluate.plots import plot_heatmap
-
         title = (f"{track.name}{' with obstacles' if obstacles else ''}: win rate of row vs column "
                  f"({races} races x {laps} laps)")
         result.plots = [plot_heatmap(heatmap, result.policies, win, draw, title)]

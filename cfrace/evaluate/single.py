@@ -8,6 +8,7 @@ see cfrace.evaluate.rollout.parked_opponent.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -16,6 +17,7 @@ import numpy as np
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant, common_profile, load_entrants, load_race_track
 from cfrace.evaluate.metrics import solo_metrics
+from cfrace.evaluate.plots import solo_trajectory_plots
 from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
 
 PLOT_RUNS = 3  #: runs per policy whose positions are recorded for the trajectory plot
@@ -48,8 +50,6 @@ def evaluate(policies: list[str], track_name: str, obstacles: bool = False, runs
              plot_dir: Path | None = None, threads: int | None = None, start: str = "gate") -> SoloResult:
     """Fly ``runs`` runs of ``laps`` laps per policy from the same random starts (``start``: "gate",
     before a random gate in the air, as the paper; "ground", on the floor before gate 0); the rows."""
-    import time
-
     t0 = time.perf_counter()
     track = load_race_track(track_name, obstacles)
     entrants = load_entrants(policies, track, obstacles)
@@ -73,8 +73,6 @@ def evaluate(policies: list[str], track_name: str, obstacles: bool = False, runs
         rows.append(row)
     result = SoloResult(track.name, obstacles, runs, laps, seed, limit, rows, rec)
     if plot_dir is not None:
-        from cfrace.evaluate.plots import solo_trajectory_plots
-
         result.plots = solo_trajectory_plots(plot_dir, track, obstacles, entrants, rec, summary, runs)
     result.wall_s = time.perf_counter() - t0
     return result
