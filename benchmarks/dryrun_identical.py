@@ -1,7 +1,7 @@
 """Same behaviour check: `cfrace sim dry-run --lockstep` on the shipped policies, two code versions.
 
     python benchmarks/dryrun_identical.py run OUT_DIR [--pythonpath SRC]   # run the cases, JSON + MCAP
-    python benchmarks/dryrun_identical.py compare DIR_A DIR_B              # bit-identical or not
+    python benchmarks/dryrun_identical.py compare DIR_A DIR_B [--json F --label L]   # bit-identical or not
 
 `run` runs every case of CASES with the interpreter running this script, the code of SRC (a
 checkout's root, e.g. `git archive COMMIT | tar -x -C SRC`) or of the installed cfrace. `compare`
@@ -9,7 +9,9 @@ compares each case's JSON result and every message of its flight log (setpoints,
 observations, estimates, poses, events, race progress) for exact equality, leaving out only what
 depends on the wall clock or the invocation: timing figures, start times, pid, command line, paths
 (policy files are compared by name: both checkouts ship the same files).
-Exit code 0 when every case is identical.
+Exit code 0 when every case is identical. With ``--json F`` the verdict per case is stored in F under
+``--label`` (other labels in F are kept): benchmarks/results/dryrun_identical.json holds the
+consolidation's steps (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -98,12 +100,14 @@ def _first_difference(a, b, where: str = "") -> str | None:
     return None if a == b and type(a) is type(b) else f"{where}: {a!r} vs {b!r}"
 
 
-def compare(a: Path, b: Path) -> int:
+def compare(a: Path, b: Path, json_out: Path | None = None, label: str | None = None) -> int:
     failures = 0
+    verdicts = {}
     for name in CASES:
         ja, jb = a / f"{name}.json", b / f"{name}.json"
         if not ja.exists() or not jb.exists():
             print(f"{name}: missing result ({ja if not ja.exists() else jb})")
+            verdicts[name] = "missing result"
             failures += 1
             continue
         diff = _first_difference(_result(ja), _result(jb), "result")
@@ -113,7 +117,13 @@ def compare(a: Path, b: Path) -> int:
         summary = json.loads(ja.read_text())
         print(f"{name}: {'identical' if diff is None else 'DIFFERENT ' + diff} ({n} log messages, "
               f"end {summary['end']}, winner {summary['winner']}, {summary['loop']['ticks']} ticks)")
+        verdicts[name] = {"identical": diff is None, "first_difference": diff, "log_messages": n,
+                          "end": summary["end"], "winner": summary["winner"], "ticks": summary["loop"]["ticks"]}
         failures += diff is not None
+    if json_out is not None:
+        doc = json.loads(json_out.read_text()) if json_out.exists() else {}
+        doc[label or f"{a} vs {b}"] = verdicts
+        json_out.write_text(json.dumps(doc, indent=1) + "\n")
     return 1 if failures else 0
 
 
@@ -126,11 +136,13 @@ def main() -> int:
     c = sub.add_parser("compare")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
+    c.add_argument("--json", type=Path, default=None, help="store the verdicts in this JSON file")
+    c.add_argument("--label", default=None, help="their key in it (default 'A vs B')")
     args = ap.parse_args()
     if args.cmd == "run":
         run(args.out, args.pythonpath)
         return 0
-    return compare(args.a, args.b)
+    return compare(args.a, args.b, args.json, args.label)
 
 
 if __name__ == "__main__":

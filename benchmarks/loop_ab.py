@@ -6,8 +6,7 @@
 Runs `cfrace bench loop` (cfrace.flight.benchloop.bench_loop: the unchanged fly code against a
 `cfrace sim serve` process, real cflib over UDP, flight log on) once per setting per round, the
 settings interleaved within each round so that a change in the machine's load hits all of them
-alike. KEYs: prewarm_ms, loop_cpu (auto/off/N), rt_priority (auto/0/N), link_warm (on/off: off
-makes CflibLink.warm a no-op for that setting, as before it existed). Prints per setting the median over the
+alike. KEYs: prewarm_ms, loop_cpu (auto/off/N), rt_priority (auto/0/N). Prints per setting the median over the
 rounds of each figure (ms), the spread (min..max over rounds) of the p99s, the goals met in how many
 rounds, and the ratio of each median to the first setting's. Unset keys take bench_loop's defaults
 (the flight defaults: loop_cpu auto, rt_priority auto, 3-ms window). Default settings: the loop
@@ -26,7 +25,6 @@ import time
 import numpy as np
 
 from cfrace.flight.benchloop import GOALS_MS, bench_loop
-from cfrace.flight.link_cflib import CflibLink
 
 FIGURES = [("compute p50", lambda l: l["compute_ms"]["p50"]),
            ("compute p99", lambda l: l["compute_ms"]["p99"]),
@@ -38,7 +36,7 @@ FIGURES = [("compute p50", lambda l: l["compute_ms"]["p50"]),
            ("warm-up CPU / tick p50", lambda l: l["prewarm_ms"]["p50"] or 0.0),
            ("warm-up passes / tick", lambda l: l.get("prewarm_calls_mean") or 0.0)]
 
-KEYS = {"prewarm_ms": float, "loop_cpu": str, "rt_priority": str, "link_warm": lambda v: v.lower() in ("1", "on", "true")}
+KEYS = {"prewarm_ms": float, "loop_cpu": str, "rt_priority": str}
 DEFAULT_CONFIGS = "unpinned:loop_cpu=off,rt_priority=0;pinned:loop_cpu=auto,rt_priority=0;default:loop_cpu=auto,rt_priority=auto"
 
 
@@ -64,15 +62,7 @@ def run(configs: dict[str, dict], rounds: int, seconds: float, policies: str, js
     t0 = time.strftime("%Y-%m-%d %H:%M:%S")
     for r in range(rounds):
         for name, kw in configs.items():
-            kw = dict(kw)
-            link_warm = kw.pop("link_warm", True)
-            saved = CflibLink.warm
-            if not link_warm:
-                CflibLink.warm = lambda self: None
-            try:
-                res = bench_loop(seconds, policies=policies, **kw)
-            finally:
-                CflibLink.warm = saved
+            res = bench_loop(seconds, policies=policies, **kw)
             runs[name].append(res)
             loop = res["loop"]
             print(f"round {r + 1} {name}: compute {loop['compute_ms']['p50']:.3f} / {loop['compute_ms']['p99']:.3f}, "

@@ -1,9 +1,9 @@
 """`cfrace bench sim|train|loop` of two code versions side by side, in one run, interleaved.
 
-    python benchmarks/side_by_side.py OLD_SRC NEW_SRC [--rounds 2] [--json F]
+    python benchmarks/side_by_side.py OLD NEW [--rounds 2] [--benches sim,train,...] [--json F]
 
-OLD_SRC and NEW_SRC are checkout roots (e.g. `git archive COMMIT | tar -x -C OLD_SRC`); each
-benchmark runs as A B A B ... (``rounds`` times each, with the interpreter running this script and
+OLD and NEW are checkout roots or git revisions of this repository (a revision's tree is taken with
+`git archive` into a temporary directory; `.` is this checkout); each benchmark runs as A B A B ... (``rounds`` times each, with the interpreter running this script and
 PYTHONPATH=SRC), so that both see the same machine load. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
 Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread), bench train (the cpu preset,
@@ -20,6 +20,8 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+from loop_commits_ab import tree
 
 BENCHES: dict[str, list[str]] = {
     "sim": ["bench", "sim", "--worlds", "4096", "--modes", "c", "--no-peer", "--threads", "1", "--steps", "20"],
@@ -52,10 +54,18 @@ def run_one(src: Path, args: list[str], out: Path) -> dict:
     return json.loads(out.read_text())
 
 
+def source(arg: str, tmp: Path) -> Path:
+    """A checkout root as given, or the tree of the git revision ``arg`` under ``tmp``."""
+    if Path(arg).is_dir():
+        return Path(arg).resolve()
+    tmp.mkdir(parents=True)
+    return tree(arg, tmp)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("old", type=Path)
-    ap.add_argument("new", type=Path)
+    ap.add_argument("old")
+    ap.add_argument("new")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--benches", default=",".join(BENCHES))
     ap.add_argument("--json", type=Path, default=None)
@@ -64,9 +74,10 @@ def main() -> int:
     better: dict[str, bool] = {}
     loads = []
     with tempfile.TemporaryDirectory() as tmp:
+        srcs = {label: source(arg, Path(tmp) / label) for label, arg in (("old", args.old), ("new", args.new))}
         for name in args.benches.split(","):
             for r in range(args.rounds):
-                for label, src in (("old", args.old), ("new", args.new)):
+                for label, src in srcs.items():
                     loads.append(os.getloadavg()[0])
                     doc = run_one(src, BENCHES[name], Path(tmp) / f"{name}_{label}_{r}.json")
                     for fig, (v, hib) in figures(name, doc).items():
@@ -82,7 +93,8 @@ def main() -> int:
         print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x")
     print(f"load average during the runs: {min(loads):.2f}-{max(loads):.2f} on {os.cpu_count()} CPUs")
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "load_avg": loads}, indent=1))
+        args.json.write_text(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds, "rows": rows,
+                                         "load_avg": loads}, indent=1))
     return 0
 
 

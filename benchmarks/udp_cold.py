@@ -5,11 +5,11 @@ every 10 ms after the path was warmed.
 
 The loop sends each drone one setpoint datagram per tick (udp:// links: the simulated drones).
 Measured is the sending thread's CPU time for socket.send of a 16-byte datagram to a socket in
-this process, in six ways: back to back; every 10 ms with a sleep in between (how the loop sent
-before Link.warm); every 10 ms after a 3-ms window of warm datagrams to a second socket of our own;
-after one warm datagram 3 ms before; after one warm datagram 0.2 ms before, in a busy wait (what
-the loop now does, through cflib's UDP driver: CflibLink.warm); and the busy wait without
-datagrams. Pinned to one CPU (--cpu, default
+this process, in six ways: back to back; every 10 ms with a sleep in between; every 10 ms after a
+3-ms window of warm datagrams to a second socket of our own; after one warm datagram 3 ms before;
+after one warm datagram 0.2 ms before, in a busy wait; and the busy wait without datagrams. (The
+loop itself no longer sends on a socket: its setpoints go through a pipe to the link keeper,
+cfrace/flight/linkproc.py.) Pinned to one CPU (--cpu, default
 the highest). p50 / p90 / p99 in us. Used for docs/benchmarks.md ("Loop CPU and priority").
 """
 
