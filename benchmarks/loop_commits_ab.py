@@ -4,7 +4,8 @@
                                          [--policies paper|shipped] [--json FILE]
 
 OLD_REV's tree is taken with `git archive` into a temporary directory; the new side is this
-checkout. Each round runs every (commit, warm-up window) once, in turn, with the same interpreter;
+checkout. Each round runs every (commit, warm-up window) once, in turn (the commits' order turned
+every round), with the same interpreter;
 the table gives each arm's median over the rounds of the p99 figures and the ratio against the old
 commit with the same window. The machine is shared: say what else ran.
 """
@@ -56,7 +57,8 @@ def main() -> None:
         runs: dict[tuple[str, float], list[dict]] = {}
         for r in range(args.rounds):
             for w in windows:
-                for side, src in sides.items():
+                for side in (("old", "new") if r % 2 == 0 else ("new", "old")):   # neither always second
+                    src = sides[side]
                     loop = bench(src, w, args.seconds, args.policies, Path(tmp) / f"{side}{w}_{r}.json")
                     runs.setdefault((side, w), []).append(loop)
                     print(f"round {r} {side} prewarm {w:g} ms: " + ", ".join(f"{f} {loop[f]}" for f in FIGURES),

@@ -3,8 +3,9 @@
     python benchmarks/side_by_side.py OLD NEW [--rounds 2] [--benches sim,train,...] [--json F]
 
 OLD and NEW are checkout roots or git revisions of this repository (a revision's tree is taken with
-`git archive` into a temporary directory; `.` is this checkout); each benchmark runs as A B A B ... (``rounds`` times each, with the interpreter running this script and
-PYTHONPATH=SRC), so that both see the same machine load. Prints, per figure, the median of each
+`git archive` into a temporary directory; `.` is this checkout); each benchmark runs as A B B A A B
+... (``rounds`` times each, the order turned every round, with the interpreter running this script
+and PYTHONPATH=SRC), so that both see the same machine load and neither always runs second. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
 Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread), bench train (the cpu preset,
 ours on complex, one thread), bench loop (10 s, the paper-size actors and the shipped policies).
@@ -77,7 +78,8 @@ def main() -> int:
         srcs = {label: source(arg, Path(tmp) / label) for label, arg in (("old", args.old), ("new", args.new))}
         for name in args.benches.split(","):
             for r in range(args.rounds):
-                for label, src in srcs.items():
+                for label in (("old", "new") if r % 2 == 0 else ("new", "old")):   # A B B A ...
+                    src = srcs[label]
                     loads.append(os.getloadavg()[0])
                     doc = run_one(src, BENCHES[name], Path(tmp) / f"{name}_{label}_{r}.json")
                     for fig, (v, hib) in figures(name, doc).items():
