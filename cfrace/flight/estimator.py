@@ -73,8 +73,8 @@ def _rotate_body(q: tuple, omega: tuple, h: float) -> tuple:
 @dataclass
 class _Track:
     """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
-    float arithmetic costs a fraction of numpy calls on 3-vectors, and far less once the caches
-    are cold between ticks: 82 us instead of 188 us per tick for two bodies, docs/benchmarks.md)."""
+    float arithmetic costs a fraction of numpy calls on 3-vectors, the more so with the caches cold
+    between ticks; `benchmarks/estimator_ab.py` times the update against another commit's)."""
     pos: tuple                     # (x, y, z) m
     quat: tuple                    # (w, x, y, z), unit
     t: float                       # frame clock of the last accepted pose
