@@ -183,10 +183,12 @@ def _serve(track: str, profile: str, base: int) -> subprocess.Popen:
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
-def _fly(track: str, profile: str, uris: list[str], pose_port: int, log: Path, timeout_s: float) -> subprocess.Popen:
+def _fly(track: str, profile: str, uris: list[str], pose_port: int, log: Path, timeout_s: float,
+         extra: tuple[str, ...] = ()) -> subprocess.Popen:
     return subprocess.Popen(CLI + ["fly", "--track", track, "--ego", "ours", "--opp", "ds", "--uris", ",".join(uris),
                                    "--mocap", f"sim://127.0.0.1:{pose_port}", "--profile", profile, "--quiet",
-                                   "--log", str(log), "--timeout-s", str(timeout_s), "--json", str(log.with_suffix(".json"))],
+                                   "--log", str(log), "--timeout-s", str(timeout_s), "--json", str(log.with_suffix(".json")),
+                                   *extra],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
@@ -217,7 +219,8 @@ def _after(rec: _PoseRecorder, body: str, t_from: float) -> tuple[float, float, 
 
 
 def process_rows(track: str, workdir: Path) -> list[Row]:
-    """kill -9 of `cfrace fly` mid-race, and a link loss, with `cfrace sim serve` in its own process."""
+    """kill -9 of `cfrace fly` mid-race, and a link loss (without and with the emergency-stop
+    watchdog fed), with `cfrace sim serve` in its own process."""
     from cfrace.flight.benchloop import _free_base_port
     from cfrace.flight.faults import UdpCutRelay
     from cfrace.flight.setup import training_profile
@@ -225,11 +228,11 @@ def process_rows(track: str, workdir: Path) -> list[Row]:
 
     profile = training_profile(load_track(track), "ours", False)
     rows = []
-    for scenario in ("kill -9 of fly", "link loss (ego)"):
+    for scenario, extra in (("kill -9 of fly", ()), ("link loss", ()), ("link loss", ("--estop-watchdog",))):
         base = _free_base_port()
         server = _serve(track, profile, base)
         relay = rec = fly = None
-        log = workdir / f"{scenario.split()[0]}-{scenario.split()[-1].strip('()')}.mcap"
+        log = workdir / f"{scenario.split()[0]}{len(extra)}.mcap"
         try:
             time.sleep(2.0)
             rec = _PoseRecorder(base - 1, ["cf1", "cf2"]).start(30.0)
@@ -237,9 +240,10 @@ def process_rows(track: str, workdir: Path) -> list[Row]:
             if scenario.startswith("link"):
                 relay = UdpCutRelay(base)
                 uris[0] = relay.uri
-            fly = _fly(track, profile, uris, base - 1, log, 8.0 if scenario.startswith("link") else 30.0)
+            fly = _fly(track, profile, uris, base - 1, log, 8.0 if scenario.startswith("link") else 30.0, extra)
             _wait_flying(rec, ["cf1", "cf2"], 1.5)
-            rows.append(_kill9(fly, rec, log) if scenario.startswith("kill") else _link_loss(fly, rec, relay, log))
+            rows.append(_kill9(fly, rec, log) if scenario.startswith("kill") else
+                        _link_loss(fly, rec, relay, log, watchdog=bool(extra)))
         except Exception as exc:  # noqa: BLE001 - a failed scenario is a failed row, not the end of the suite
             why = server.stderr.read()[-200:] if server.poll() is not None else ""
             rows.append(Row(scenario, note=f"{type(exc).__name__}: {exc} {why}"[:300]))
@@ -293,7 +297,7 @@ def _kill9(fly: subprocess.Popen, rec: _PoseRecorder, log: Path) -> Row:
     return row
 
 
-def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> Row:
+def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path, watchdog: bool = False) -> Row:
     from cfrace.flight.flightlog import read_log
     from cfrace.flight.runner import EXIT_CODES
 
@@ -301,7 +305,9 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
     relay.cut()
     fly.wait(30)
     time.sleep(0.5)
-    row = Row("link loss of ego (sim serve, fly: processes)", exit_code=fly.returncode)
+    which = "emergency-stop watchdog" if watchdog else "setpoint watchdog"
+    row = Row("link loss of ego (sim serve, fly: processes" + (", --estop-watchdog)" if watchdog else ")"),
+              exit_code=fly.returncode)
     lost = [s for s in _stops(log) if s["drone"] == 0]
     result = json.loads(log.with_suffix(".json").read_text()) if log.with_suffix(".json").exists() else {}
     ev = next((e for e in result.get("safety_events", []) if e["kind"] in ("link_lost", "pose_mismatch")
@@ -311,7 +317,7 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
         return row
     t_det = lost[0]["t_mono"]
     row.detected_s = f"+{(t_det - t_cut) * 1e3:.0f} ms after the cut"
-    row.stopped_s = "firmware watchdog"
+    row.stopped_s = f"firmware {which}"
     dist, v, bound = _after(rec, "cf1", t_det)
     whole, _, _ = _after(rec, "cf1", t_cut)
     row.distance_m = dist
@@ -319,7 +325,7 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
     want_code = EXIT_CODES["all_stopped"] if ev["action"] == "stop_all" else 0   # the pose check stops all
     row.passed = row.log_complete and row.exit_code == want_code and math.isfinite(dist)
     row.note = (f"{ev['kind']}; the stop cannot reach it: {whole:.2f} m from the cut, {dist:.2f} m after the "
-                f"detection ({v:.1f} m/s then), until the firmware's setpoint watchdog")
+                f"detection ({v:.1f} m/s then), until the firmware's {which}")
     return row
 
 

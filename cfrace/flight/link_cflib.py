@@ -200,6 +200,20 @@ class CflibLink:
         self.stop()
         self._shutdown()
 
+    def feed_estop_watchdog(self) -> None:
+        """Feed the firmware's emergency-stop watchdog (localization port, EMERGENCY_STOP_WATCHDOG):
+        once fed, the drone cuts its motors (and locks until rebooted) if 1 s passes without a feed.
+        Never raises."""
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                cf.supervisor.send_emergency_stop_watchdog()
+        except Exception as exc:  # a dying link: the silence check reports it
+            self._note_error(f"emergency-stop watchdog feed failed: {exc}")
+
     # ------------------------------------------------------------------ the firmware's flight modes
     def send_pose(self, pos, quat) -> None:
         """The mocap pose as external pose (localization port): x y z, qx qy qz qw. Never raises."""
