@@ -110,3 +110,22 @@ def test_a_lost_link_cuts_its_drones_motors_after_1_s_with_the_estop_watchdog(se
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         relay.close()
+
+
+def test_a_locked_drone_is_refused_at_set_up_with_one_line(served):
+    """A drone whose firmware is locked by an emergency stop (e.g. the watchdog after a flight with
+    --estop-watchdog) cannot be armed: set-up says so and what to do, before anything is sent."""
+    from cfrace.errors import LinkError
+    from cfrace.flight.linkproc import LinkKeeper
+
+    fleet, server = served
+    fleet.emergency_stop(0, "emergency-stop watchdog")
+    keeper = LinkKeeper(server.uris[:1], heartbeat_s=0.5)
+    link = keeper.link(0)
+    try:
+        link.connect(10.0)
+        with pytest.raises(LinkError, match="locked by an emergency stop.*restart it"):
+            link.setup()
+        assert fleet.status(0)["setpoints_received"] == 0
+    finally:
+        link.close()

@@ -366,7 +366,7 @@ def bad_input_rows(workdir: Path) -> list[Row]:
             else:
                 args += extra[k:k + 2]
         p = subprocess.run(CLI + args, capture_output=True, text=True, timeout=120)
-        err = p.stderr.strip()
+        err = p.stderr.strip().replace(f"{workdir}/", "")
         one = len(err.splitlines()) == 1 and err.startswith("error: ") and "Traceback" not in err
         rows.append(Row(f"bad input: {name}", detected_s="before take-off", exit_code=p.returncode,
                         passed=one and p.returncode == 2, note=err[:100]))

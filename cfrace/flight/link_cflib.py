@@ -31,6 +31,7 @@ _log.propagate = False   # cflib logs tracebacks for expected failures; we repor
 
 _drivers_ready = False
 _drivers_lock = threading.Lock()
+LOCKED_BIT = 6   #: the supervisor state bit "is locked": the firmware must be restarted (cflib Supervisor.STATES)
 
 
 def _init_drivers() -> None:
@@ -129,8 +130,15 @@ class CflibLink:
             pass
 
     def setup(self) -> None:
-        """Rate mode for roll and pitch (confirmed by the drone), arming, zero-thrust unlock."""
+        """Refuse a drone the firmware has locked (an emergency stop: reboot required); rate mode for
+        roll and pitch (confirmed by the drone), arming, zero-thrust unlock."""
         cf = self._need()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
+            bits = int(cf.supervisor.read_bitfield() or 0)
+        if bits >> LOCKED_BIT & 1:
+            raise LinkError(f"{self.uri}: the drone is locked by an emergency stop (e.g. its emergency-stop "
+                            "watchdog after the last flight with --estop-watchdog): restart it (power cycle) first")
         for name in RATE_MODE_PARAMS:
             group, _, pname = name.partition(".")
             self._params[name] = threading.Event()
