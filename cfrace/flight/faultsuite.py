@@ -90,7 +90,9 @@ def ballistic_bound(pos, vel) -> float:
 
 
 # ----------------------------------------------------------------------------------- dry-run faults
-def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
+def dry_run_row(kind: str, track: str, workdir: Path, drones: int = 2) -> Row:
+    """One fault in a lockstep dry-run of ours vs ds (``drones`` > 2: ours, ds, ours, ds, ...; the
+    fault hits d1, or d2 for nan_policy)."""
     from cfrace.flight.config import FlightConfig
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.flightlog import read_log
@@ -98,14 +100,16 @@ def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
     from cfrace.flight.setup import training_profile
     from cfrace.track import load_track
 
-    drone = "opp" if kind == "nan_policy" else "ego"
-    log = workdir / f"{kind}.mcap"
+    names = ("ego", "opp") if drones == 2 else ("d1", "d2")
+    drone = names[1] if kind == "nan_policy" else names[0]
+    log = workdir / f"{kind}-{drones}.mcap"
     cfg = FlightConfig(track=track, ego="ours", opp="ds", profile=training_profile(load_track(track), "ours", False),
-                       quiet=True, timeout_s=RACE_S, log=log)
+                       quiet=True, timeout_s=RACE_S, log=log,
+                       policies=tuple("ours" if i % 2 == 0 else "ds" for i in range(drones)) if drones > 2 else ())
     at = FAULT_AT.get(kind, FAULT_T)
     res = dry_run(cfg, lockstep=True, faults=f"{kind}@{at}:{drone}").to_json()
     want_kind, want_action, want_code = EXPECT[kind]
-    row = Row(f"fault {kind}@{at:g} ({drone})")
+    row = Row(f"fault {kind}@{at:g} ({drone}{'' if drones == 2 else f' of {drones}'})")
     ok = {(want_kind, want_action), ALSO.get(kind)}
     ev = next((e for e in res["safety_events"] if (e["kind"], e["action"]) in ok and e["t"] >= at - 1e-9), None)
     row.detected_s = None if ev is None else ev["t"]
@@ -373,13 +377,14 @@ def bad_input_rows(workdir: Path) -> list[Row]:
     return rows
 
 
-def run_suite(track: str = "lemniscate", processes: bool = True, workdir: Path | None = None) -> list[Row]:
-    """Every row of the table (module doc)."""
+def run_suite(track: str = "lemniscate", processes: bool = True, workdir: Path | None = None,
+              drones: tuple[int, ...] = (2,)) -> list[Row]:
+    """Every row of the table (module doc); the dry-run faults once per drone count."""
     from cfrace.flight.faults import KINDS
 
     with tempfile.TemporaryDirectory(prefix="cfrace-faults-") as tmp:
         work = Path(workdir or tmp)
-        rows = [dry_run_row(kind, track, work) for kind in KINDS]
+        rows = [dry_run_row(kind, track, work, n) for n in drones for kind in KINDS]
         if processes:
             rows += process_rows(track, work)
         rows += bad_input_rows(work)
