@@ -50,6 +50,7 @@ from cfrace.flight.realtime import set_fifo
 REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
 ESTOP_FEED_S = 0.1         #: s between feeds of a flying drone's emergency-stop watchdog (the firmware's: 1 s)
 SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
+CLOSE_S = 2.0              #: s the keeper waits for its links to close before it ends
 _SETPOINT = struct.Struct("<cBfffH")    # b"s", drone, p, q, r (deg/s), thrust counts
 _POSE = struct.Struct("<cB7f")          # b"p", drone, x, y, z (m), qw, qx, qy, qz
 
@@ -220,14 +221,24 @@ def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None,
 
     def on_term(signum, frame):
         keeper.stop_all("sigterm")
-        keeper.close()
-        sys.exit(0)
+        _close_and_exit(keeper)
 
     signal.signal(signal.SIGTERM, on_term)
     try:
         keeper.run()
     finally:
-        keeper.close()
+        _close_and_exit(keeper)
+
+
+def _close_and_exit(keeper: _Keeper) -> None:
+    """Close the links (their stops are sent already) for at most CLOSE_S, then end the process: a
+    link whose radio or relay went away can block cflib's close, and its threads the exit."""
+    closer = threading.Thread(target=keeper.close, name="link-keeper-close", daemon=True)
+    closer.start()
+    closer.join(CLOSE_S)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 # ------------------------------------------------------------------------------------ loop side
