@@ -116,7 +116,7 @@ def test_a_locked_drone_is_refused_at_set_up_with_one_line(served):
     """A drone whose firmware is locked by an emergency stop (e.g. the watchdog after a flight with
     --estop-watchdog) cannot be armed: set-up says so and what to do, before anything is sent."""
     from cfrace.errors import LinkError
-    from cfrace.flight.linkproc import LinkKeeper
+    from cfrace.flight.keptlink import LinkKeeper
 
     fleet, server = served
     fleet.emergency_stop(0, "emergency-stop watchdog")

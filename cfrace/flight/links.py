@@ -41,7 +41,7 @@ def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None, rt_p
     SCHED_FIFO one below the loop's where permitted: cfrace.flight.realtime); other URIs as
     ``open_link``. ``estop_watchdog``: the keeper feeds each flying drone's emergency-stop watchdog."""
     from cfrace.flight import realtime
-    from cfrace.flight.linkproc import LinkKeeper
+    from cfrace.flight.keptlink import LinkKeeper
 
     prio = realtime.resolve_rt_priority(rt_priority)
     keeper = LinkKeeper(uris, heartbeat_s=heartbeat_s, stop_log=stop_log, rt_priority=max(1, prio - 1) if prio else 0,
