@@ -106,7 +106,7 @@ def parked_opponent(track: Track, profile: DroneProfile) -> torch.Tensor:
 
 
 @dataclass(frozen=True)
-class _Field:
+class _Setup:
     """What every step of one rollout reads: the policies' slots, the race line, the constants."""
     groups: list               # (entrant, iw, idr, tw, td) per entrant with slots: worlds and drones (numpy, torch)
     rules: set                 # opponent rules in use (more than two drones)
@@ -123,8 +123,9 @@ class _Field:
     eye: torch.Tensor          # (D, D) bool, a drone with itself
 
 
-def _field(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[Entrant], assign: np.ndarray,
-           starts: Starts, record: tuple[int, ...], opponent_rule: str) -> _Field:
+def _setup(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[Entrant], assign: np.ndarray,
+           starts: Starts, record: tuple[int, ...], opponent_rule: str) -> _Setup:
+    """The rollout's fixed inputs: each entrant's slots, the race line, motors-off thrust, contact distance."""
     groups = []
     for p, e in enumerate(entrants):
         iw, idr = np.nonzero(assign == p)
@@ -137,7 +138,7 @@ def _field(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[E
     cum, lap_len = polyline(gates)
     off_thrust, _ = action_to_command(np.asarray(OFF_ACTION, np.float32), profile.mass, profile.max_thrust_weights,
                                       profile.max_rates_deg)
-    return _Field(groups, rules, opponent_rule, gates, cum, lap_len, starts.target[:, 0].to(torch.int64),
+    return _Setup(groups, rules, opponent_rule, gates, cum, lap_len, starts.target[:, 0].to(torch.int64),
                   parked_opponent(track, profile), off_thrust, profile, torch.as_tensor(record, dtype=torch.int64),
                   2.0 * (sim.radius + CONTACT_MARGIN), torch.eye(d, dtype=torch.bool))
 
@@ -152,7 +153,7 @@ def _new_recording(n_steps: int, w: int, d: int, record: tuple[int, ...], laps: 
                      pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
 
 
-def _commands(f: _Field, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """Every slot's command for the next step: thrust (W, D) N, body rates (W, D, 3) deg/s; one
     onnxruntime call per policy for all its slots; non-finite actions become motors off (counted in
     ``nan_actions`` (W, D))."""
@@ -185,7 +186,7 @@ def _commands(f: _Field, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch
     return torch.from_numpy(thrust), torch.from_numpy(rates)
 
 
-def _record(r: Recording, step: int, f: _Field, sim: Simulator, ev, active: torch.Tensor,
+def _record(r: Recording, step: int, f: _Setup, sim: Simulator, ev, active: torch.Tensor,
             prev_pairs: torch.Tensor) -> torch.Tensor:
     """Write step ``step``'s figures into ``r`` (``ev``: the simulator's events of the step, ``active``
     (W, D): racing during it); returns the drone pairs in contact (W, D, D) for the next step."""
@@ -228,7 +229,7 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     # one simulator thread by default: on a shared 2-core machine OpenMP threads mostly wait on each other
     sim = Simulator(track, profile, w, d, obstacles=obstacles, seed=seed, threads=threads or 1)
     sim.reset(torch.arange(w), starts.pos, quat=starts.quat, target=starts.target)
-    f = _field(track, profile, sim, entrants, assign, starts, record, opponent_rule)
+    f = _setup(track, profile, sim, entrants, assign, starts, record, opponent_rule)
     r = _new_recording(n_steps, w, d, record, laps)
     prev_pairs = torch.zeros(w, d, d, dtype=torch.bool)
     finished = torch.zeros(w, d, dtype=torch.bool)
