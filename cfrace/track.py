@@ -63,10 +63,12 @@ def _wrap(a: float) -> float:
 
 
 def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
-    """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's front
-    centre: rows of as many drones as fit side by side ``spawn.opponent_offset`` apart inside the
-    gate opening (floor(opening / offset), at least 1), each row centred, rows one offset (or
-    ``opponent_stagger`` if larger) further back. Two drones: one row of two."""
+    """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's centre
+    (the spawn point): rows of as many drones as fit side by side ``spawn.opponent_offset`` apart
+    inside the gate opening (floor(opening / offset), at least 1), each row centred, rows one offset
+    (or ``opponent_stagger`` if larger) apart and centred on the spawn distance, so that every row
+    starts as near the spawn distance as the field allows (the shipped policies take off from the
+    ground 0.6-1.2 m before gate 0, not 1.4 m: docs/flight.md). Two drones: one row of two."""
     if drones < 1:
         raise ValueError(f"a start grid needs at least 1 drone, got {drones}")
     offset = max(spawn.opponent_offset, 1e-3)
@@ -77,7 +79,10 @@ def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
         row, col = divmod(s, per_row)
         in_row = min(per_row, drones - row * per_row)
         slots.append(((col - (in_row - 1) / 2.0) * offset, row * spacing))
-    return np.asarray(slots, dtype=np.float64)
+    out = np.asarray(slots, dtype=np.float64)
+    rows = (drones - 1) // per_row + 1
+    out[:, 1] -= (rows - 1) * spacing / 2.0
+    return out
 
 
 @dataclass(frozen=True)
@@ -222,8 +227,9 @@ def list_tracks() -> list[Path]:
 
 def ground_start_positions(track: "Track", drones: int, floor_z: float = 0.0) -> tuple[np.ndarray, float]:
     """(drones, 3) positions on the floor in the track's start grid (start_grid: two side by side,
-    spawn.opponent_offset apart; more in rows behind them), its front row track.spawn.ground_distance
-    before gate 0 on its +n side, at height floor_z; and the yaw (rad) facing gate 0. Where a ground
+    spawn.opponent_offset apart; more in rows behind each other), its rows centred on
+    track.spawn.ground_distance before gate 0 on its +n side, at height floor_z; and the yaw (rad)
+    facing gate 0. Where a ground
     start's drones stand: the simulated drones (cfrace.simcf.firmware), the hover start's targets
     and the take-off check of a flight (cfrace.flight.swarm)."""
     gx, gy, _, gyaw = track.gates[0]
