@@ -152,6 +152,10 @@ def test_serve_prints_uris_and_stops():
     stats = serve("lemniscate", 2, port=0, profile="cf2x_paper", duration=0.3, out=lines.append)
     text = "\n".join(lines)
     assert "cf1: udp://127.0.0.1:" in text and "cf2: udp://127.0.0.1:" in text and "poses" in text
+    assert "after a flight: the drones stay where they landed" in text     # what a second flight meets
+    lines.clear()
+    serve("lemniscate", 2, port=0, profile="cf2x_paper", duration=0.2, reset_after_flight=True, out=lines.append)
+    assert "after a flight: every drone back on the start grid" in "\n".join(lines)
     assert len(stats) == 2 and all(s["rx"] == 0 for s in stats)
 
 
