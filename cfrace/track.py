@@ -54,6 +54,14 @@ class Spawn:
     ground_distance: float = 1.5                     #: m, ground start distance before gate 0
 
 
+#: rad, a training start's heading is the gate's reverse normal +- this (uniform; cfrace.env.race_env)
+HEADING_JITTER_RAD = 0.3
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
 def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
     """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's centre
     (the spawn point): rows of as many drones as fit side by side ``spawn.opponent_offset`` apart
@@ -215,3 +223,21 @@ def load_track(name_or_path: str | Path) -> Track:
 
 def list_tracks() -> list[Path]:
     return sorted(TRACKS_DIR.glob("*.yaml"))
+
+
+def ground_start_positions(track: "Track", drones: int, floor_z: float = 0.0) -> tuple[np.ndarray, float]:
+    """(drones, 3) positions on the floor in the track's start grid (start_grid: two side by side,
+    spawn.opponent_offset apart; more in rows behind each other), its rows centred on
+    track.spawn.ground_distance before gate 0 on its +n side, at height floor_z; and the yaw (rad)
+    facing gate 0. Where a ground
+    start's drones stand: the simulated drones (cfrace.simcf.firmware), the hover start's targets
+    and the take-off check of a flight (cfrace.flight.swarm)."""
+    gx, gy, _, gyaw = track.gates[0]
+    n = np.array([math.cos(gyaw), math.sin(gyaw)])
+    lateral = np.array([-n[1], n[0]])
+    centre = np.array([gx, gy]) + track.spawn.ground_distance * n
+    grid = start_grid(track.spawn, track.gate, drones)             # (N, 2) [sideways, back] m
+    pos = np.zeros((drones, 3))
+    pos[:, :2] = centre + grid[:, :1] * lateral + grid[:, 1:] * n
+    pos[:, 2] = floor_z
+    return pos, _wrap(gyaw + math.pi)

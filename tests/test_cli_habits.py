@@ -205,6 +205,22 @@ def test_fly_imports_no_torch():
     assert "torch" not in (heavy[0].split(",") if heavy else [])
 
 
+# 5 -- the README's test command prints a summary ------------------------------------------------
+
+def test_readme_test_command_keeps_the_summary_and_the_slowest_tests():
+    """The command CI runs (.ci/run: the first pytest line after "Run the tests") with the project's
+    addopts: quiet once (pytest -qq drops the "N passed" line) and the slowest tests listed."""
+    import shlex
+    import tomllib
+
+    readme = (ROOT / "README.md").read_text()
+    cmd = next(line for line in readme[readme.index("Run the tests"):].splitlines() if "pytest" in line)
+    addopts = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]["addopts"]
+    args = shlex.split(cmd) + shlex.split(addopts)
+    quiet = sum(a.count("q") for a in args if re.fullmatch(r"-q+", a)) + args.count("--quiet")
+    assert quiet <= 1 and any(a.startswith("--durations") for a in args), args
+
+
 # 6 -- one definition of each loop figure ------------------------------------------------------
 
 def test_log_info_gives_the_figures_the_race_printed(tmp_path, capsys):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cfrace.errors import CfraceError, MocapError, PolicyError
-from cfrace.flight.config import FlightConfig
+from cfrace.flight.config import FlightConfig, SafetyConfig
 from cfrace.flight.dryrun import dry_run
 from cfrace.flight.flightlog import read_log
 from cfrace.flight.replay import replay_log
@@ -285,7 +285,7 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     start = np.array([[1.3, 2.2, 0.5], [-1.5, 2.5, 0.6]])
     fleet = SimFleet(track, prof, 2, start_positions=start, obstacles=False)
     c = FlightConfig(track="lemniscate", ego=str(paths[0]), opp=str(paths[1]), profile=PROFILE, quiet=True,
-                     timeout_s=2.0, log=tmp_path / "f.mcap")
+                     timeout_s=2.0, log=tmp_path / "f.mcap", safety=SafetyConfig(start_slot_m=0.0))   # in the air
     sim_race(resolve_race(c), fleet).to_json()
     flown = {round(t, 4): np.array(m["poses"]["cf1"]["pos"]) for t, m in read_log(tmp_path / "f.mcap").messages("/mocap/pose")}
 

@@ -120,6 +120,36 @@ def test_separation_rule(pols, tmp_path):
         dry_run_plain(cfg)
 
 
+@pytest.mark.parametrize("moved, why", [
+    ({1: (0.5, 0.0, 0.0)}, r"cf2 stands at \(2\.20, 2\.50\) heading 90 deg, 0\.50 m from its slot \(1\.70, 2\.50\)"),
+    ({0: (0.0, 0.0, 0.6)}, r"cf1 stands at \(1\.30, 2\.50\) heading 124 deg, 0\.00 m from its slot"),  # turned
+])
+def test_a_ground_start_off_the_grid_is_refused_before_anything_is_sent(pols, moved, why):
+    """A second race with the drones where the first left them (`sim serve` does not put them back):
+    refused with one line, no setpoint sent; the same drones on the grid fly."""
+    import math
+
+    from cfrace.flight.config import SafetyConfig
+    from cfrace.flight.dryrun import sim_race
+    from cfrace.flight.setup import resolve_race
+    from cfrace.simcf.firmware import SimFleet
+
+    cfg = FlightConfig(track="lemniscate", ego=pols["ego"], opp=pols["opp"], profile=PROFILE, quiet=True,
+                       timeout_s=0.3)
+    setup = resolve_race(cfg)
+    fleet = SimFleet(setup.track, setup.profile, 2, obstacles=False, decks=())
+    start = fleet.state(0)["pos"], fleet.state(1)["pos"]
+    for i, (dx, dy, dyaw) in moved.items():
+        yaw = fleet._start_yaw + dyaw
+        fleet.teleport(i, start[i] + (dx, dy, 0.0), quat=(math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)))
+    with pytest.raises(ConfigError, match="not on the start grid for a ground start: " + why):
+        sim_race(setup, fleet)
+    assert all(fleet.status(i)["thrust"] == 0.0 and not fleet.status(i)["armed"] for i in range(2))
+    # the rule can be switched off (safety.start_slot_m: 0)
+    from dataclasses import replace
+    assert sim_race(replace(setup, cfg=replace(cfg, safety=SafetyConfig(start_slot_m=0.0))), fleet).end == "timeout"
+
+
 def dry_run_plain(cfg):
     from cfrace.flight.dryrun import dry_run
 

@@ -239,3 +239,29 @@ def test_sdk_file_writer_loses_more_than_a_second_on_a_kill(tmp_path):
             pass
     lost_s = (ticks - kept) / 100
     assert lost_s > 1.0, f"the SDK's writer lost only {lost_s:.2f} s"
+
+
+def test_bench_loop_foxglove_alternates_the_three_configurations(monkeypatch):
+    """`cfrace bench loop --foxglove`: each round runs the plain log, the scene in the log and the
+    scene served live, in that order, with the options given; medians and ratios to the plain log.
+    (bench_loop itself runs for real in test_flight_faults.test_bench_loop_against_a_sim_serve_process.)"""
+    import cfrace.flight.benchloop as benchloop
+    from cfrace.cli.bench import _foxglove_compare
+
+    calls = []
+
+    def fake_bench_loop(duration_s, *, floor_s, foxglove, scene, **options):
+        calls.append((foxglove, scene, options["drones"]))
+        ms = 1.0 + foxglove + 0.5 * scene + len(calls) / 100      # differs by configuration and round
+        stats = {"p50": ms, "p99": 2 * ms, "max": 3 * ms}
+        return {"end": "timeout", "loop": {k: stats for k in ("compute_ms", "compute_cpu_ms", "period_jitter_ms",
+                                                                  "late_ms")}}
+
+    monkeypatch.setattr(benchloop, "bench_loop", fake_bench_loop)
+    doc = _foxglove_compare(1.0, 2, {"drones": 4, "pose_stream": True})
+    assert calls == [(False, False, 4), (False, True, 4), (True, True, 4)] * 2
+    fig = doc["figures"]["compute p99"]
+    assert fig["ms"] == pytest.approx({"plain log": 2 * 1.025, "scene in log": 2 * 1.535, "scene + live": 2 * 2.545})
+    assert fig["ratio_to_plain"]["scene + live"] == pytest.approx(2.545 / 1.025)
+    assert [len(v) for v in doc["runs"].values()] == [2, 2, 2]
+

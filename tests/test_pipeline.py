@@ -91,3 +91,21 @@ def test_a_stage_select_without_export_is_refused(tmp_path):
     bad.write_text("version: 1\nout: runs/x\nruns:\n  - {name: a, method: ds, track: lemniscate, select: {runs: 5}}\n")
     with pytest.raises(ConfigError, match="a.select"):
         load_pipeline(bad)
+
+
+def test_a_warm_started_stage_chooses_only_among_its_own_actors():
+    """Checkpoints taken during the critic warm-up hold the warm start's frozen actor: a stage that
+    warm-starts chooses from iteration critic_warmup + 1 on (the pipeline's SS stage on the complex
+    track had chosen its DS warm start at iteration 22 of a 40-iteration warm-up)."""
+    from cfrace.evaluate.pipeline import first_own_iteration
+
+    spec = parse_spec({"version": 1, "out": "runs", "runs": [
+        {"name": "a", "method": "ds", "track": "complex", "steps": 1},
+        {"name": "b", "method": "ss", "track": "complex", "steps": 1, "init_from": "a", "critic_warmup": 40},
+        {"name": "c", "method": "ss", "track": "complex", "steps": 1, "init_from": "a"}]})
+    assert first_own_iteration(spec.run("a").options) == 0
+    assert first_own_iteration(spec.run("b").options) == 41
+    assert first_own_iteration(spec.run("c").options) == TrainConfig.__dataclass_fields__["critic_warmup"].default + 1
+    for run in load_pipeline().runs:   # every stage that warm-starts
+        if run.options.get("init_from") and run.select is not None:
+            assert first_own_iteration(run.options) > 1

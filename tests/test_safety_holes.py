@@ -305,13 +305,20 @@ def test_recorded_or_foreign_poses_do_not_steer_live_drones(served, pols, tmp_pa
 
 def test_swapped_mocap_bodies_are_stopped_once_the_drones_fly(served, pols, tmp_path):
     """`fly --bodies cf2,cf1` against the served drones: each drone is steered on the other's poses.
-    The drones take off to different heights, the poses stop moving with the commands and every
-    drone is stopped (pose_mismatch) within 0.3 s of leaving the floor."""
+    A ground start sees it first: each body stands on the other drone's start slot, refused with
+    nothing sent. With that check off (safety.start_slot_m: 0) the drones take off to different
+    heights, the poses stop moving with the commands and every drone is stopped (pose_mismatch)
+    within 0.3 s of leaving the floor."""
     from cfrace.flight.holdpolicy import make_hold_policy
 
     high = make_hold_policy(tmp_path / "high.onnx", "solo36", "lemniscate", False, height_offset=0.6)
+    one_clear_line(fly(served, {**pols, "opp": high}, tmp_path, "--bodies", "cf2,cf1"),
+                   "not on the start grid", "cf2 stands at (1.70, 2.50)", "0.40 m from its slot (1.30, 2.50)")
+    assert nothing_sent(served[0])
+    room = tmp_path / "room.yaml"
+    room.write_text("safety:\n  start_slot_m: 0\n")
     proc = fly(served, {**pols, "opp": high}, tmp_path, "--bodies", "cf2,cf1", "--timeout-s", "4",
-               "--json", str(tmp_path / "r.json"))
+               "--json", str(tmp_path / "r.json"), "--config", str(room))
     result = json.loads((tmp_path / "r.json").read_text())
     assert result["end"] == "pose_mismatch", (result["end"], result["safety_events"], proc.stderr[-500:])
     ev = next(e for e in result["safety_events"] if e["kind"] == "pose_mismatch")

@@ -123,11 +123,39 @@ def test_refuses_non_loopback_and_busy_ports(fleet):
         busy.close()
 
 
+@pytest.mark.parametrize("reset", [False, True])
+def test_after_a_flight_the_drones_stay_or_go_back_to_the_grid(reset):
+    """A flight: a client arms drone 0 (over UDP) and it ends up 2 m away on the floor, motors off;
+    once no client has sent anything for FLIGHT_OVER_S the drones are back on the grid with
+    reset_after_flight, else they stay where the flight left them (as real drones do)."""
+    from cfrace.simcf.server import FLIGHT_OVER_S
+
+    fleet = SimFleet("lemniscate", "cf2x_paper", 2, obstacles=False, decks=())
+    grid = fleet.state(0)["pos"].copy()
+    told = []
+    with SimCrazyflieServer(fleet, base_port=0, reset_after_flight=reset, on_reset=lambda: told.append(1)) as server:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as client:
+            client.sendto(bytes([0xF3]), ("127.0.0.1", server.ports[0]))      # a null packet: a client is there
+            fleet.arm(0, True)
+            time.sleep(0.1)
+            fleet.teleport(0, grid + (2.0, 0.0, 0.0))
+            time.sleep(0.1)
+            fleet.arm(0, False)
+            time.sleep(FLIGHT_OVER_S + 0.5)
+        moved = float(np.linalg.norm(fleet.state(0)["pos"][:2] - grid[:2]))
+        assert (moved < 0.01, server.resets, told) == ((True, 1, [1]) if reset else (False, 0, []))
+        assert not fleet.status(0)["armed"]
+
+
 def test_serve_prints_uris_and_stops():
     lines = []
     stats = serve("lemniscate", 2, port=0, profile="cf2x_paper", duration=0.3, out=lines.append)
     text = "\n".join(lines)
     assert "cf1: udp://127.0.0.1:" in text and "cf2: udp://127.0.0.1:" in text and "poses" in text
+    assert "after a flight: the drones stay where they landed" in text     # what a second flight meets
+    lines.clear()
+    serve("lemniscate", 2, port=0, profile="cf2x_paper", duration=0.2, reset_after_flight=True, out=lines.append)
+    assert "after a flight: every drone back on the start grid" in "\n".join(lines)
     assert len(stats) == 2 and all(s["rx"] == 0 for s in stats)
 
 

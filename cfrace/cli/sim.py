@@ -31,6 +31,10 @@ def serve_cmd(
     seed: int = typer.Option(0, help="Seed of the simulated drones' noise and start positions."),
     decks: str = typer.Option("lighthouse", help="Positioning decks each drone carries: lighthouse, flow, "
                                                  "both comma-separated, or none (external position only)."),
+    reset_after_flight: bool = typer.Option(False, "--reset-after-flight",
+                                            help="Put every drone back on the start grid once a flight is over "
+                                                 "(motors off, no packet for 1 s). Off: they stay where they "
+                                                 "landed, as real drones do."),
 ):
     """Serve simulated Crazyflies on udp://127.0.0.1:PORT+i until Ctrl-C / SIGTERM."""
     from cfrace.flight.config import split_list
@@ -44,7 +48,7 @@ def serve_cmd(
               f"(`cfrace fly` must be given the same: --profile, --obstacles)", highlight=False)
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
           decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
-          out=lambda text: out.print(text, highlight=False))
+          reset_after_flight=reset_after_flight, out=lambda text: out.print(text, highlight=False))
 
 
 @sim_app.command("dry-run")

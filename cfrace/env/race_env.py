@@ -21,7 +21,7 @@ from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, buil
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
-from cfrace.track import Track, start_grid
+from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
@@ -165,7 +165,7 @@ class RaceEnv:
         z_rest = self.sim.z_rest
         pos[..., 2] = torch.where(ground.to(self.device).unsqueeze(-1), torch.full_like(pos[..., 2], z_rest),
                                   pos[..., 2].clamp_min(0.3))
-        heading = yaw + math.pi + (self._rand(n) * 2 - 1) * 0.3                   # face along -n
+        heading = yaw + math.pi + (self._rand(n) * 2 - 1) * HEADING_JITTER_RAD    # face along -n
         half = (heading / 2).unsqueeze(-1).expand(n, a)
         quat = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], -1)
         return pos, quat, gate_idx

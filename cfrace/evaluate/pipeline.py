@@ -100,6 +100,19 @@ def _selected(run, out_root: Path) -> bool:
     return mark.exists() and mark.stat().st_mtime >= run.checkpoint(out_root).stat().st_mtime
 
 
+def first_own_iteration(opts: dict) -> int:
+    """The first checkpoint a stage may choose: after a warm start the actors stay frozen for the
+    critic warm-up (cfrace.rl.train: iterations 0 .. critic_warmup - 1), so the checkpoints before
+    iteration critic_warmup + 1 hold the warm start's actor, not this stage's (the SS stage on the
+    complex track chose such a checkpoint: its DS warm start)."""
+    if not opts.get("init_from"):
+        return 0
+    from cfrace.rl.train import TrainConfig
+
+    warmup = opts.get("critic_warmup", TrainConfig.__dataclass_fields__["critic_warmup"].default)
+    return int(warmup) + 1 if int(warmup) > 0 else 0
+
+
 def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR / "curves") -> None:
     """After a stage is done: choose and export its checkpoint (select), keep its training curve."""
     from cfrace.evaluate.select import score_run
@@ -110,11 +123,13 @@ def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR /
     setting = f"{Path(track).stem}{'_obstacles' if obstacles else ''}"
     if run.select is not None and not _selected(run, out_dir.parent):
         s = run.select
-        echo(f"{run.name}: scoring its checkpoints on seed {s.get('seed', 0)}")
+        first = first_own_iteration(opts)
+        echo(f"{run.name}: scoring its checkpoints from iteration {first} on seed {s.get('seed', 0)}")
         scored = score_run(out_dir, track, obstacles, s.get("against"), int(s.get("runs", 50)), int(s.get("laps", 3)),
                            int(s.get("seed", 0)), s.get("agent", "best"),
                            on_row=lambda r: echo(f"  it {r['iteration']}: " + ", ".join(
-                               f"{k} {r[k]}" for k in ("success", "lap_time_s", "win_rate") if r.get(k) is not None)))
+                               f"{k} {r[k]}" for k in ("success", "lap_time_s", "win_rate") if r.get(k) is not None)),
+                           min_iteration=first)
         dest = Path(s["export"])
         dest.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(scored.chosen["onnx"], dest)

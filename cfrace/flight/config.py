@@ -45,7 +45,7 @@ LATENCY_COMP_DEFAULT_S = 0.010
 SAFETY_MAX = {"geofence_margin_m": 10.0, "floor_z_m": 2.0, "floor_grace_s": 3600.0, "tilt_max_deg": 180.0,
               "speed_max_mps": 50.0, "mocap_stale_s": 1.0, "link_timeout_s": 5.0, "overrun_stop_s": 1.0,
               "fence_soft_m": 10.0, "mocap_glitches": 1000.0, "opponent_clearance_m": 10.0, "low_battery_v": 5.0,
-              "low_battery_s": 60.0, "min_separation_m": 5.0}
+              "low_battery_s": 60.0, "min_separation_m": 5.0, "start_slot_m": 10.0}
 TIMEOUT_MAX_S = 3600.0   #: s, the longest race and the longest connect / mocap wait
 
 
@@ -72,6 +72,10 @@ class SafetyConfig:
     #: m, least distance between two drones' centres before take-off (checked on the first mocap frame)
     #: and while the take-off grace lasts (floor_grace_s); closer stops both (cfrace.flight.safety)
     min_separation_m: float = 0.2
+    #: m, a ground start (start: ground): on the first mocap frame every drone must stand within this
+    #: of its start-grid slot and face gate 0 within the training's heading jitter, else nothing
+    #: flies (the policies were trained from there, cfrace.flight.swarm.check_take_off); 0 = off
+    start_slot_m: float = 0.3
     # soft failsafes: these land the drone (docs/flight.md, "Safety")
     fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
     mocap_glitches: float = 3        #: pose dropouts and outliers within 2 s that mean degraded mocap: land

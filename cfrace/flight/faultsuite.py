@@ -93,7 +93,7 @@ def ballistic_bound(pos, vel) -> float:
 def dry_run_row(kind: str, track: str, workdir: Path, drones: int = 2) -> Row:
     """One fault in a lockstep dry-run of ours vs ds (``drones`` > 2: ours, ds, ours, ds, ...; the
     fault hits d1, or d2 for nan_policy)."""
-    from cfrace.flight.config import FlightConfig
+    from cfrace.flight.config import FlightConfig, SafetyConfig
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.flightlog import read_log
     from cfrace.flight.runner import EXIT_CODES, result_exit_code
@@ -103,9 +103,12 @@ def dry_run_row(kind: str, track: str, workdir: Path, drones: int = 2) -> Row:
     names = ("ego", "opp") if drones == 2 else ("d1", "d2")
     drone = names[1] if kind == "nan_policy" else names[0]
     log = workdir / f"{kind}-{drones}.mcap"
+    # bodies swapped from the start stand on each other's start slots, which the take-off check
+    # refuses (safety.start_slot_m); this row shows what catches them once they fly, so it is off
     cfg = FlightConfig(track=track, ego="ours", opp="ds", profile=training_profile(load_track(track), "ours", False),
                        quiet=True, timeout_s=RACE_S, log=log,
-                       policies=tuple("ours" if i % 2 == 0 else "ds" for i in range(drones)) if drones > 2 else ())
+                       policies=tuple("ours" if i % 2 == 0 else "ds" for i in range(drones)) if drones > 2 else (),
+                       safety=SafetyConfig(start_slot_m=0.0) if kind == "swap_bodies" else SafetyConfig())
     at = FAULT_AT.get(kind, FAULT_T)
     res = dry_run(cfg, lockstep=True, faults=f"{kind}@{at}:{drone}").to_json()
     want_kind, want_action, want_code = EXPECT[kind]

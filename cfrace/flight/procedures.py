@@ -18,6 +18,7 @@ import numpy as np
 
 from cfrace.errors import FlightError
 from cfrace.flight.landing import LandingConfig, Touchdown
+from cfrace.track import ground_start_positions
 
 
 @dataclass(frozen=True)
@@ -34,8 +35,7 @@ def hover_start_positions(track, drones: int, height: float | None = None) -> tu
     """(drones, 3) hover positions and the yaw (rad) for ``--start hover``: above the ground-start
     grid (side by side, spawn.ground_distance before gate 0, facing it) at gate 0's height (or
     ``height``)."""
-    from cfrace.simcf.firmware import default_start_positions
-    pos, yaw = default_start_positions(track, drones, 0.0)
+    pos, yaw = ground_start_positions(track, drones)
     pos[:, 2] = track.gates[0][2] if height is None else height
     return pos, yaw
 

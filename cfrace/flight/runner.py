@@ -35,7 +35,7 @@ from cfrace.flight import realtime
 from cfrace.flight import safety as sf
 from cfrace.flight.consistency import check_still
 from cfrace.flight.links import wait_heard
-from cfrace.flight.swarm import check_take_off_separation
+from cfrace.flight.swarm import check_take_off
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.foxglove_scene import log_write_error, open_sink
 from cfrace.flight.landing import LandingSetup
@@ -242,8 +242,8 @@ class RaceRun:
         return self._loop()
 
     def _check_separation(self) -> None:
-        """The swarm's take-off rule (swarm.check_take_off_separation); nothing was sent yet."""
-        self.mocap = check_take_off_separation(self.mocap, self.setup.cfg, self.io.clock.realtime)
+        """The take-off rules (swarm.check_take_off: separation, start grid); nothing was sent yet."""
+        self.mocap = check_take_off(self.mocap, self.setup.cfg, self.io.clock.realtime, self.setup.track)
 
     def _drones(self) -> list[Drone]:
         s = self.setup

@@ -12,6 +12,7 @@ call on the stacked observations.
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -19,6 +20,8 @@ import numpy as np
 from cfrace.env.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
 from cfrace.errors import ConfigError
 from cfrace.flight import safety as sf
+from cfrace.flight.estimator import quat_to_rot
+from cfrace.track import HEADING_JITTER_RAD, ground_start_positions
 
 
 class OpponentPicker:
@@ -91,20 +94,50 @@ class _Unread:
         self.source.close()
 
 
-def check_take_off_separation(mocap, cfg, realtime: bool):
-    """Take-off rule of the swarm (cfrace.flight.safety): every pair of cfg.bodies at least
-    cfg.safety.min_separation_m apart on the first frame that shows every body, else ConfigError.
-    Returns the mocap source to read from (a lockstep source gets the frame it made handed back)."""
-    if len(cfg.bodies) < 2 or cfg.safety.min_separation_m <= 0:
+def off_start_slots(poses: dict, bodies, track, tol_m: float) -> list[str]:
+    """One phrase per drone of ``bodies`` (in start-grid order) that does not stand on its ground
+    start slot (cfrace.track.ground_start_positions): its mocap pose farther than ``tol_m`` from the
+    slot (in the horizontal) or turned more than the training's heading jitter from facing gate 0."""
+    slots, yaw = ground_start_positions(track, len(bodies))
+    out = []
+    for body, slot in zip(bodies, slots):
+        pose = poses[body]
+        rot = quat_to_rot(pose.quat)
+        heading = math.atan2(rot[1, 0], rot[0, 0])
+        turned = (heading - yaw + math.pi) % (2.0 * math.pi) - math.pi
+        off = math.hypot(float(pose.pos[0]) - slot[0], float(pose.pos[1]) - slot[1])
+        if off > tol_m or abs(turned) > HEADING_JITTER_RAD:
+            out.append(f"{body} stands at ({pose.pos[0]:.2f}, {pose.pos[1]:.2f}) heading {math.degrees(heading):.0f} "
+                       f"deg, {off:.2f} m from its slot ({slot[0]:.2f}, {slot[1]:.2f}) heading "
+                       f"{math.degrees(yaw):.0f} deg")
+    return out
+
+
+def check_take_off(mocap, cfg, realtime: bool, track):
+    """Take-off rules on the first frame that shows every body, before anything is sent
+    (cfrace.flight.safety): every pair of cfg.bodies at least cfg.safety.min_separation_m apart,
+    and on a ground start every drone on its start-grid slot (within cfg.safety.start_slot_m, facing
+    gate 0), else ConfigError. Returns the mocap source to read from (a lockstep source gets the
+    frame it made handed back)."""
+    separation = len(cfg.bodies) >= 2 and cfg.safety.min_separation_m > 0
+    slots = cfg.start == "ground" and cfg.safety.start_slot_m > 0
+    if not (separation or slots):
         return mocap
     t_end = time.monotonic() + cfg.mocap_timeout_s
     while time.monotonic() < t_end:
         frame = mocap.read(0.05)
         if frame is not None and all(b in frame.poses for b in cfg.bodies):
-            close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m)
+            close = sf.too_close({b: frame.poses[b].pos for b in cfg.bodies}, cfg.safety.min_separation_m) \
+                if separation else []
             if close:
                 pairs = ", ".join(f"{a}-{b} {d:.2f} m" for a, b, d in close)
                 raise ConfigError(f"drones too close to take off ({pairs}; at least "
                                   f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
+            off = off_start_slots(frame.poses, cfg.bodies, track, cfg.safety.start_slot_m) if slots else []
+            if off:
+                raise ConfigError(f"not on the start grid for a ground start: {'; '.join(off)} (at most "
+                                  f"{cfg.safety.start_slot_m:g} m, safety.start_slot_m): put each drone on its slot, "
+                                  "facing gate 0 (simulated drones: restart `cfrace sim serve` or serve them "
+                                  "with --reset-after-flight)")
             return mocap if realtime else _Unread(mocap, frame)
     return mocap

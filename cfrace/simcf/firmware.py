@@ -46,7 +46,7 @@ from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpo
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
-from cfrace.track import Track, load_track, start_grid
+from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
 MIN_THRUST = 1000          #: counts, below this the firmware commands zero thrust
@@ -114,25 +114,6 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def default_start_positions(track: Track, drones: int, floor_z: float) -> tuple[np.ndarray, float]:
-    """(drones, 3) positions on the floor in the track's start grid (cfrace.track.start_grid: two
-    side by side, spawn.opponent_offset apart; more in rows behind each other), its rows centred on
-    track.spawn.ground_distance before gate 0 on its +n side; and the yaw (rad) facing gate 0."""
-    gx, gy, _, gyaw = track.gates[0]
-    n = np.array([math.cos(gyaw), math.sin(gyaw)])
-    lateral = np.array([-n[1], n[0]])
-    centre = np.array([gx, gy]) + track.spawn.ground_distance * n
-    grid = start_grid(track.spawn, track.gate, drones)             # (N, 2) [sideways, back] m
-    pos = np.zeros((drones, 3))
-    pos[:, :2] = centre + grid[:, :1] * lateral + grid[:, 1:] * n
-    pos[:, 2] = floor_z
-    return pos, _wrap(gyaw + math.pi)
-
-
 class SimFleet:
     """N simulated Crazyflies (one simulator world) with the firmware's setpoint handling.
 
@@ -160,7 +141,7 @@ class SimFleet:
         self.battery = battery or BatteryModel()
         self.seed = int(seed)
         floor_z = self.profile.collision_box[2] / 2.0
-        pos, self._start_yaw = default_start_positions(self.track, self.n, floor_z)
+        pos, self._start_yaw = ground_start_positions(self.track, self.n, floor_z)
         if start_positions is not None:
             pos = np.asarray(start_positions, dtype=np.float64)
             if pos.shape != (self.n, 3):

@@ -27,13 +27,15 @@ ERROR_LOG_EVERY_S = 1.0    #: s, bad packets are reported at most this often (on
 
 LOOPBACK = ("127.0.0.1", "localhost")
 MAX_CATCH_UP = 0.1   #: s, the most simulated time one clock tick may add (beyond it the sim lags)
+FLIGHT_OVER_S = 1.0  #: s without a datagram from any client (motors off) that ends a flight (reset_after_flight)
 
 
 class SimCrazyflieServer:
     """Serve ``fleet``'s drones on udp://127.0.0.1:base_port+i (base_port 0: free ports)."""
 
     def __init__(self, fleet: SimFleet, base_port: int = 19850, host: str = "127.0.0.1", realtime: bool = True,
-                 tick: float = 0.01, pose_port: int | None = None):
+                 tick: float = 0.01, pose_port: int | None = None, reset_after_flight: bool = False,
+                 on_reset=None):
         if host not in LOOPBACK:
             raise ConfigError(f"simcf: host {host!r} refused, the simulated drones listen on 127.0.0.1 only")
         if not 0 <= base_port <= 65535 - fleet.n:
@@ -57,6 +59,12 @@ class SimCrazyflieServer:
         self.overruns = 0          #: clock ticks that had to drop time (simulation slower than real time)
         self.sim_lag = 0.0         #: s of wall-clock time not simulated because of overruns
         self.errors = 0            #: exceptions while handling a packet (logged)
+        #: put the drones back on the start grid after each flight (see _after_flight); on_reset()
+        #: is called each time
+        self.reset_after_flight, self.on_reset = bool(reset_after_flight), on_reset
+        self.resets = 0
+        self._flown = False        #: a drone was armed since the start or the last reset
+        self._last_rx = time.monotonic()
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -146,6 +154,7 @@ class SimCrazyflieServer:
                 self._subscribers[addr] = time.monotonic()
                 continue
             self._peers[i] = addr
+            self._last_rx = time.monotonic()
             try:
                 replies = self.endpoints[i].handle(data)
             except Exception as exc:   # a bad packet must not kill the drone: one line, at most 1/s
@@ -193,12 +202,29 @@ class SimCrazyflieServer:
                     self.errors += 1
                     log.exception("simcf: sending log data for drone %d failed", i)
             self._publish_poses(now)
+            if self.reset_after_flight:
+                self._after_flight(now)
             next_tick += self.tick
             delay = next_tick - time.monotonic()
             if delay < -self.tick:
                 next_tick = time.monotonic() + self.tick
                 delay = self.tick
             self._stop.wait(max(0.0, delay))
+
+    def _after_flight(self, now: float) -> None:
+        """Once a flight is over (a drone was armed; now every motor is off and no client has sent
+        anything for FLIGHT_OVER_S), every drone back on the start grid, rebooted (SimFleet.reset)."""
+        fleet = self.fleet
+        with fleet.lock:
+            status = [fleet.status(i) for i in range(fleet.n)]
+            self._flown = self._flown or any(s["armed"] for s in status)
+            if not self._flown or any(s["thrust"] > 0.0 for s in status) or now - self._last_rx < FLIGHT_OVER_S:
+                return
+            fleet.reset()
+        self._flown = False
+        self.resets += 1
+        if self.on_reset is not None:
+            self.on_reset()
 
     def _publish_poses(self, now: float) -> None:
         if not self._subscribers or self._pose_sock is None:
@@ -216,12 +242,14 @@ class SimCrazyflieServer:
 
 def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arming_required: bool = True,
           obstacles: bool = True, body_names=None, seed: int = 0, duration: float | None = None,
-          decks=("lighthouse",), out=print) -> list[dict]:
+          decks=("lighthouse",), reset_after_flight: bool = False, out=print) -> list[dict]:
     """Run simulated Crazyflies until Ctrl-C / SIGTERM (or ``duration`` s). Prints the URIs via ``out``.
-    Returns the per-drone packet statistics."""
+    The drones stay where each flight leaves them, as real drones do, unless ``reset_after_flight``
+    (back on the start grid once a flight is over). Returns the per-drone packet statistics."""
     fleet = SimFleet(track, profile, drones, body_names=body_names, seed=seed,
                      arming_required=arming_required, obstacles=obstacles, decks=decks)
-    server = SimCrazyflieServer(fleet, base_port=port)
+    server = SimCrazyflieServer(fleet, base_port=port, reset_after_flight=reset_after_flight,
+                                on_reset=lambda: out("  flight over: every drone back on the start grid"))
     stop = threading.Event()
     restore = None
     if threading.current_thread() is threading.main_thread():
@@ -234,6 +262,9 @@ def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arm
             for name, uri in zip(fleet.body_names, server.uris):
                 out(f"  {name}: {uri}")
             out(f"  ground-truth poses: udp://127.0.0.1:{server.pose_port} (mocap source `sim`)")
+            out("  after a flight: " + ("every drone back on the start grid (--reset-after-flight)" if reset_after_flight
+                                        else "the drones stay where they landed, as real drones do; a ground start "
+                                             "needs them on the grid (--reset-after-flight: put back)"))
             out("Ctrl-C to stop")
             t_end = None if duration is None else time.monotonic() + duration
             try:
