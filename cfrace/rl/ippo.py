@@ -71,46 +71,59 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
         perm = torch.randperm(n, generator=generator, device="cpu").to(obs_n.device)
         for k in range(cfg.minibatches):
             idx = perm[k * size:(k + 1) * size]
-            adv, ret, v_old = batch["advantages"][idx], batch["returns"][idx], batch["values"][idx]
             dist, value = forward(model, obs_n[idx], critic_n[idx], autocast)
-            log_prob = dist.log_prob(batch["actions"][idx]).sum(-1)
-            entropy = dist.entropy().sum(-1).mean()
-
             with torch.no_grad():
                 kl = gaussian_kl(batch["mu"][idx], batch["sigma"][idx], dist.mean, dist.stddev)
-            if cfg.desired_kl is not None:  # adaptive learning rate on the KL to the old policy
-                if kl > 2.0 * cfg.desired_kl:
-                    lr = max(cfg.lr_min, lr / 1.5)
-                elif 0.0 < kl < 0.5 * cfg.desired_kl:
-                    lr = min(cfg.lr_max, lr * 1.5)
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
-
-            ratio = torch.exp(log_prob - batch["log_prob"][idx])
-            surrogate = -torch.min(ratio * adv, ratio.clamp(1.0 - cfg.clip, 1.0 + cfg.clip) * adv).mean()
-            if cfg.value_clip is not None:
-                v_clip = v_old + (value - v_old).clamp(-cfg.value_clip, cfg.value_clip)
-                value_loss = torch.max((value - ret).square(), (v_clip - ret).square()).mean()
-            else:
-                value_loss = (value - ret).square().mean()
-            loss = surrogate + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-            if cfg.bound_coef > 0.0:  # the env clips actions: a mean beyond +-1 is not what the drone gets
-                loss = loss + cfg.bound_coef * (dist.mean.abs() - 1.0).clamp_min(0.0).square().sum(-1).mean()
-
+            lr = adapt_lr(optimizer, cfg, lr, kl)
+            loss, terms = ppo_losses(dist, value, {key: batch[key][idx] for key in MINIBATCH_KEYS}, cfg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
             optimizer.step()
-
             updates += 1
-            stats["surrogate"] += surrogate.item()
-            stats["value_loss"] += value_loss.item()
-            stats["entropy"] += entropy.item()
+            for key, term in terms.items():
+                stats[key] += term.item()
             stats["kl"] += float(kl)
-            stats["clip_frac"] += ((ratio - 1.0).abs() > cfg.clip).float().mean().item()
     stats = {k: v / updates for k, v in stats.items()}
     stats["samples"] = float(n)
     return stats, lr
+
+
+#: the per-sample fields the losses read
+MINIBATCH_KEYS = ("advantages", "returns", "values", "actions", "log_prob")
+
+
+def adapt_lr(optimizer: torch.optim.Optimizer, cfg: IPPOConfig, lr: float, kl: torch.Tensor) -> float:
+    """The adaptive learning rate on the KL to the old policy (nothing without cfg.desired_kl)."""
+    if cfg.desired_kl is None:
+        return lr
+    if kl > 2.0 * cfg.desired_kl:
+        lr = max(cfg.lr_min, lr / 1.5)
+    elif 0.0 < kl < 0.5 * cfg.desired_kl:
+        lr = min(cfg.lr_max, lr * 1.5)
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    return lr
+
+
+def ppo_losses(dist, value: torch.Tensor, mb: dict[str, torch.Tensor], cfg: IPPOConfig):
+    """The minibatch's loss L and its logged terms (surrogate, value_loss, entropy, clip_frac: 0-d
+    tensors). ``mb`` holds MINIBATCH_KEYS for these samples."""
+    adv, ret, v_old = mb["advantages"], mb["returns"], mb["values"]
+    log_prob = dist.log_prob(mb["actions"]).sum(-1)
+    entropy = dist.entropy().sum(-1).mean()
+    ratio = torch.exp(log_prob - mb["log_prob"])
+    surrogate = -torch.min(ratio * adv, ratio.clamp(1.0 - cfg.clip, 1.0 + cfg.clip) * adv).mean()
+    if cfg.value_clip is not None:
+        v_clip = v_old + (value - v_old).clamp(-cfg.value_clip, cfg.value_clip)
+        value_loss = torch.max((value - ret).square(), (v_clip - ret).square()).mean()
+    else:
+        value_loss = (value - ret).square().mean()
+    loss = surrogate + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+    if cfg.bound_coef > 0.0:  # the env clips actions: a mean beyond +-1 is not what the drone gets
+        loss = loss + cfg.bound_coef * (dist.mean.abs() - 1.0).clamp_min(0.0).square().sum(-1).mean()
+    clip_frac = ((ratio.detach() - 1.0).abs() > cfg.clip).float().mean()
+    return loss, {"surrogate": surrogate, "value_loss": value_loss, "entropy": entropy, "clip_frac": clip_frac}
 
 
 def ppo_loss(model: AgentModels, batch: dict[str, torch.Tensor], cfg: IPPOConfig) -> float:
