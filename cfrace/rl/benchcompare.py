@@ -24,7 +24,8 @@ from cfrace.errors import ConfigError
 
 #: `bench train` options a comparison may change, with their command-line flag
 OPTIONS = {"precision": "--precision", "threads": "--threads", "envs": "--envs", "preset": "--preset",
-           "method": "--method", "track": "--track", "iterations": "--iterations", "device": "--device"}
+           "method": "--method", "track": "--track", "iterations": "--iterations", "device": "--device",
+           "update_workers": "--update-workers"}
 #: figures compared; env_steps_per_cpu_s (steps per CPU second of the process) is the one that other
 #: processes on a shared machine hardly change
 FIGURES = ("env_steps_per_s", "env_steps_per_cpu_s", "iteration_s", "share_update", "share_sim", "share_inference")

@@ -49,11 +49,20 @@ def forward(model: AgentModels, obs_n: torch.Tensor, critic_n: torch.Tensor, aut
     return dist, model.critic.net[-1](h_critic.float()).squeeze(-1)
 
 
+def draw_perms(n: int, cfg: IPPOConfig, generator: torch.Generator | None) -> list[torch.Tensor]:
+    """The minibatch shuffles of one update of ``n`` samples: one permutation per epoch (none when
+    there are fewer samples than minibatches: no update)."""
+    if n < cfg.minibatches:
+        return []
+    return [torch.randperm(n, generator=generator, device="cpu") for _ in range(cfg.epochs)]
+
+
 def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict[str, torch.Tensor],
                cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None,
-               precision: Precision | None = None) -> tuple[dict, float]:
+               precision: Precision | None = None, perms: list[torch.Tensor] | None = None) -> tuple[dict, float]:
     """Run cfg.epochs x cfg.minibatches updates on ``batch`` (flat alive samples, see
     RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation).
+    The shuffles are ``perms`` (draw_perms) or drawn here from ``generator``.
 
     With a bf16 ``precision`` the two networks' hidden layers run under autocast (forward and
     backward); their output layers, the distribution, the losses and the KL in float32."""
@@ -67,8 +76,8 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
     size = n // cfg.minibatches
     autocast = (lambda: precision.autocast(obs_n.device)) if precision is not None else contextlib.nullcontext
     updates = 0
-    for _ in range(cfg.epochs):
-        perm = torch.randperm(n, generator=generator, device="cpu").to(obs_n.device)
+    for perm in perms if perms is not None else draw_perms(n, cfg, generator):
+        perm = perm.to(obs_n.device)
         for k in range(cfg.minibatches):
             idx = perm[k * size:(k + 1) * size]
             dist, value = forward(model, obs_n[idx], critic_n[idx], autocast)

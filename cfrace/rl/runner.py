@@ -21,13 +21,14 @@ from __future__ import annotations
 import random
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 from torch import nn
 
 from cfrace.rl.config import IPPOConfig
-from cfrace.rl.ippo import make_optimizer, ppo_update
+from cfrace.rl.ippo import draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
 from cfrace.rl.precision import Precision
 from cfrace.rl.storage import RolloutStorage
@@ -85,6 +86,7 @@ class Runner:
         self.iteration = 0
         self.update_actor_norm = True  #: False keeps the actors' input statistics fixed (warm starts)
         self.precision = Precision("fp32", "fp32", "default")  #: of the PPO update (cfrace/rl/precision.py)
+        self.update_workers = 1  #: threads the models' PPO updates run in (see _update); same weights either way
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
@@ -155,24 +157,46 @@ class Runner:
         roll.sim_s += t2 - t1
 
     def _update(self) -> dict[str, float]:
-        """GAE, then per model its PPO update and its normalisers' update; the update's metrics."""
+        """GAE, then per model its PPO update and its normalisers' update; the update's metrics.
+
+        With ``update_workers`` > 1 the models' updates run in that many threads at once (each
+        model has its own networks, optimizer and samples; the shuffles are drawn beforehand in the
+        sequential order), so the weights are the same as one after the other."""
         st = self.storage
         last_values = torch.stack([self.model(a).value(self.critic[:, a]) for a in range(self.num_agents)], 1)
         st.compute_returns(last_values, self.cfg.gamma, self.cfg.lam)
         metrics: dict[str, float] = {}
         drones = [[a] for a in range(self.num_agents)] if not self.shared else [list(range(self.num_agents))]
-        for k_model, (m, group) in enumerate(zip(self.agents, drones)):
+        batches = []
+        for group in drones:
             parts = [st.agent_batch(a) for a in group]
-            batch = parts[0] if len(parts) == 1 else {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-            stats, self.lrs[k_model] = ppo_update(m, self.optimizers[k_model], batch, self.cfg, self.lrs[k_model],
-                                                  self.update_gen, self.precision)
+            batches.append(parts[0] if len(parts) == 1 else {k: torch.cat([p[k] for p in parts]) for k in parts[0]})
+        perms = [draw_perms(b["obs"].shape[0], self.cfg, self.update_gen) for b in batches]
+
+        def update(k_model: int) -> tuple[dict, float]:
+            return ppo_update(self.agents[k_model], self.optimizers[k_model], batches[k_model], self.cfg,
+                              self.lrs[k_model], None, self.precision, perms[k_model])
+
+        for k_model, (stats, lr) in enumerate(self._map(update, range(len(batches)))):
+            self.lrs[k_model] = lr
             for k, v in stats.items():
                 metrics[f"{k}_agent{k_model}"] = v
+        for m, group in zip(self.agents, drones):
             alive_mask = st.alive[:, :, group]                      # (T, E, n)
             if self.update_actor_norm:
                 m.obs_norm.update(st.obs[:, :, group][alive_mask])
             m.critic_norm.update(st.critic[:, :, group][alive_mask])
         return metrics
+
+    def _map(self, fn, items) -> list:
+        """[fn(x) for x in items], in update_workers threads when there are more than one (each thread
+        with this thread's torch intra-op thread count)."""
+        items = list(items)
+        if self.update_workers <= 1 or len(items) <= 1:
+            return [fn(x) for x in items]
+        with ThreadPoolExecutor(min(self.update_workers, len(items)), initializer=torch.set_num_threads,
+                                initargs=(torch.get_num_threads(),)) as pool:
+            return list(pool.map(fn, items))
 
     def _rollout_metrics(self, roll: "_RolloutSums", steps: int) -> dict[str, float]:
         """Per drone: reward per alive step, mean episode return, total reward, lr, std, alive share;

@@ -60,6 +60,7 @@ class TrainConfig:
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
+    update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
     ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
@@ -152,6 +153,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
         keep[key] = given.get(key)
     if given.get("precision") is not None:  # how the update computes, not what the task is
         keep["precision"] = given["precision"]
+    keep["update_workers"] = given.get("update_workers") or 1  # how, not what: not taken from the checkpoint
     if given.get("keep_checkpoints"):  # a resumed run may start keeping its checkpoints
         keep["keep_checkpoints"] = True
     keep["out"] = str(given.get("out") or resume)
@@ -163,7 +165,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
 def _save(path: Path, cfg: TrainConfig, meta: dict, runner: Runner, wall_s: float) -> None:
     state = {"format": FORMAT, "cfrace_version": __version__, "train_config": asdict(cfg), "meta": meta,
              "runner": runner.state_dict(), "wall_s": wall_s, "saved_at": time.time(),
-             "precision": runner.precision.to_dict()}
+             "precision": runner.precision.to_dict(), "update_workers": update_workers}
     tmp = path.with_suffix(".pt.tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
@@ -272,6 +274,7 @@ def _start_run(cfg: TrainConfig, resume: str | Path | None, env_factory: Callabl
     env, meta = (env_factory or make_env)(cfg, device, ippo.num_envs)
     runner = Runner(env, ippo, seed=cfg.seed)
     runner.precision = resolve_precision(cfg.precision, runner)
+    runner.update_workers = cfg.update_workers
     exact = None
     wall_before = 0.0
     if saved is not None:
@@ -361,7 +364,7 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
                 threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
-                precision: str = "auto", drones: int | None = None) -> dict:
+                precision: str = "auto", drones: int | None = None, update_workers: int = 1) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
@@ -373,6 +376,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     env, meta = (env_factory or make_env)(cfg, dev, ippo.num_envs)
     runner = Runner(env, ippo, seed=0)
     runner.precision = resolve_precision(precision, runner)
+    runner.update_workers = update_workers
     setup_s = time.perf_counter() - t0
     runner.iterate()
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
@@ -396,4 +400,4 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],
             "share_update": sums["update_s"] / sums["iter_s"],
             "share_other": 1.0 - (sums["sim_s"] + sums["infer_s"] + sums["update_s"]) / sums["iter_s"],
-            "precision": runner.precision.to_dict()}
+            "precision": runner.precision.to_dict(), "update_workers": update_workers}
