@@ -268,12 +268,12 @@ def bench_train_cmd(
 
 def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str], **options) -> None:
     """`bench train --compare`: this configuration (A) against the other (B), alternating; ratios A / B."""
-    from cfrace.rl.benchcompare import Config, compare, parse_compare
+    from cfrace.rl.benchcompare import Config, compare, parse_compare, rev_knows
 
     base = {k: v for k, v in options.items() if v is not None}
     a, b = Config("this tree", base), parse_compare(text, base)
-    if b.rev is not None:  # an older revision may not know --precision: time both with its default
-        b = Config(b.label, {k: v for k, v in base.items() if k != "precision"}, b.rev)
+    if b.rev is not None:  # an older revision may not know some options: time it with its defaults for those
+        b = Config(b.label, {k: v for k, v in base.items() if rev_knows(b.rev, k)}, b.rev)
 
     def said(r: int, cfg: Config, res: dict) -> None:
         console.print(f"round {r + 1}: {cfg.label}: {res['env_steps_per_s']:,.0f} env steps/s")

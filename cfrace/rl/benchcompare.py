@@ -55,6 +55,19 @@ def parse_compare(text: str, base: dict) -> Config:
     return Config(text, opts)
 
 
+#: options that came after --compare: a revision knows one when its `bench train` command lists the flag
+LATE = ("precision", "update_workers")
+
+
+def rev_knows(rev: str, option: str) -> bool:
+    """Whether `bench train` at ``rev`` takes ``option``."""
+    if option not in LATE:
+        return True
+    proc = subprocess.run(["git", "-C", str(repo_root()), "show", f"{rev}:cfrace/cli/train.py"],
+                          capture_output=True, text=True)
+    return proc.returncode == 0 and f'"{OPTIONS[option]}"' in proc.stdout
+
+
 def repo_root() -> Path:
     """The git checkout this cfrace is imported from."""
     here = Path(__file__).resolve().parents[2]
