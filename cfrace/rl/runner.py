@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from cfrace.rl.config import IPPOConfig
-from cfrace.rl.ippo import draw_perms, forward, make_optimizer, ppo_update
+from cfrace.rl.ippo import draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
 from cfrace.rl.precision import Precision
 from cfrace.rl.storage import RolloutStorage
@@ -243,19 +243,19 @@ class Runner:
     @torch.no_grad()
     def _act(self, obs: torch.Tensor, critic: torch.Tensor):
         """One forward pass per agent: sampled actions (E, A, 4), log-probs (E, A), values (E, A),
-        Gaussian means and stds (E, A, 4). Under a bf16 precision the hidden layers run in bf16
-        (experiment: rollout inference in bf16)."""
-        autocast = lambda: self.precision.autocast(self.device)
+        Gaussian means and stds (E, A, 4)."""
         if self.shared:  # one pass over every drone of every world
             m = self.agents[0]
-            dist, value = forward(m, m.obs_norm(obs), m.critic_norm(critic), autocast)
+            dist = m.actor(m.obs_norm(obs))
             action = dist.sample()
-            return (action, dist.log_prob(action).sum(-1), value, dist.mean, dist.stddev.expand_as(action))
+            return (action, dist.log_prob(action).sum(-1), m.critic(m.critic_norm(critic)), dist.mean,
+                    dist.stddev.expand_as(action))
         outs = []
         for a, m in enumerate(self.agents):
-            dist, value = forward(m, m.obs_norm(obs[:, a]), m.critic_norm(critic[:, a]), autocast)
+            dist = m.actor(m.obs_norm(obs[:, a]))
             action = dist.sample()
-            outs.append((action, dist.log_prob(action).sum(-1), value, dist.mean, dist.stddev))
+            outs.append((action, dist.log_prob(action).sum(-1), m.critic(m.critic_norm(critic[:, a])),
+                         dist.mean, dist.stddev))
         return tuple(torch.stack(x, 1) for x in zip(*outs))
 
     # ------------------------------------------------------------------ state for checkpoints
