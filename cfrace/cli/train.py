@@ -115,6 +115,9 @@ def train_cmd(
     update_workers: int = typer.Option(1, "--update-workers", min=1,
                                        help="threads the agents' PPO updates run in at once (one agent per "
                                             "thread; the same weights as one after the other)"),
+    compile_: bool = typer.Option(False, "--compile/--no-compile",
+                                  help="the update's forward pass and losses through torch.compile "
+                                       "(compiles for tens of seconds at the start)"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
@@ -137,7 +140,8 @@ def train_cmd(
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
-                            precision=precision, keep_checkpoints=keep_checkpoints, update_workers=update_workers)
+                            precision=precision, keep_checkpoints=keep_checkpoints, update_workers=update_workers,
+                            compile=compile_)
     else:
         seed = 0 if seed is None else seed
         name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
@@ -150,7 +154,8 @@ def train_cmd(
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
                           fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
-                          ground_start_prob=ground_start_prob, drones=drones, update_workers=update_workers,
+                          ground_start_prob=ground_start_prob, drones=drones,
+                          update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
@@ -230,6 +235,9 @@ def bench_train_cmd(
     update_workers: int = typer.Option(1, "--update-workers", min=1,
                                        help="threads the agents' PPO updates run in at once (one agent per "
                                             "thread; the same weights as one after the other)"),
+    compile_: bool = typer.Option(False, "--compile/--no-compile",
+                                  help="the update's forward pass and losses through torch.compile "
+                                       "(compiles for tens of seconds at the start)"),
     compare: Optional[str] = typer.Option(None, "--compare",
                                           help="time a second configuration side by side: KEY=VALUE[,...] "
                                                "(e.g. precision=fp32) or a git revision (e.g. main)"),
@@ -243,12 +251,14 @@ def bench_train_cmd(
     if compare is not None:
         _bench_compare(compare, rounds, json_out, set_ or [], method=method, track=track, preset=preset,
                        envs=envs, iterations=iterations, device=device, threads=threads, precision=precision,
-                       update_workers=update_workers if update_workers != 1 else None)
+                       update_workers=update_workers if update_workers != 1 else None,
+                       compile=True if compile_ else None)
         return
     from cfrace.rl.train import bench_train
 
     r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads,
-                    overrides=overrides, precision=precision, update_workers=update_workers)
+                    overrides=overrides, precision=precision, update_workers=update_workers,
+                    compile=compile_)
     table = Table(title=f"training speed: {method} on {r['track']}, preset {r['preset']}, {r['device']}, "
                         f"{r['threads']} thread(s)")
     table.add_column("figure")

@@ -59,10 +59,12 @@ def draw_perms(n: int, cfg: IPPOConfig, generator: torch.Generator | None) -> li
 
 def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict[str, torch.Tensor],
                cfg: IPPOConfig, lr: float, generator: torch.Generator | None = None,
-               precision: Precision | None = None, perms: list[torch.Tensor] | None = None) -> tuple[dict, float]:
+               precision: Precision | None = None, perms: list[torch.Tensor] | None = None,
+               loss_fn=None) -> tuple[dict, float]:
     """Run cfg.epochs x cfg.minibatches updates on ``batch`` (flat alive samples, see
     RolloutStorage.agent_batch). Returns (mean statistics, the learning rate after adaptation).
-    The shuffles are ``perms`` (draw_perms) or drawn here from ``generator``.
+    The shuffles are ``perms`` (draw_perms) or drawn here from ``generator``; ``loss_fn`` replaces
+    minibatch_loss (e.g. its torch.compile'd version, see compiled_loss).
 
     With a bf16 ``precision`` the two networks' hidden layers run under autocast (forward and
     backward); their output layers, the distribution, the losses and the KL in float32."""
@@ -80,11 +82,11 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
         perm = perm.to(obs_n.device)
         for k in range(cfg.minibatches):
             idx = perm[k * size:(k + 1) * size]
-            dist, value = forward(model, obs_n[idx], critic_n[idx], autocast)
+            mb = {key: batch[key][idx] for key in MINIBATCH_KEYS}
+            loss, terms, mean, std = (loss_fn or minibatch_loss)(model, obs_n[idx], critic_n[idx], mb, cfg, autocast)
             with torch.no_grad():
-                kl = gaussian_kl(batch["mu"][idx], batch["sigma"][idx], dist.mean, dist.stddev)
+                kl = gaussian_kl(batch["mu"][idx], batch["sigma"][idx], mean, std)
             lr = adapt_lr(optimizer, cfg, lr, kl)
-            loss, terms = ppo_losses(dist, value, {key: batch[key][idx] for key in MINIBATCH_KEYS}, cfg)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, cfg.grad_clip)
@@ -100,6 +102,21 @@ def ppo_update(model: AgentModels, optimizer: torch.optim.Optimizer, batch: dict
 
 #: the per-sample fields the losses read
 MINIBATCH_KEYS = ("advantages", "returns", "values", "actions", "log_prob")
+
+
+def minibatch_loss(model: AgentModels, obs_n: torch.Tensor, critic_n: torch.Tensor, mb: dict[str, torch.Tensor],
+                   cfg: IPPOConfig, autocast=contextlib.nullcontext):
+    """Forward pass and losses of one minibatch: (L, logged terms, Gaussian means (N, 4), stds (N, 4))."""
+    dist, value = forward(model, obs_n, critic_n, autocast)
+    loss, terms = ppo_losses(dist, value, mb, cfg)
+    return loss, terms, dist.mean, dist.stddev
+
+
+def compiled_loss(backend: str = "inductor"):
+    """minibatch_loss through torch.compile (dynamic shapes: the alive sample count, so the minibatch
+    size, changes every iteration; the networks' parameters are graph inputs, so one compiled graph
+    serves every agent). The first call of each shape family compiles (tens of seconds on a CPU)."""
+    return torch.compile(minibatch_loss, dynamic=True, backend=backend)
 
 
 def adapt_lr(optimizer: torch.optim.Optimizer, cfg: IPPOConfig, lr: float, kl: torch.Tensor) -> float:

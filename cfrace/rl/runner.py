@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from cfrace.rl.config import IPPOConfig
-from cfrace.rl.ippo import draw_perms, make_optimizer, ppo_update
+from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
 from cfrace.rl.precision import Precision
 from cfrace.rl.storage import RolloutStorage
@@ -87,6 +87,7 @@ class Runner:
         self.update_actor_norm = True  #: False keeps the actors' input statistics fixed (warm starts)
         self.precision = Precision("fp32", "fp32", "default")  #: of the PPO update (cfrace/rl/precision.py)
         self.update_workers = 1  #: threads the models' PPO updates run in (see _update); same weights either way
+        self.loss_fn = None      #: the update's minibatch loss; None = eager (ippo.minibatch_loss), see use_compile
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
@@ -175,7 +176,7 @@ class Runner:
 
         def update(k_model: int) -> tuple[dict, float]:
             return ppo_update(self.agents[k_model], self.optimizers[k_model], batches[k_model], self.cfg,
-                              self.lrs[k_model], None, self.precision, perms[k_model])
+                              self.lrs[k_model], None, self.precision, perms[k_model], self.loss_fn)
 
         for k_model, (stats, lr) in enumerate(self._map(update, range(len(batches)))):
             self.lrs[k_model] = lr
@@ -232,6 +233,10 @@ class Runner:
         self.fixed_opponent = models.to(self.device).eval().requires_grad_(False)
         self._not_fixed = mask
         return n
+
+    def use_compile(self, on: bool, backend: str = "inductor") -> None:
+        """Run the update's forward pass and losses through torch.compile (ippo.compiled_loss)."""
+        self.loss_fn = compiled_loss(backend) if on else None
 
     def set_lr(self, lr: float) -> None:
         """Every agent's learning rate (the adaptive rule, if on, continues from it)."""

@@ -61,6 +61,7 @@ class TrainConfig:
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
     update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
+    compile: bool = False           #: the update's forward pass and losses through torch.compile
     ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
@@ -154,6 +155,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
     if given.get("precision") is not None:  # how the update computes, not what the task is
         keep["precision"] = given["precision"]
     keep["update_workers"] = given.get("update_workers") or 1  # how, not what: not taken from the checkpoint
+    keep["compile"] = bool(given.get("compile"))
     if given.get("keep_checkpoints"):  # a resumed run may start keeping its checkpoints
         keep["keep_checkpoints"] = True
     keep["out"] = str(given.get("out") or resume)
@@ -275,6 +277,7 @@ def _start_run(cfg: TrainConfig, resume: str | Path | None, env_factory: Callabl
     runner = Runner(env, ippo, seed=cfg.seed)
     runner.precision = resolve_precision(cfg.precision, runner)
     runner.update_workers = cfg.update_workers
+    runner.use_compile(cfg.compile)
     exact = None
     wall_before = 0.0
     if saved is not None:
@@ -364,7 +367,8 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
                 threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
-                precision: str = "auto", drones: int | None = None, update_workers: int = 1) -> dict:
+                precision: str = "auto", drones: int | None = None, update_workers: int = 1,
+                compile: bool = False) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
@@ -377,8 +381,9 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     runner = Runner(env, ippo, seed=0)
     runner.precision = resolve_precision(precision, runner)
     runner.update_workers = update_workers
+    runner.use_compile(compile)
     setup_s = time.perf_counter() - t0
-    runner.iterate()
+    warmup_s = runner.iterate()["iter_s"]  # with --compile: includes the compilation
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
     cpu0 = time.process_time()
     for _ in range(iterations):
@@ -392,7 +397,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "device": str(dev), "threads": n_threads, "num_envs": ippo.num_envs, "rollout": ippo.rollout,
             "num_agents": runner.num_agents, "shared": runner.shared, "actor_hidden": list(ippo.actor_hidden),
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
-            "iterations": iterations, "setup_s": setup_s,
+            "iterations": iterations, "setup_s": setup_s, "warmup_s": warmup_s, "compile": compile,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],
             "env_steps_per_cpu_s": steps / cpu_s if cpu_s > 0 else math.inf,
             "sim_env_steps_per_s": steps / sums["sim_s"] if sums["sim_s"] > 0 else math.inf,
