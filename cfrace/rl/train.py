@@ -167,7 +167,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
 def _save(path: Path, cfg: TrainConfig, meta: dict, runner: Runner, wall_s: float) -> None:
     state = {"format": FORMAT, "cfrace_version": __version__, "train_config": asdict(cfg), "meta": meta,
              "runner": runner.state_dict(), "wall_s": wall_s, "saved_at": time.time(),
-             "precision": runner.precision.to_dict(), "update_workers": update_workers}
+             "precision": runner.precision.to_dict()}
     tmp = path.with_suffix(".pt.tmp")
     torch.save(state, tmp)
     os.replace(tmp, path)
