@@ -55,10 +55,12 @@ class Spawn:
 
 
 def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
-    """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's front
-    centre: rows of as many drones as fit side by side ``spawn.opponent_offset`` apart inside the
-    gate opening (floor(opening / offset), at least 1), each row centred, rows one offset (or
-    ``opponent_stagger`` if larger) further back. Two drones: one row of two."""
+    """(N, 2) start slots of an N-drone field, [sideways, back] in m, relative to the grid's centre
+    (the spawn point): rows of as many drones as fit side by side ``spawn.opponent_offset`` apart
+    inside the gate opening (floor(opening / offset), at least 1), each row centred, rows one offset
+    (or ``opponent_stagger`` if larger) apart and centred on the spawn distance, so that every row
+    starts as near the spawn distance as the field allows (the shipped policies take off from the
+    ground 0.6-1.2 m before gate 0, not 1.4 m: docs/flight.md). Two drones: one row of two."""
     if drones < 1:
         raise ValueError(f"a start grid needs at least 1 drone, got {drones}")
     offset = max(spawn.opponent_offset, 1e-3)
@@ -69,7 +71,10 @@ def start_grid(spawn: Spawn, gate: GateGeometry, drones: int) -> np.ndarray:
         row, col = divmod(s, per_row)
         in_row = min(per_row, drones - row * per_row)
         slots.append(((col - (in_row - 1) / 2.0) * offset, row * spacing))
-    return np.asarray(slots, dtype=np.float64)
+    out = np.asarray(slots, dtype=np.float64)
+    rows = (drones - 1) // per_row + 1
+    out[:, 1] -= (rows - 1) * spacing / 2.0
+    return out
 
 
 @dataclass(frozen=True)

@@ -132,6 +132,8 @@ def test_start_grid_from_the_track():
         assert np.abs(g[:, 0]).max() <= gate.opening / 2            # inside the opening
         dist = np.linalg.norm(g[:, None] - g[None], axis=-1) + np.eye(n) * 9
         assert dist.min() >= sp.opponent_offset - 1e-9               # nobody closer than the offset
+        assert abs(g[:, 1].min() + g[:, 1].max()) < 1e-9              # rows centred on the spawn distance
+    assert np.allclose(np.unique(start_grid(sp, gate, 4)[:, 1]), [-0.2, 0.2])   # 0.8 and 1.2 m before gate 0
     with pytest.raises(ValueError):
         start_grid(sp, gate, 0)
 

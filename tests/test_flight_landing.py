@@ -156,3 +156,35 @@ def test_landing_pilot_flies_the_sequence():
         assert np.linalg.norm(fleet.state(i)["pos"][:2] - spots[i]) < 0.15
         assert not fleet.status(i)["crashed"] and fleet.status(i)["thrust"] == 0.0
     assert np.linalg.norm(spots[0] - spots[1]) >= LandingConfig().drone_separation_m
+
+
+def test_landing_paths_of_drones_that_land_together_neither_cross_nor_touch():
+    """Drones landing at once fly straight to their spots at the same time: no two paths cross or
+    come nearer than path_separation_m (unless they start nearer), and a drone that stays is passed
+    at that distance too; the choice is bounded in time (it runs in the 100 Hz tick)."""
+    import time
+
+    from cfrace.flight.landing import _seg_point_dist, _segments_cross
+
+    def seg_dist(p1, p2, q1, q2) -> float:
+        if _segments_cross(p1, p2, q1, q2):
+            return 0.0
+        return float(min(_seg_point_dist(q1, q2, np.stack([p1, p2])).min(),
+                         _seg_point_dist(p1, p2, np.stack([q1, q2])).min()))
+
+    track, cfg = load_track("lemniscate"), LandingConfig()
+    rng = np.random.default_rng(0)
+    worst = 0.0
+    for _ in range(40):
+        stops = np.column_stack([rng.uniform(-2.4, 2.4, 3), rng.uniform(2.1, 8.9, 3)])
+        t0 = time.perf_counter()
+        try:
+            spots = choose_landing_spots(track, stops, cfg=cfg)
+        except ValueError:
+            continue
+        worst = max(worst, time.perf_counter() - t0)
+        for i in range(3):
+            for j in range(i):
+                start_gap = seg_dist(stops[i], stops[i], stops[j], spots[j])
+                assert seg_dist(stops[i], spots[i], stops[j], spots[j]) >= min(cfg.path_separation_m, start_gap) - 1e-6
+    assert worst < 0.05, worst

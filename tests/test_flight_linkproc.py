@@ -20,7 +20,7 @@ LOOP = textwrap.dedent("""
     import sys, time
     from cfrace.flight.links import link_factory
     uris, heartbeat, stop_log, counts = sys.argv[1].split(","), float(sys.argv[2]), sys.argv[3], int(sys.argv[4])
-    make = link_factory(uris, heartbeat_s=heartbeat, stop_log=stop_log)
+    make = link_factory(uris, heartbeat_s=heartbeat, stop_log=stop_log, estop_watchdog=sys.argv[5] == "1")
     links = [make(i, u) for i, u in enumerate(uris)]
     for link in links:
         link.connect(10.0)
@@ -38,10 +38,11 @@ def served(track):
     yield from served_fleet(track, True)
 
 
-def _start_loop(server, fleet, tmp_path, heartbeat_s: float = 0.1):
+def _start_loop(server, fleet, tmp_path, heartbeat_s: float = 0.1, uris=None, estop_watchdog: bool = False):
     stop_log = tmp_path / "stops.jsonl"
-    proc = subprocess.Popen([sys.executable, "-c", LOOP, ",".join(server.uris), str(heartbeat_s), str(stop_log),
-                             str(hover_counts(fleet))], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", LOOP, ",".join(uris or server.uris), str(heartbeat_s), str(stop_log),
+                             str(hover_counts(fleet)), "1" if estop_watchdog else "0"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "flying", proc.stderr.read()
     assert _wait(lambda: all(fleet.status(i)["thrust"] > 0.0 for i in range(2)), 5.0)
     return proc, stop_log
@@ -79,3 +80,52 @@ def test_a_hung_loop_is_stopped_after_the_heartbeat(served, tmp_path):
     finally:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+
+
+@pytest.mark.parametrize("watchdog", [True, False])
+def test_a_lost_link_cuts_its_drones_motors_after_1_s_with_the_estop_watchdog(served, tmp_path, watchdog):
+    """With estop_watchdog the keeper feeds every flying drone's emergency-stop watchdog: the drone
+    whose link is cut (a UDP relay that drops everything) cuts its own motors 1 s after the last
+    feed, while the other, still fed, flies on; without it the cut drone is only levelled (0.5 s)."""
+    from cfrace.flight.faults import UdpCutRelay
+
+    fleet, server = served
+    relay = UdpCutRelay(server.ports[0])
+    proc, _ = _start_loop(server, fleet, tmp_path, heartbeat_s=0.5, uris=[relay.uri, server.uris[1]],
+                          estop_watchdog=watchdog)
+    try:
+        time.sleep(0.3)
+        relay.cut()
+        t_cut = fleet.time
+        if watchdog:
+            assert _wait(lambda: fleet.status(0)["emergency_stopped"], 3.0)
+            assert 0.85 <= fleet.time - t_cut <= 1.3, fleet.time - t_cut
+            assert fleet.status(0)["emergency_reason"] == "emergency-stop watchdog"
+        else:
+            assert _wait(lambda: fleet.status(0)["watchdog"] == "level", 3.0)
+            time.sleep(0.7)
+            assert not fleet.status(0)["emergency_stopped"]
+        assert not fleet.status(1)["emergency_stopped"] and fleet.status(1)["thrust"] > 0.0
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        relay.close()
+
+
+def test_a_locked_drone_is_refused_at_set_up_with_one_line(served):
+    """A drone whose firmware is locked by an emergency stop (e.g. the watchdog after a flight with
+    --estop-watchdog) cannot be armed: set-up says so and what to do, before anything is sent."""
+    from cfrace.errors import LinkError
+    from cfrace.flight.linkproc import LinkKeeper
+
+    fleet, server = served
+    fleet.emergency_stop(0, "emergency-stop watchdog")
+    keeper = LinkKeeper(server.uris[:1], heartbeat_s=0.5)
+    link = keeper.link(0)
+    try:
+        link.connect(10.0)
+        with pytest.raises(LinkError, match="locked by an emergency stop.*restart it"):
+            link.setup()
+        assert fleet.status(0)["setpoints_received"] == 0
+    finally:
+        link.close()

@@ -252,6 +252,10 @@ def register(app: typer.Typer) -> None:
                                                help="Land at the race's end and on soft failsafes (default on)."),
         pose_stream: Optional[bool] = typer.Option(None, "--pose-stream/--no-pose-stream",
                                                    help="Stream each drone's mocap pose to it (default on)."),
+        estop_watchdog: Optional[bool] = typer.Option(
+            None, "--estop-watchdog/--no-estop-watchdog",
+            help="Feed each flying drone's emergency-stop watchdog: a drone whose link is lost cuts its motors "
+                 "after 1 s (default off: the drones then stay locked until rebooted; docs/flight.md)."),
         check: bool = typer.Option(False, "--check", help="Pre-flight checks only (docs/first-flight.md): firmware, "
                                                           "battery, link, body and yaw of each drone; exit 2 on a failure."),
         hover: bool = typer.Option(False, "--hover", help="Hover test only: take off 0.5 m, hold 5 s, land "
@@ -272,7 +276,7 @@ def register(app: typer.Typer) -> None:
                                prewarm_s=None if prewarm_ms is None else prewarm_ms / 1e3,
                                velocity_alpha=velocity_alpha,
                                latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
-                               start=start, landing=landing, pose_stream=pose_stream)
+                               start=start, landing=landing, pose_stream=pose_stream, estop_watchdog=estop_watchdog)
         if check or hover:
             return first_flight_cmd(cfg, check, [int(v) for v in split_list(hover_drones) or ()] if hover else [],
                                     json_out)

@@ -141,6 +141,8 @@ def faults_cmd(
                                    help="Also kill -9 `cfrace fly` and cut a link, with `cfrace sim serve` "
                                         "and `cfrace fly` as separate processes (about 30 s more)."),
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the rows as JSON (- : to stdout)."),
+    drones: str = typer.Option("2", help="Drone counts of the dry-run faults, comma-separated (e.g. 2,4: every "
+                                         "fault again with ours, ds, ours, ds; the fault hits d1)."),
 ):
     """Every fault and bad-input scenario through the real stack, as one table (docs/flight.md)."""
     from dataclasses import asdict
@@ -149,7 +151,16 @@ def faults_cmd(
 
     from cfrace.flight.faultsuite import HEADER, run_suite
 
-    rows = run_suite(track, processes)
+    from cfrace.errors import ConfigError
+    from cfrace.flight.config import split_list
+
+    try:
+        counts = [int(n) for n in split_list(drones)]
+    except ValueError:
+        counts = []
+    if not counts or not all(2 <= n <= 8 for n in counts):
+        raise ConfigError(f"--drones: expected drone counts from 2 to 8, comma-separated, got {drones!r}")
+    rows = run_suite(track, processes, drones=tuple(counts))
     table = Table(title=f"faults and bad inputs, {track}")
     for col in HEADER:
         table.add_column(col, overflow="fold")

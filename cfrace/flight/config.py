@@ -123,6 +123,10 @@ class FlightConfig:
     start: str = "ground"                        #: ground (policies take off) or hover (high-level take-off first)
     landing: bool = True                         #: land at the race's end and on soft failsafes (else motors off)
     pose_stream: bool = True                     #: stream each drone's mocap pose to it (external position)
+    #: feed each flying drone's emergency-stop watchdog (the link keeper, every ESTOP_FEED_S): a drone
+    #: whose link is lost cuts its motors 1 s after the last feed instead of flying on its last
+    #: setpoint for 2 s; the firmware then stays locked until the drone is rebooted (docs/flight.md)
+    estop_watchdog: bool = False
 
     def __post_init__(self):
         if self.start not in ("ground", "hover"):
@@ -227,7 +231,7 @@ def load_flight_file(path: str | Path) -> dict:
         if laps != int(laps):
             raise r.fail("laps", f"must be a whole number, got {laps:g}")
         out["laps"] = int(laps)
-    for key in ("obstacles", "landing", "pose_stream"):
+    for key in ("obstacles", "landing", "pose_stream", "estop_watchdog"):
         if r.has(key):
             v = r.raw(key)
             if not isinstance(v, bool):

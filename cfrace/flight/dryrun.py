@@ -79,7 +79,8 @@ def sim_io(cfg: FlightConfig, fleet: SimFleet, *, lockstep: bool, uris, injector
         return injector.wrap_mocap(source) if injector is not None else source
 
     keeper_links = link_factory(uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
-                                rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu, clock=link_clock)
+                                rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu, clock=link_clock,
+                                estop_watchdog=cfg.estop_watchdog)
 
     def link(i: int, uri: str):
         if uri.startswith("sim://"):

@@ -117,8 +117,10 @@ class FaultyMocap:
             if f.kind == "replay_poses" and t >= f.t:
                 back = [p for tt, p in self.recorded if tt <= t - REPLAY_BACK_S]
                 poses = dict(back[-1]) if back else poses
-            if f.kind == "swap_bodies" and t >= f.t:
-                a, b = self.inj.bodies["ego"], self.inj.bodies["opp"]
+            if f.kind == "swap_bodies" and t >= f.t:   # the fault's drone and the next one swap bodies
+                names = list(self.inj.bodies)
+                a = self.inj.bodies[f.drone]
+                b = self.inj.bodies[names[(names.index(f.drone) + 1) % len(names)]]
                 if a in poses and b in poses:
                     poses[a], poses[b] = poses[b], poses[a]
             body = self.inj.bodies[f.drone]

@@ -90,7 +90,9 @@ def ballistic_bound(pos, vel) -> float:
 
 
 # ----------------------------------------------------------------------------------- dry-run faults
-def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
+def dry_run_row(kind: str, track: str, workdir: Path, drones: int = 2) -> Row:
+    """One fault in a lockstep dry-run of ours vs ds (``drones`` > 2: ours, ds, ours, ds, ...; the
+    fault hits d1, or d2 for nan_policy)."""
     from cfrace.flight.config import FlightConfig
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.flightlog import read_log
@@ -98,14 +100,16 @@ def dry_run_row(kind: str, track: str, workdir: Path) -> Row:
     from cfrace.flight.setup import training_profile
     from cfrace.track import load_track
 
-    drone = "opp" if kind == "nan_policy" else "ego"
-    log = workdir / f"{kind}.mcap"
+    names = ("ego", "opp") if drones == 2 else ("d1", "d2")
+    drone = names[1] if kind == "nan_policy" else names[0]
+    log = workdir / f"{kind}-{drones}.mcap"
     cfg = FlightConfig(track=track, ego="ours", opp="ds", profile=training_profile(load_track(track), "ours", False),
-                       quiet=True, timeout_s=RACE_S, log=log)
+                       quiet=True, timeout_s=RACE_S, log=log,
+                       policies=tuple("ours" if i % 2 == 0 else "ds" for i in range(drones)) if drones > 2 else ())
     at = FAULT_AT.get(kind, FAULT_T)
     res = dry_run(cfg, lockstep=True, faults=f"{kind}@{at}:{drone}").to_json()
     want_kind, want_action, want_code = EXPECT[kind]
-    row = Row(f"fault {kind}@{at:g} ({drone})")
+    row = Row(f"fault {kind}@{at:g} ({drone}{'' if drones == 2 else f' of {drones}'})")
     ok = {(want_kind, want_action), ALSO.get(kind)}
     ev = next((e for e in res["safety_events"] if (e["kind"], e["action"]) in ok and e["t"] >= at - 1e-9), None)
     row.detected_s = None if ev is None else ev["t"]
@@ -183,10 +187,12 @@ def _serve(track: str, profile: str, base: int) -> subprocess.Popen:
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
 
 
-def _fly(track: str, profile: str, uris: list[str], pose_port: int, log: Path, timeout_s: float) -> subprocess.Popen:
+def _fly(track: str, profile: str, uris: list[str], pose_port: int, log: Path, timeout_s: float,
+         extra: tuple[str, ...] = ()) -> subprocess.Popen:
     return subprocess.Popen(CLI + ["fly", "--track", track, "--ego", "ours", "--opp", "ds", "--uris", ",".join(uris),
                                    "--mocap", f"sim://127.0.0.1:{pose_port}", "--profile", profile, "--quiet",
-                                   "--log", str(log), "--timeout-s", str(timeout_s), "--json", str(log.with_suffix(".json"))],
+                                   "--log", str(log), "--timeout-s", str(timeout_s), "--json", str(log.with_suffix(".json")),
+                                   *extra],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
@@ -217,7 +223,8 @@ def _after(rec: _PoseRecorder, body: str, t_from: float) -> tuple[float, float, 
 
 
 def process_rows(track: str, workdir: Path) -> list[Row]:
-    """kill -9 of `cfrace fly` mid-race, and a link loss, with `cfrace sim serve` in its own process."""
+    """kill -9 of `cfrace fly` mid-race, and a link loss (without and with the emergency-stop
+    watchdog fed), with `cfrace sim serve` in its own process."""
     from cfrace.flight.benchloop import _free_base_port
     from cfrace.flight.faults import UdpCutRelay
     from cfrace.flight.setup import training_profile
@@ -225,11 +232,11 @@ def process_rows(track: str, workdir: Path) -> list[Row]:
 
     profile = training_profile(load_track(track), "ours", False)
     rows = []
-    for scenario in ("kill -9 of fly", "link loss (ego)"):
+    for scenario, extra in (("kill -9 of fly", ()), ("link loss", ()), ("link loss", ("--estop-watchdog",))):
         base = _free_base_port()
         server = _serve(track, profile, base)
         relay = rec = fly = None
-        log = workdir / f"{scenario.split()[0]}-{scenario.split()[-1].strip('()')}.mcap"
+        log = workdir / f"{scenario.split()[0]}{len(extra)}.mcap"
         try:
             time.sleep(2.0)
             rec = _PoseRecorder(base - 1, ["cf1", "cf2"]).start(30.0)
@@ -237,9 +244,10 @@ def process_rows(track: str, workdir: Path) -> list[Row]:
             if scenario.startswith("link"):
                 relay = UdpCutRelay(base)
                 uris[0] = relay.uri
-            fly = _fly(track, profile, uris, base - 1, log, 8.0 if scenario.startswith("link") else 30.0)
+            fly = _fly(track, profile, uris, base - 1, log, 8.0 if scenario.startswith("link") else 30.0, extra)
             _wait_flying(rec, ["cf1", "cf2"], 1.5)
-            rows.append(_kill9(fly, rec, log) if scenario.startswith("kill") else _link_loss(fly, rec, relay, log))
+            rows.append(_kill9(fly, rec, log) if scenario.startswith("kill") else
+                        _link_loss(fly, rec, relay, log, watchdog=bool(extra)))
         except Exception as exc:  # noqa: BLE001 - a failed scenario is a failed row, not the end of the suite
             why = server.stderr.read()[-200:] if server.poll() is not None else ""
             rows.append(Row(scenario, note=f"{type(exc).__name__}: {exc} {why}"[:300]))
@@ -293,7 +301,7 @@ def _kill9(fly: subprocess.Popen, rec: _PoseRecorder, log: Path) -> Row:
     return row
 
 
-def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> Row:
+def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path, watchdog: bool = False) -> Row:
     from cfrace.flight.flightlog import read_log
     from cfrace.flight.runner import EXIT_CODES
 
@@ -301,7 +309,9 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
     relay.cut()
     fly.wait(30)
     time.sleep(0.5)
-    row = Row("link loss of ego (sim serve, fly: processes)", exit_code=fly.returncode)
+    which = "emergency-stop watchdog" if watchdog else "setpoint watchdog"
+    row = Row("link loss of ego (sim serve, fly: processes" + (", --estop-watchdog)" if watchdog else ")"),
+              exit_code=fly.returncode)
     lost = [s for s in _stops(log) if s["drone"] == 0]
     result = json.loads(log.with_suffix(".json").read_text()) if log.with_suffix(".json").exists() else {}
     ev = next((e for e in result.get("safety_events", []) if e["kind"] in ("link_lost", "pose_mismatch")
@@ -311,7 +321,7 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
         return row
     t_det = lost[0]["t_mono"]
     row.detected_s = f"+{(t_det - t_cut) * 1e3:.0f} ms after the cut"
-    row.stopped_s = "firmware watchdog"
+    row.stopped_s = f"firmware {which}"
     dist, v, bound = _after(rec, "cf1", t_det)
     whole, _, _ = _after(rec, "cf1", t_cut)
     row.distance_m = dist
@@ -319,7 +329,7 @@ def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path) -> R
     want_code = EXIT_CODES["all_stopped"] if ev["action"] == "stop_all" else 0   # the pose check stops all
     row.passed = row.log_complete and row.exit_code == want_code and math.isfinite(dist)
     row.note = (f"{ev['kind']}; the stop cannot reach it: {whole:.2f} m from the cut, {dist:.2f} m after the "
-                f"detection ({v:.1f} m/s then), until the firmware's setpoint watchdog")
+                f"detection ({v:.1f} m/s then), until the firmware's {which}")
     return row
 
 
@@ -360,20 +370,21 @@ def bad_input_rows(workdir: Path) -> list[Row]:
             else:
                 args += extra[k:k + 2]
         p = subprocess.run(CLI + args, capture_output=True, text=True, timeout=120)
-        err = p.stderr.strip()
+        err = p.stderr.strip().replace(f"{workdir}/", "")
         one = len(err.splitlines()) == 1 and err.startswith("error: ") and "Traceback" not in err
         rows.append(Row(f"bad input: {name}", detected_s="before take-off", exit_code=p.returncode,
                         passed=one and p.returncode == 2, note=err[:100]))
     return rows
 
 
-def run_suite(track: str = "lemniscate", processes: bool = True, workdir: Path | None = None) -> list[Row]:
-    """Every row of the table (module doc)."""
+def run_suite(track: str = "lemniscate", processes: bool = True, workdir: Path | None = None,
+              drones: tuple[int, ...] = (2,)) -> list[Row]:
+    """Every row of the table (module doc); the dry-run faults once per drone count."""
     from cfrace.flight.faults import KINDS
 
     with tempfile.TemporaryDirectory(prefix="cfrace-faults-") as tmp:
         work = Path(workdir or tmp)
-        rows = [dry_run_row(kind, track, work) for kind in KINDS]
+        rows = [dry_run_row(kind, track, work, n) for n in drones for kind in KINDS]
         if processes:
             rows += process_rows(track, work)
         rows += bad_input_rows(work)

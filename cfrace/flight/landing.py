@@ -34,6 +34,8 @@ class LandingConfig:
     drone_separation_m: float = 0.8   #: between spots, and from other drones
     grid_m: float = 0.1               #: spacing of the candidate spots
     path_clearance_m: float = 0.15    #: the straight path to the spot stays this far from obstacles and gates
+    path_separation_m: float = 0.3    #: ... and this far from the other drones' paths and from drones that stay
+    max_tries: int = 100              #: nearest free spots whose path is checked; none clear: land where it stops
     approach_height_m: float = 0.25   #: height of the go-to to the spot, before the vertical landing
     approach_speed_mps: float = 1.0   #: mean speed of the go-to (its duration: distance / speed, >= 1 s)
     descent_s: float = 1.5            #: duration of the final land from approach_height_m ...
@@ -82,6 +84,33 @@ def _obstacle_dist(track, pts: np.ndarray) -> np.ndarray:
     return best
 
 
+def _to_segments(start: np.ndarray, ends: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Distance (K,) of the point p (2,) to each segment start-ends[k] (ends (K, 2))."""
+    d = ends - start
+    t = np.clip(((p - start) @ d.T) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(start + t[:, None] * d - p, axis=1)
+
+
+def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float) -> np.ndarray:
+    """(K,) bool: the straight path start-ends[k] keeps ``separation`` from every path (a, b) of
+    ``paths`` (other drones flying to their spots at the same time) and from the points ``still``,
+    or, where a drone starts nearer than that, no less than at the start (it is where it is)."""
+    ok = np.ones(len(ends), bool)
+    for q in still:
+        q = np.asarray(q, np.float64)[:2]
+        ok &= _to_segments(start, ends, q) >= min(separation, float(np.linalg.norm(start - q))) - 1e-9
+    for a, b in paths:
+        def orient(p, q, r):   # (K,) or scalar: sign of the turn p -> q -> r
+            return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
+        cross = ((orient(a, b, start) * orient(a, b, ends) <= 0)
+                 & (orient(start, ends, a) * orient(start, ends, b) <= 0))
+        at_start = float(_seg_point_dist(a, b, start[None])[0])
+        near = np.minimum.reduce([_to_segments(start, ends, a), _to_segments(start, ends, b),
+                                  _seg_point_dist(a, b, ends), np.full(len(ends), at_start)])
+        ok &= ~cross & (near >= min(separation, at_start) - 1e-9)
+    return ok
+
+
 def _path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
     """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from obstacles
     (points of the path already closer at the start do not count: the drone is where it is)."""
@@ -116,18 +145,22 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
     stops = np.asarray(stops, np.float64).reshape(-1, np.shape(stops)[-1])[:, :2]
     blocked = [np.asarray(o, np.float64)[:2] for o in others]
     cand = candidate_spots(track, cfg)
+    still = list(blocked)
     spots = np.zeros((len(stops), 2))
+    paths: list[tuple[np.ndarray, np.ndarray]] = []
     for i, stop in enumerate(stops):
         ok = np.ones(len(cand), bool)
         for b in blocked + [stops[j] for j in range(i + 1, len(stops))]:
             ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
+        ok &= _apart(stop, cand, paths, still, cfg.path_separation_m)
         order = np.argsort(np.linalg.norm(cand - stop, axis=1))
-        chosen = next((cand[k] for k in order if ok[k] and _path_clear(track, stop, cand[k], cfg.path_clearance_m)),
-                      None)
+        order = order[ok[order]][:cfg.max_tries]   # the nearest free spots (bounded: this runs in the tick)
+        chosen = next((cand[k] for k in order if _path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
         if chosen is None:
             raise ValueError(f"no free landing spot in the arena for drone {i}")
         spots[i] = chosen
         blocked.append(chosen)
+        paths.append((stop, chosen))
     return spots
 
 

@@ -31,6 +31,7 @@ _log.propagate = False   # cflib logs tracebacks for expected failures; we repor
 
 _drivers_ready = False
 _drivers_lock = threading.Lock()
+LOCKED_BIT = 6   #: the supervisor state bit "is locked": the firmware must be restarted (cflib Supervisor.STATES)
 
 
 def _init_drivers() -> None:
@@ -129,8 +130,15 @@ class CflibLink:
             pass
 
     def setup(self) -> None:
-        """Rate mode for roll and pitch (confirmed by the drone), arming, zero-thrust unlock."""
+        """Refuse a drone the firmware has locked (an emergency stop: reboot required); rate mode for
+        roll and pitch (confirmed by the drone), arming, zero-thrust unlock."""
         cf = self._need()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
+            bits = int(cf.supervisor.read_bitfield() or 0)
+        if bits >> LOCKED_BIT & 1:
+            raise LinkError(f"{self.uri}: the drone is locked by an emergency stop (e.g. its emergency-stop "
+                            "watchdog after the last flight with --estop-watchdog): restart it (power cycle) first")
         for name in RATE_MODE_PARAMS:
             group, _, pname = name.partition(".")
             self._params[name] = threading.Event()
@@ -199,6 +207,20 @@ class CflibLink:
     def close(self) -> None:
         self.stop()
         self._shutdown()
+
+    def feed_estop_watchdog(self) -> None:
+        """Feed the firmware's emergency-stop watchdog (localization port, EMERGENCY_STOP_WATCHDOG):
+        once fed, the drone cuts its motors (and locks until rebooted) if 1 s passes without a feed.
+        Never raises."""
+        cf = self._cf
+        if cf is None or cf.link is None:
+            return
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                cf.supervisor.send_emergency_stop_watchdog()
+        except Exception as exc:  # a dying link: the silence check reports it
+            self._note_error(f"emergency-stop watchdog feed failed: {exc}")
 
     # ------------------------------------------------------------------ the firmware's flight modes
     def send_pose(self, pos, quat) -> None:

@@ -13,6 +13,10 @@ setpoint, disarm) the moment
 - it gets SIGTERM (SIGINT is ignored: a Ctrl-C reaches the whole process group and is the loop's
   to handle).
 
+With ``estop_watchdog`` it also feeds the firmware's emergency-stop watchdog of every flying drone
+every ESTOP_FEED_S: a drone that hears nothing for 1 s (its link lost, or the keeper gone too) then
+cuts its own motors, and stays locked until it is rebooted.
+
 A drone stopped by the keeper stays stopped: later setpoints for it are dropped and its link
 reports disconnected, so the loop's safety check stops it too. Every stop is timestamped where it
 is sent (time.monotonic and the wall clock, in the keeper) and appended to ``stop_log`` (JSON
@@ -44,7 +48,9 @@ from cfrace.flight.link import LinkQuality
 from cfrace.flight.realtime import set_fifo
 
 REPORT_S = 0.05            #: s between link figure reports (keeper -> loop)
+ESTOP_FEED_S = 0.1         #: s between feeds of a flying drone's emergency-stop watchdog (the firmware's: 1 s)
 SPAWN_TIMEOUT_S = 20.0     #: s for the keeper to start (it imports cflib)
+CLOSE_S = 2.0              #: s the keeper waits for its links to close before it ends
 _SETPOINT = struct.Struct("<cBfffH")    # b"s", drone, p, q, r (deg/s), thrust counts
 _POSE = struct.Struct("<cB7f")          # b"p", drone, x, y, z (m), qw, qx, qy, qz
 
@@ -53,7 +59,8 @@ _POSE = struct.Struct("<cB7f")          # b"p", drone, x, y, z (m), qw, qx, qy, 
 class _Keeper:
     """The child's state: its links, which drones fly, when the loop was last heard."""
 
-    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0):
+    def __init__(self, conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0,
+                 estop_watchdog: bool = False):
         from cfrace.flight.link_cflib import CflibLink   # cflib only in the keeper
 
         self.conn, self.heartbeat_s = conn, float(heartbeat_s)
@@ -65,6 +72,8 @@ class _Keeper:
         self.last_report = 0.0
         self.changed = False
         self.rt_priority = rt_priority   #: SCHED_FIFO for all the keeper's threads from the first setpoint
+        self.estop_watchdog = bool(estop_watchdog)
+        self.last_feed = 0.0
 
     def stop(self, i: int, why: str) -> None:
         """Stop drone i now and record where and when the stop was sent."""
@@ -146,12 +155,21 @@ class _Keeper:
             return False
         return True
 
+    def feed(self, now: float) -> None:
+        """Feed the emergency-stop watchdog of every flying drone (a dead link's feed is lost)."""
+        self.last_feed = now
+        for i, link in enumerate(self.links):
+            if self.flying[i] and not self.dead[i]:
+                link.feed_estop_watchdog()
+
     def run(self) -> None:
         while True:
             now = time.monotonic()
             wait = REPORT_S - (now - self.last_report)
             if any(self.flying):
                 wait = min(wait, self.heartbeat_s - (now - self.last_heard))
+                if self.estop_watchdog:
+                    wait = min(wait, ESTOP_FEED_S - (now - self.last_feed))
             try:
                 ready = self.conn.poll(max(0.0, wait))
                 if ready:
@@ -167,6 +185,8 @@ class _Keeper:
                     return
             elif any(self.flying) and now - self.last_heard > self.heartbeat_s:
                 self.stop_all("heartbeat")
+            if self.estop_watchdog and any(self.flying) and now - self.last_feed >= ESTOP_FEED_S:
+                self.feed(now)
             if self.changed or now - self.last_report >= REPORT_S:
                 try:
                     self.report(now)
@@ -193,22 +213,32 @@ def _pin(cpus) -> None:
 
 
 def keeper_main(conn, uris: list[str], heartbeat_s: float, stop_log: str | None, rt_priority: int = 0,
-                cpus=None) -> None:
+                cpus=None, estop_watchdog: bool = False) -> None:
     """The keeper process's entry point."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _pin(cpus)
-    keeper = _Keeper(conn, uris, heartbeat_s, stop_log, rt_priority)
+    keeper = _Keeper(conn, uris, heartbeat_s, stop_log, rt_priority, estop_watchdog)
 
     def on_term(signum, frame):
         keeper.stop_all("sigterm")
-        keeper.close()
-        sys.exit(0)
+        _close_and_exit(keeper)
 
     signal.signal(signal.SIGTERM, on_term)
     try:
         keeper.run()
     finally:
-        keeper.close()
+        _close_and_exit(keeper)
+
+
+def _close_and_exit(keeper: _Keeper) -> None:
+    """Close the links (their stops are sent already) for at most CLOSE_S, then end the process: a
+    link whose radio or relay went away can block cflib's close, and its threads the exit."""
+    closer = threading.Thread(target=keeper.close, name="link-keeper-close", daemon=True)
+    closer.start()
+    closer.join(CLOSE_S)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)
 
 
 # ------------------------------------------------------------------------------------ loop side
@@ -216,8 +246,9 @@ class LinkKeeper:
     """The loop's end: spawns the keeper on the first connect; ``link(i)`` is drone i's Link."""
 
     def __init__(self, uris, *, heartbeat_s: float, stop_log: str | Path | None = None, rt_priority: int = 0,
-                 cpus=None):
+                 cpus=None, estop_watchdog: bool = False):
         self.uris = list(uris)
+        self.estop_watchdog = bool(estop_watchdog)
         self.rt_priority, self.cpus = int(rt_priority), sorted(cpus) if cpus else None
         self.heartbeat_s = float(heartbeat_s)
         self.stop_log = str(stop_log) if stop_log else None
@@ -242,7 +273,7 @@ class LinkKeeper:
         # script): `python -m cfrace.flight.linkproc FD` with one end of a socket pair
         here, there = socket.socketpair()
         args = json.dumps({"uris": self.uris, "heartbeat_s": self.heartbeat_s, "stop_log": self.stop_log,
-                           "rt_priority": self.rt_priority, "cpus": self.cpus})
+                           "rt_priority": self.rt_priority, "cpus": self.cpus, "estop_watchdog": self.estop_watchdog})
         self._proc = subprocess.Popen([sys.executable, "-m", "cfrace.flight.linkproc", str(there.fileno()), args],
                                       pass_fds=(there.fileno(),), stdin=subprocess.DEVNULL)
         there.close()
@@ -376,4 +407,4 @@ class KeptLink:
 if __name__ == "__main__":
     _opts = json.loads(sys.argv[2])
     keeper_main(Connection(int(sys.argv[1])), _opts["uris"], _opts["heartbeat_s"], _opts["stop_log"],
-                _opts["rt_priority"], _opts["cpus"])
+                _opts["rt_priority"], _opts["cpus"], _opts.get("estop_watchdog", False))

@@ -34,18 +34,18 @@ def stop_log_path(log: Path | None) -> Path | None:
 
 
 def link_factory(uris, *, heartbeat_s: float, stop_log: Path | None = None, rt_priority="auto", loop_cpu="off",
-                 clock=time.monotonic) -> Callable[[int, str], Link]:
+                 clock=time.monotonic, estop_watchdog: bool = False) -> Callable[[int, str], Link]:
     """open_link(i, uri) for a race: every cflib URI's link lives in ONE link keeper process
     (cfrace.flight.linkproc: it stops every drone when the loop's process dies or goes silent for
     heartbeat_s), scheduled as the flight process's other threads (the CPUs other than the loop's,
     SCHED_FIFO one below the loop's where permitted: cfrace.flight.realtime); other URIs as
-    ``open_link``."""
+    ``open_link``. ``estop_watchdog``: the keeper feeds each flying drone's emergency-stop watchdog."""
     from cfrace.flight import realtime
     from cfrace.flight.linkproc import LinkKeeper
 
     prio = realtime.resolve_rt_priority(rt_priority)
     keeper = LinkKeeper(uris, heartbeat_s=heartbeat_s, stop_log=stop_log, rt_priority=max(1, prio - 1) if prio else 0,
-                        cpus=realtime.other_cpus(realtime.resolve_loop_cpu(loop_cpu)))
+                        cpus=realtime.other_cpus(realtime.resolve_loop_cpu(loop_cpu)), estop_watchdog=estop_watchdog)
 
     def make(i: int, uri: str) -> Link:
         if uri.startswith(CFLIB_SCHEMES):

@@ -145,7 +145,7 @@ def real_io(cfg: FlightConfig) -> RaceIO:
     check_pose_source(cfg.mocap, cfg.uris)
     check_radios(cfg.uris, cfg.rate_hz)
     links = link_factory(cfg.uris, heartbeat_s=cfg.safety.overrun_stop_s, stop_log=stop_log_path(cfg.log),
-                         rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu)
+                         rt_priority=cfg.rt_priority, loop_cpu=cfg.loop_cpu, estop_watchdog=cfg.estop_watchdog)
     return RaceIO(open_mocap=lambda: open_mocap(cfg.mocap, bodies=list(cfg.bodies)),
                   open_link=links, clock=RealClock(cfg.dt), link_clock=time.monotonic,
                   prewarm_s=cfg.prewarm_s, uris=tuple(cfg.uris),

@@ -120,7 +120,7 @@ def _wrap(a: float) -> float:
 
 def default_start_positions(track: Track, drones: int, floor_z: float) -> tuple[np.ndarray, float]:
     """(drones, 3) positions on the floor in the track's start grid (cfrace.track.start_grid: two
-    side by side, spawn.opponent_offset apart; more in rows behind them), its front row
+    side by side, spawn.opponent_offset apart; more in rows behind each other), its rows centred on
     track.spawn.ground_distance before gate 0 on its +n side; and the yaw (rad) facing gate 0."""
     gx, gy, _, gyaw = track.gates[0]
     n = np.array([math.cos(gyaw), math.sin(gyaw)])
