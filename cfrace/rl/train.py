@@ -29,7 +29,7 @@ from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
-from cfrace.rl.precision import Precision, choose_precision
+from cfrace.rl.precision import Precision, resolve_precision
 from cfrace.rl.runner import Runner
 from cfrace.track import load_track
 
@@ -224,7 +224,7 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     finally:
         tb.close()
     curve = plot_training_curve(csv_log.rows, run.out / "training_curve.png", title, runner.num_agents)
-    return TrainResult(run.out, run.ckpt_path, curve, runner.iteration, runner.env_steps, run.wall_s(), interrupted,
+    return TrainResult(run.out, run.out / CHECKPOINT, curve, runner.iteration, runner.env_steps, run.wall_s(), interrupted,
                        run.exact, metrics, runner.precision)
 
 
@@ -241,10 +241,6 @@ class _Run:
     wall_before: float = 0.0     #: s of training before this process (resume)
     start: float = 0.0           #: perf_counter at the first iteration
 
-    @property
-    def ckpt_path(self) -> Path:
-        return self.out / CHECKPOINT
-
     def wall_s(self) -> float:
         return self.wall_before + time.perf_counter() - self.start
 
@@ -258,7 +254,7 @@ class _Run:
         return min(1.0, max(parts))
 
     def save(self, tb: TensorBoardLog) -> None:
-        _save(self.ckpt_path, self.cfg, self.meta, self.runner, self.wall_s())
+        _save(self.out / CHECKPOINT, self.cfg, self.meta, self.runner, self.wall_s())
         tb.flush()
 
 
@@ -335,14 +331,6 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
         runner.set_lr(cfg.critic_warmup_lr)
     elif runner.iteration == cfg.critic_warmup:
         runner.set_lr(runner.cfg.lr)
-
-
-def resolve_precision(mode: str, runner: Runner) -> Precision:
-    """``--precision`` for this runner's networks and minibatch size (measured when auto)."""
-    ippo, env = runner.cfg, runner.env
-    minibatch = ippo.num_envs * ippo.rollout // ippo.minibatches
-    return choose_precision(mode, runner.device, env.obs_dim, env.critic_dim, ippo.actor_hidden,
-                            ippo.critic_hidden, minibatch)
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
