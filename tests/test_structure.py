@@ -134,14 +134,11 @@ LONG_FUNCTIONS = {
     "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list (typer signature); the body is a few calls",
     "cli/train.py:train_cmd": "the `train` command's option list; in the trainer's files, restructured with them",
     "cli/logs.py:info_cmd": "one table of a log's summary, printed row by row",
-    "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper; in the trainer's files",
-    "rl/train.py:train": "the training loop with budgets, logs and resume; in the trainer's files",
     "sim/simulator.py:_substep": "the torch reference of one physics step, kept in the order of kernel.c",
     "evaluate/rollout.py:rollout": "the evaluation rollout, one loop over policy steps",
     "evaluate/plots.py:race_plots": "one figure with its panels",
     "flight/estimator.py:_ingest": "the per-frame estimator update, kept in one place for the 100 Hz tick",
     # landed from other branches during the consolidation; their owners split them when they next change
-    "rl/ippo.py:ppo_update": "the PPO update with mixed precision (the trainer's files)",
     "cli/calibrate.py:thrust_cmd": "the `calibrate thrust` command's option list (typer signature)",
 }
 
