@@ -129,3 +129,33 @@ def test_a_locked_drone_is_refused_at_set_up_with_one_line(served):
         assert fleet.status(0)["setpoints_received"] == 0
     finally:
         link.close()
+
+
+def test_the_heartbeat_watches_setpoint_streams_not_the_high_level_commander(served, tmp_path):
+    """A drone the firmware's high-level commander flies (the hover before a race, a landing) holds
+    itself: a silent loop does not get it stopped (the real-time hover start was stopped by the
+    heartbeat right after its take-off); once the loop streams setpoints, a silence stops it."""
+    from cfrace.flight.linkproc import LinkKeeper
+
+    fleet, server = served
+    stop_log = tmp_path / "stops.jsonl"
+    keeper = LinkKeeper(server.uris[:1], heartbeat_s=0.1, stop_log=stop_log)
+    link = keeper.link(0)
+    try:
+        link.connect(10.0)
+        link.setup()
+        link.high_level("takeoff", height=0.5, yaw=None, duration=2.0)
+        time.sleep(0.5)                                  # silent for 5 heartbeats: the firmware flies it
+        assert not stop_log.exists() or not stop_log.read_text().strip()
+        for _ in range(10):
+            link.send(0.0, 0.0, 0.0, hover_counts(fleet))
+            time.sleep(0.01)
+        stops = _stops_one(stop_log)
+        assert stops[0]["why"] == "heartbeat" and stops[0]["was_flying"]
+    finally:
+        link.close()
+
+
+def _stops_one(path, timeout=3.0) -> list[dict]:
+    assert _wait(lambda: path.exists() and path.read_text().strip(), timeout)
+    return [json.loads(line) for line in path.read_text().splitlines()]

@@ -137,10 +137,6 @@ LONG_FUNCTIONS = {
     "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list; the body calls dry_run",
     "cli/train.py:train_cmd": "the `train` command's option list (the trainer's files, restructured with them)",
     "sim/simulator.py:_substep": "the torch reference of one physics step, kept in kernel.c's order to compare them",
-    # the trainer's files, being split with the trainer's restructuring
-    "rl/runner.py:iterate": "one PPO iteration, read top to bottom against the paper",
-    "rl/train.py:train": "the training loop with budgets, logs and resume",
-    "rl/ippo.py:ppo_update": "the PPO update with mixed precision",
 }
 
 

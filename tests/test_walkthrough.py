@@ -140,3 +140,24 @@ def test_walkthrough_step_by_step(tmp_path):
     for name in ("fly_trajectory.png", "fly_speed.png", "fly_timing.png"):
         assert (tmp_path / "plots" / name).stat().st_size > 10_000
     assert (tmp_path / "lemniscate.png").exists()
+
+
+def test_the_readme_main_job_is_won_by_ours(tmp_path):
+    """The README's first command ends in the main job (a race of the two shipped policies through
+    the flight stack); run as written, in lockstep (deterministic), ours wins 3 laps and no
+    safety check stops a drone."""
+    readme = (ROOT / "README.md").read_text()
+    first = re.search(r"```bash\n(.*?)\n```", readme, re.S).group(1)
+    job = shlex.split(first.split(" && .venv/bin/")[-1])
+    assert job[:3] == ["cfrace", "sim", "dry-run"], job
+    job[job.index("--json") + 1] = str(tmp_path / "race.json")
+    job[job.index("--log") + 1] = str(tmp_path / "race.mcap")
+    p = subprocess.run([sys.executable, "-c", "from cfrace.cli.main import main; main()", *job[1:], "--lockstep",
+                        "--quiet"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-800:]
+    result = json.loads((tmp_path / "race.json").read_text())
+    assert result["end"] == "finished" and result["winner"] == "ego", result["end"]
+    ego = next(d for d in result["drones"] if d["name"] == "ego")
+    assert ego["method"] == "ours" and ego["laps"] == 3
+    assert not [e for e in result["safety_events"] if e["action"] not in ("none", "land_drone", "land_all")
+                and e["t"] < ego["lap_times"][-1] + sum(ego["lap_times"][:-1])]

@@ -112,6 +112,12 @@ def train_cmd(
     opponent_rule: Optional[str] = typer.Option(None, "--opponent-rule",
                                                 help="with --drones > 2: which drone each one observes: "
                                                      "nearest (default) | ahead | track"),
+    update_workers: int = typer.Option(1, "--update-workers", min=1,
+                                       help="threads the agents' PPO updates run in at once (one agent per "
+                                            "thread; the same weights as one after the other)"),
+    compile_: bool = typer.Option(False, "--compile/--no-compile",
+                                  help="the update's forward pass and losses through torch.compile "
+                                       "(compiles for tens of seconds at the start)"),
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
@@ -134,7 +140,8 @@ def train_cmd(
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
-                            precision=precision, keep_checkpoints=keep_checkpoints)
+                            precision=precision, keep_checkpoints=keep_checkpoints, update_workers=update_workers,
+                            compile=compile_)
     else:
         seed = 0 if seed is None else seed
         name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
@@ -148,6 +155,7 @@ def train_cmd(
                           fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
                           ground_start_prob=ground_start_prob, drones=drones,
+                          update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
@@ -224,6 +232,12 @@ def bench_train_cmd(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     precision: str = typer.Option("auto", "--precision", help="PPO update in auto | fp32 | bf16"),
+    update_workers: int = typer.Option(1, "--update-workers", min=1,
+                                       help="threads the agents' PPO updates run in at once (one agent per "
+                                            "thread; the same weights as one after the other)"),
+    compile_: bool = typer.Option(False, "--compile/--no-compile",
+                                  help="the update's forward pass and losses through torch.compile "
+                                       "(compiles for tens of seconds at the start)"),
     compare: Optional[str] = typer.Option(None, "--compare",
                                           help="time a second configuration side by side: KEY=VALUE[,...] "
                                                "(e.g. precision=fp32) or a git revision (e.g. main)"),
@@ -236,12 +250,15 @@ def bench_train_cmd(
     overrides = parse_overrides(set_ or [])
     if compare is not None:
         _bench_compare(compare, rounds, json_out, set_ or [], method=method, track=track, preset=preset,
-                       envs=envs, iterations=iterations, device=device, threads=threads, precision=precision)
+                       envs=envs, iterations=iterations, device=device, threads=threads, precision=precision,
+                       update_workers=update_workers if update_workers != 1 else None,
+                       compile=True if compile_ else None)
         return
     from cfrace.rl.train import bench_train
 
     r = bench_train(method, track, obstacles, preset, envs, iterations, device, threads,
-                    overrides=overrides, precision=precision)
+                    overrides=overrides, precision=precision, update_workers=update_workers,
+                    compile=compile_)
     table = Table(title=f"training speed: {method} on {r['track']}, preset {r['preset']}, {r['device']}, "
                         f"{r['threads']} thread(s)")
     table.add_column("figure")
@@ -261,12 +278,12 @@ def bench_train_cmd(
 
 def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str], **options) -> None:
     """`bench train --compare`: this configuration (A) against the other (B), alternating; ratios A / B."""
-    from cfrace.rl.benchcompare import Config, compare, parse_compare
+    from cfrace.rl.benchcompare import Config, compare, parse_compare, rev_knows
 
     base = {k: v for k, v in options.items() if v is not None}
     a, b = Config("this tree", base), parse_compare(text, base)
-    if b.rev is not None:  # an older revision may not know --precision: time both with its default
-        b = Config(b.label, {k: v for k, v in base.items() if k != "precision"}, b.rev)
+    if b.rev is not None:  # an older revision may not know some options: time it with its defaults for those
+        b = Config(b.label, {k: v for k, v in base.items() if rev_knows(b.rev, k)}, b.rev)
 
     def said(r: int, cfg: Config, res: dict) -> None:
         console.print(f"round {r + 1}: {cfg.label}: {res['env_steps_per_s']:,.0f} env steps/s")

@@ -8,8 +8,10 @@ setpoint, disarm) the moment
 
 - the pipe closes (the loop's process exited or was killed, even by ``kill -9``: the kernel closes
   its end), or
-- no setpoint came for ``heartbeat_s`` while a drone flies (a hung loop; the loop's own
-  ``loop_overrun`` rule stops every drone at the same lateness), or
+- no message came for ``heartbeat_s`` while a drone flies on the loop's setpoints (a hung loop;
+  the loop's own ``loop_overrun`` rule stops every drone at the same lateness; a drone the
+  firmware's high-level commander flies, e.g. the hover before a race or a landing, holds itself
+  and is not stopped for a silence), or
 - it gets SIGTERM (SIGINT is ignored: a Ctrl-C reaches the whole process group and is the loop's
   to handle).
 
@@ -61,6 +63,7 @@ class _Keeper:
         self.conn, self.heartbeat_s = conn, float(heartbeat_s)
         self.links = [CflibLink(u) for u in uris]
         self.flying = [False] * len(uris)
+        self.streaming = [False] * len(uris)  #: flying on the loop's setpoints (not the high-level commander)
         self.dead = [False] * len(uris)       #: stopped by the keeper: setpoints for it are dropped
         self.stop_log = open(stop_log, "a", buffering=1) if stop_log else None   # noqa: SIM115
         self.last_heard = time.monotonic()
@@ -75,6 +78,7 @@ class _Keeper:
         t_mono, t_wall = time.monotonic(), time.time()
         self.links[i].stop()
         was_flying, self.flying[i] = self.flying[i], False
+        self.streaming[i] = False
         if why != "loop":
             self.dead[i] = True
         self.changed = True
@@ -128,7 +132,7 @@ class _Keeper:
             _, i, p, q, r, counts = SETPOINT_MSG.unpack(msg)
             if not self.dead[i]:
                 self.links[i].send(p, q, r, counts)
-                self.flying[i] = True
+                self.flying[i] = self.streaming[i] = True
         elif kind == b"p":
             _, i, *v = POSE_MSG.unpack(msg)
             if not self.dead[i]:
@@ -142,6 +146,7 @@ class _Keeper:
                 else:
                     self.links[i].high_level(body["command"], **body["args"])
                 self.flying[i] = body["command"] != "stop"
+                self.streaming[i] = False   # the firmware flies it now (a notify-stop hands it over)
         elif kind == b"x":
             self.stop(msg[1], "loop")
         elif kind in (b"c", b"u", b"v"):
@@ -161,8 +166,9 @@ class _Keeper:
         while True:
             now = time.monotonic()
             wait = REPORT_S - (now - self.last_report)
-            if any(self.flying):
+            if any(self.streaming):
                 wait = min(wait, self.heartbeat_s - (now - self.last_heard))
+            if any(self.flying):
                 if self.estop_watchdog:
                     wait = min(wait, ESTOP_FEED_S - (now - self.last_feed))
             try:
@@ -178,7 +184,7 @@ class _Keeper:
                 if not self.handle(msg):
                     self.stop_all("quit")
                     return
-            elif any(self.flying) and now - self.last_heard > self.heartbeat_s:
+            elif any(self.streaming) and now - self.last_heard > self.heartbeat_s:
                 self.stop_all("heartbeat")
             if self.estop_watchdog and any(self.flying) and now - self.last_feed >= ESTOP_FEED_S:
                 self.feed(now)

@@ -24,7 +24,10 @@ from cfrace.errors import ConfigError
 
 #: `bench train` options a comparison may change, with their command-line flag
 OPTIONS = {"precision": "--precision", "threads": "--threads", "envs": "--envs", "preset": "--preset",
-           "method": "--method", "track": "--track", "iterations": "--iterations", "device": "--device"}
+           "method": "--method", "track": "--track", "iterations": "--iterations", "device": "--device",
+           "update_workers": "--update-workers", "compile": "--compile"}
+#: on/off options: KEY=true gives the flag, KEY=false its --no- form
+SWITCHES = ("compile",)
 #: figures compared; env_steps_per_cpu_s (steps per CPU second of the process) is the one that other
 #: processes on a shared machine hardly change
 FIGURES = ("env_steps_per_s", "env_steps_per_cpu_s", "iteration_s", "share_update", "share_sim", "share_inference")
@@ -52,6 +55,19 @@ def parse_compare(text: str, base: dict) -> Config:
             raise ConfigError(f"--compare {item!r}: expected KEY=VALUE with KEY one of {', '.join(OPTIONS)}")
         opts[key] = value.strip()
     return Config(text, opts)
+
+
+#: options that came after --compare: a revision knows one when its `bench train` command lists the flag
+LATE = ("precision", "update_workers", "compile")
+
+
+def rev_knows(rev: str, option: str) -> bool:
+    """Whether `bench train` at ``rev`` takes ``option``."""
+    if option not in LATE:
+        return True
+    proc = subprocess.run(["git", "-C", str(repo_root()), "show", f"{rev}:cfrace/cli/train.py"],
+                          capture_output=True, text=True)
+    return proc.returncode == 0 and f'"{OPTIONS[option]}' in proc.stdout
 
 
 def repo_root() -> Path:
@@ -94,7 +110,10 @@ def run_once(source: Path, options: dict, overrides: list[str]) -> dict:
         cmd = [sys.executable, "-c", "import sys; from cfrace.cli.main import main; sys.argv[0] = 'cfrace'; main()",
                "bench", "train", "--json", str(out)]
         for key, value in options.items():
-            if value is not None:
+            if key in SWITCHES and value is not None:
+                on = str(value).lower() in ("true", "1", "yes", "on")
+                cmd.append(OPTIONS[key] if on else "--no-" + OPTIONS[key][2:])
+            elif value is not None:
                 cmd += [OPTIONS[key], str(value)]
         for item in overrides:
             cmd += ["--set", item]

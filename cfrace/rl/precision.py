@@ -114,3 +114,11 @@ def choose_precision(mode: str, device: torch.device, obs_dim: int, critic_dim: 
         return Precision("auto", "bf16", f"bf16 update step {gain:.2f}x faster ({fp32:.1f} -> {bf16:.1f} ms "
                                          f"per minibatch of {minibatch})", fp32, bf16)
     return Precision("auto", "fp32", f"bf16 not faster enough here ({gain:.2f}x < {MIN_GAIN}x)", fp32, bf16)
+
+
+def resolve_precision(mode: str, runner) -> Precision:
+    """``--precision`` for a Runner's networks and minibatch size (measured when auto)."""
+    ippo, env = runner.cfg, runner.env
+    minibatch = ippo.num_envs * ippo.rollout // ippo.minibatches
+    return choose_precision(mode, runner.device, env.obs_dim, env.critic_dim, ippo.actor_hidden,
+                            ippo.critic_hidden, minibatch)

@@ -21,13 +21,14 @@ from __future__ import annotations
 import random
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 from torch import nn
 
 from cfrace.rl.config import IPPOConfig
-from cfrace.rl.ippo import make_optimizer, ppo_update
+from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
 from cfrace.rl.precision import Precision
 from cfrace.rl.storage import RolloutStorage
@@ -36,6 +37,32 @@ from cfrace.rl.storage import RolloutStorage
 def _sync(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+class _RolloutSums:
+    """What one rollout adds up: seconds in the simulator and in inference, reward per drone, reward
+    terms over alive steps, the env's stats per step and the returns of the episodes that ended."""
+
+    def __init__(self, num_agents: int, device: torch.device):
+        self.sim_s = self.infer_s = 0.0
+        self.term_sums: dict[str, torch.Tensor] = defaultdict(lambda: torch.zeros(num_agents, device=device))
+        self.stat_sums: dict[str, list[float]] = defaultdict(list)
+        self.returns: list[list[float]] = [[] for _ in range(num_agents)]
+        self.reward_sum = torch.zeros(num_agents, device=device)
+
+    def book(self, runner: "Runner", res, alive: torch.Tensor, reward: torch.Tensor) -> None:
+        """Episode bookkeeping of one step (raw rewards, before the bootstrap)."""
+        runner.ep_return += reward
+        ended = alive & (res.terminated | res.truncated)
+        if ended.any():
+            for a in range(runner.num_agents):
+                self.returns[a] += runner.ep_return[:, a][ended[:, a]].tolist()
+            runner.ep_return[ended] = 0.0
+        self.reward_sum += reward.sum(0)
+        for name, value in res.terms.items():
+            self.term_sums[name] += torch.where(alive, value, 0.0).sum(0)
+        for name, value in res.stats.items():
+            self.stat_sums[name].append(float(value))
 
 
 class Runner:
@@ -59,6 +86,8 @@ class Runner:
         self.iteration = 0
         self.update_actor_norm = True  #: False keeps the actors' input statistics fixed (warm starts)
         self.precision = Precision("fp32", "fp32", "default")  #: of the PPO update (cfrace/rl/precision.py)
+        self.update_workers = 1  #: threads the models' PPO updates run in (see _update); same weights either way
+        self.loss_fn = None      #: the update's minibatch loss; None = eager (ippo.minibatch_loss), see use_compile
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
@@ -75,97 +104,120 @@ class Runner:
 
     # ------------------------------------------------------------------ one iteration
     def iterate(self) -> dict[str, float]:
-        cfg, st, gamma = self.cfg, self.storage, self.cfg.gamma
+        """Rollout, GAE, one PPO update per model, normaliser update; the iteration's metrics."""
         t_start = time.perf_counter()
-        sim_s = infer_s = 0.0
-        term_sums: dict[str, torch.Tensor] = defaultdict(lambda: torch.zeros(self.num_agents, device=self.device))
-        stat_sums: dict[str, list[float]] = defaultdict(list)
-        returns: list[list[float]] = [[] for _ in range(self.num_agents)]
-        reward_sum = torch.zeros(self.num_agents, device=self.device)
-        for t in range(cfg.rollout):
-            t0 = time.perf_counter()
-            actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
-            if self.fixed_opponent is not None:
-                fixed = ~self._not_fixed[:, -1]
-                with torch.no_grad():
-                    fo = self.fixed_opponent
-                    actions[fixed, -1] = fo.actor(fo.obs_norm(self.obs[fixed, -1])).mean
-            _sync(self.device)
-            t1 = time.perf_counter()
-            res = self.env.step(actions)
-            _sync(self.device)
-            t2 = time.perf_counter()
-            alive = res.alive if self._not_fixed is None else res.alive & self._not_fixed
-            reward = torch.where(alive, res.reward, 0.0)
-            # episode bookkeeping (raw rewards, before the bootstrap)
-            self.ep_return += reward
-            ended = alive & (res.terminated | res.truncated)
-            if ended.any():
-                for a in range(self.num_agents):
-                    returns[a] += self.ep_return[:, a][ended[:, a]].tolist()
-                self.ep_return[ended] = 0.0
-            reward_sum += reward.sum(0)
-            for name, value in res.terms.items():
-                term_sums[name] += torch.where(alive, value, 0.0).sum(0)
-            for name, value in res.stats.items():
-                stat_sums[name].append(float(value))
-            # bootstrap on truncation: r_t += gamma V(s_final)
-            boot = res.truncated & alive & ~res.terminated
-            train_reward = reward.clone()
-            if boot.any():
-                t3 = time.perf_counter()
-                for a in range(self.num_agents):
-                    ids = boot[:, a].nonzero().squeeze(-1)
-                    if len(ids):
-                        train_reward[ids, a] += gamma * self.model(a).value(res.final_critic[ids, a])
-                infer_s += time.perf_counter() - t3
-            st.add(t, obs=self.obs, critic=self.critic, actions=actions, log_prob=log_prob, values=values,
-                   mu=mu, sigma=sigma, rewards=train_reward, dones=res.terminated | res.truncated | ~alive,
-                   alive=alive)
-            self.obs, self.critic = res.obs, res.critic
-            infer_s += t1 - t0
-            sim_s += t2 - t1
+        roll = _RolloutSums(self.num_agents, self.device)
+        for t in range(self.cfg.rollout):
+            self._rollout_step(t, roll)
         t_update = time.perf_counter()
+        metrics = self._update()
+        _sync(self.device)
+        t_end = time.perf_counter()
+        self.iteration += 1
+        steps = self.cfg.rollout * self.num_envs
+        self.env_steps += steps
+        self.total_reward += (roll.reward_sum / self.num_envs).double().cpu()
+        metrics.update(self._rollout_metrics(roll, steps))
+        total = t_end - t_start
+        metrics.update(iteration=self.iteration, env_steps=self.env_steps, fps=steps / total, iter_s=total,
+                       sim_s=roll.sim_s, infer_s=roll.infer_s, update_s=t_end - t_update)
+        return metrics
+
+    def _rollout_step(self, t: int, roll: "_RolloutSums") -> None:
+        """Act, step the env, book the episode figures, bootstrap truncations, store step t."""
+        t0 = time.perf_counter()
+        actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
+        if self.fixed_opponent is not None:
+            fixed = ~self._not_fixed[:, -1]
+            with torch.no_grad():
+                fo = self.fixed_opponent
+                actions[fixed, -1] = fo.actor(fo.obs_norm(self.obs[fixed, -1])).mean
+        _sync(self.device)
+        t1 = time.perf_counter()
+        res = self.env.step(actions)
+        _sync(self.device)
+        t2 = time.perf_counter()
+        alive = res.alive if self._not_fixed is None else res.alive & self._not_fixed
+        reward = torch.where(alive, res.reward, 0.0)
+        roll.book(self, res, alive, reward)
+        # bootstrap on truncation: r_t += gamma V(s_final)
+        boot = res.truncated & alive & ~res.terminated
+        train_reward = reward.clone()
+        if boot.any():
+            t3 = time.perf_counter()
+            for a in range(self.num_agents):
+                ids = boot[:, a].nonzero().squeeze(-1)
+                if len(ids):
+                    train_reward[ids, a] += self.cfg.gamma * self.model(a).value(res.final_critic[ids, a])
+            roll.infer_s += time.perf_counter() - t3
+        self.storage.add(t, obs=self.obs, critic=self.critic, actions=actions, log_prob=log_prob, values=values,
+                         mu=mu, sigma=sigma, rewards=train_reward, dones=res.terminated | res.truncated | ~alive,
+                         alive=alive)
+        self.obs, self.critic = res.obs, res.critic
+        roll.infer_s += t1 - t0
+        roll.sim_s += t2 - t1
+
+    def _update(self) -> dict[str, float]:
+        """GAE, then per model its PPO update and its normalisers' update; the update's metrics.
+
+        With ``update_workers`` > 1 the models' updates run in that many threads at once (each
+        model has its own networks, optimizer and samples; the shuffles are drawn beforehand in the
+        sequential order), so the weights are the same as one after the other."""
+        st = self.storage
         last_values = torch.stack([self.model(a).value(self.critic[:, a]) for a in range(self.num_agents)], 1)
-        st.compute_returns(last_values, gamma, cfg.lam)
+        st.compute_returns(last_values, self.cfg.gamma, self.cfg.lam)
         metrics: dict[str, float] = {}
-        alive_count = st.alive.sum((0, 1)).float()                 # (A,)
         drones = [[a] for a in range(self.num_agents)] if not self.shared else [list(range(self.num_agents))]
-        for k_model, (m, group) in enumerate(zip(self.agents, drones)):
+        batches = []
+        for group in drones:
             parts = [st.agent_batch(a) for a in group]
-            batch = parts[0] if len(parts) == 1 else {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-            stats, self.lrs[k_model] = ppo_update(m, self.optimizers[k_model], batch, cfg, self.lrs[k_model],
-                                                  self.update_gen, self.precision)
+            batches.append(parts[0] if len(parts) == 1 else {k: torch.cat([p[k] for p in parts]) for k in parts[0]})
+        perms = [draw_perms(b["obs"].shape[0], self.cfg, self.update_gen) for b in batches]
+
+        def update(k_model: int) -> tuple[dict, float]:
+            return ppo_update(self.agents[k_model], self.optimizers[k_model], batches[k_model], self.cfg,
+                              self.lrs[k_model], None, self.precision, perms[k_model], self.loss_fn)
+
+        for k_model, (stats, lr) in enumerate(self._map(update, range(len(batches)))):
+            self.lrs[k_model] = lr
             for k, v in stats.items():
                 metrics[f"{k}_agent{k_model}"] = v
+        for m, group in zip(self.agents, drones):
             alive_mask = st.alive[:, :, group]                      # (T, E, n)
             if self.update_actor_norm:
                 m.obs_norm.update(st.obs[:, :, group][alive_mask])
             m.critic_norm.update(st.critic[:, :, group][alive_mask])
-        _sync(self.device)
-        t_end = time.perf_counter()
+        return metrics
 
-        self.iteration += 1
-        steps = cfg.rollout * self.num_envs
-        self.env_steps += steps
-        self.total_reward += (reward_sum / self.num_envs).double().cpu()
-        per_step = (reward_sum / alive_count.clamp(min=1)).tolist()
+    def _map(self, fn, items) -> list:
+        """[fn(x) for x in items], in update_workers threads when there are more than one (each thread
+        with this thread's torch intra-op thread count)."""
+        items = list(items)
+        if self.update_workers <= 1 or len(items) <= 1:
+            return [fn(x) for x in items]
+        with ThreadPoolExecutor(min(self.update_workers, len(items)), initializer=torch.set_num_threads,
+                                initargs=(torch.get_num_threads(),)) as pool:
+            return list(pool.map(fn, items))
+
+    def _rollout_metrics(self, roll: "_RolloutSums", steps: int) -> dict[str, float]:
+        """Per drone: reward per alive step, mean episode return, total reward, lr, std, alive share;
+        reward terms per alive step and the env's stats."""
+        metrics: dict[str, float] = {}
+        alive_count = self.storage.alive.sum((0, 1)).float()       # (A,)
+        per_step = (roll.reward_sum / alive_count.clamp(min=1)).tolist()
         for a in range(self.num_agents):
             m = self.model(a)
             metrics[f"reward_agent{a}"] = per_step[a]
-            metrics[f"return_agent{a}"] = float(np.mean(returns[a])) if returns[a] else float("nan")
+            metrics[f"return_agent{a}"] = float(np.mean(roll.returns[a])) if roll.returns[a] else float("nan")
             metrics[f"total_reward_agent{a}"] = float(self.total_reward[a])
             metrics[f"lr_agent{a}"] = self.lrs[0 if self.shared else a]
             metrics[f"std_agent{a}"] = float(m.actor.log_std.detach().exp().mean())
             metrics[f"alive_agent{a}"] = float(alive_count[a]) / steps
-        for name, value in term_sums.items():
+        for name, value in roll.term_sums.items():
             for a, v in enumerate((value / alive_count.clamp(min=1)).tolist()):
                 metrics[f"term_{name}_agent{a}"] = v
-        for name, values in stat_sums.items():
+        for name, values in roll.stat_sums.items():
             metrics[f"stat_{name}"] = float(np.mean(values))
-        total = t_end - t_start
-        metrics.update(iteration=self.iteration, env_steps=self.env_steps, fps=steps / total, iter_s=total,
-                       sim_s=sim_s, infer_s=infer_s, update_s=t_end - t_update)
         return metrics
 
     def set_fixed_opponent(self, models: AgentModels, fraction: float) -> int:
@@ -181,6 +233,10 @@ class Runner:
         self.fixed_opponent = models.to(self.device).eval().requires_grad_(False)
         self._not_fixed = mask
         return n
+
+    def use_compile(self, on: bool, backend: str = "inductor") -> None:
+        """Run the update's forward pass and losses through torch.compile (ippo.compiled_loss)."""
+        self.loss_fn = compiled_loss(backend) if on else None
 
     def set_lr(self, lr: float) -> None:
         """Every agent's learning rate (the adaptive rule, if on, continues from it)."""

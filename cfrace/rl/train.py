@@ -29,7 +29,7 @@ from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
-from cfrace.rl.precision import Precision, choose_precision
+from cfrace.rl.precision import Precision, resolve_precision
 from cfrace.rl.runner import Runner
 from cfrace.track import load_track
 
@@ -60,6 +60,8 @@ class TrainConfig:
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
+    update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
+    compile: bool = False           #: the update's forward pass and losses through torch.compile
     ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
@@ -152,6 +154,8 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
         keep[key] = given.get(key)
     if given.get("precision") is not None:  # how the update computes, not what the task is
         keep["precision"] = given["precision"]
+    keep["update_workers"] = given.get("update_workers") or 1  # how, not what: not taken from the checkpoint
+    keep["compile"] = bool(given.get("compile"))
     if given.get("keep_checkpoints"):  # a resumed run may start keeping its checkpoints
         keep["keep_checkpoints"] = True
     keep["out"] = str(given.get("out") or resume)
@@ -206,18 +210,70 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
     """
     if cfg.minutes is None and cfg.steps is None:
         raise ConfigError("give a budget: --minutes M and/or --steps N")
+    run = _start_run(cfg, resume, env_factory)
+    runner, meta = run.runner, run.meta
+    csv_log = CsvLog(run.out / "metrics.csv", resume_iteration=runner.iteration if run.resumed else None)
+    tb = TensorBoardLog(run.out / "tb", purge_step=runner.iteration + 1 if run.resumed else None)
+    title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({runner.cfg.preset} preset)"
+    run.start = time.perf_counter()
+    try:
+        with _StopFlag() as flag:
+            metrics = _loop(run, csv_log, tb, flag, on_iteration)
+            interrupted = flag.stop
+        run.save(tb)
+    finally:
+        tb.close()
+    curve = plot_training_curve(csv_log.rows, run.out / "training_curve.png", title, runner.num_agents)
+    return TrainResult(run.out, run.out / CHECKPOINT, curve, runner.iteration, runner.env_steps, run.wall_s(), interrupted,
+                       run.exact, metrics, runner.precision)
+
+
+@dataclass
+class _Run:
+    """A training run between its start and its end: the runner, what is saved with it, the budget."""
+    cfg: TrainConfig
+    runner: Runner
+    meta: dict                   #: export metadata
+    info: dict                   #: what on_iteration is told besides progress
+    out: Path
+    resumed: bool
+    exact: bool | None           #: the env's state restored too (resume only)
+    wall_before: float = 0.0     #: s of training before this process (resume)
+    start: float = 0.0           #: perf_counter at the first iteration
+
+    def wall_s(self) -> float:
+        return self.wall_before + time.perf_counter() - self.start
+
+    def progress(self) -> float:
+        """0..1: the larger of the spent shares of the wall-clock and env-step budgets."""
+        parts = []
+        if self.cfg.minutes is not None:
+            parts.append((time.perf_counter() - self.start) / (60.0 * self.cfg.minutes))
+        if self.cfg.steps is not None:
+            parts.append(self.runner.env_steps / max(self.cfg.steps, 1))
+        return min(1.0, max(parts))
+
+    def save(self, tb: TensorBoardLog) -> None:
+        _save(self.out / CHECKPOINT, self.cfg, self.meta, self.runner, self.wall_s())
+        tb.flush()
+
+
+def _start_run(cfg: TrainConfig, resume: str | Path | None, env_factory: Callable | None) -> _Run:
+    """Device, threads, env, runner and its precision; then the resumed state, or a warm start; the
+    fixed opponent."""
     device = pick_device(cfg.device)
     threads = set_threads(cfg.threads, device)
     ippo = cfg.ippo()
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    ckpt_path = out / CHECKPOINT
     saved = load_checkpoint(resume) if resume is not None else None
     if saved is not None:
         ippo = IPPOConfig.from_dict(saved["runner"]["ippo"])
     env, meta = (env_factory or make_env)(cfg, device, ippo.num_envs)
     runner = Runner(env, ippo, seed=cfg.seed)
     runner.precision = resolve_precision(cfg.precision, runner)
+    runner.update_workers = cfg.update_workers
+    runner.use_compile(cfg.compile)
     exact = None
     wall_before = 0.0
     if saved is not None:
@@ -230,72 +286,51 @@ def train(cfg: TrainConfig, resume: str | Path | None = None, env_factory: Calla
         meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout"), critic=cfg.init_critic))
     if cfg.fixed_opponent:
         meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
-    csv_log = CsvLog(out / "metrics.csv", resume_iteration=runner.iteration if saved is not None else None)
-    tb = TensorBoardLog(out / "tb", purge_step=runner.iteration + 1 if saved is not None else None)
-    title = f"{cfg.method} on {meta['track']}{' with obstacles' if cfg.obstacles else ''} ({ippo.preset} preset)"
-    start = time.perf_counter()
-    last_ckpt = start
-    metrics: dict = {}
-    interrupted = False
-    info = {"threads": threads, "device": str(device), "num_envs": ippo.num_envs, "ippo": ippo, "meta": meta,
-            "precision": runner.precision}
-
-    def progress() -> float:
-        parts = []
-        if cfg.minutes is not None:
-            parts.append((time.perf_counter() - start) / (60.0 * cfg.minutes))
-        if cfg.steps is not None:
-            parts.append(runner.env_steps / max(cfg.steps, 1))
-        return min(1.0, max(parts))
-
-    def save() -> None:
-        _save(ckpt_path, cfg, meta, runner, wall_before + time.perf_counter() - start)
-        tb.flush()
-
     # After a warm start the actors keep the observation statistics they were trained with: updating
     # them from the new task's rollouts shifts every input of a frozen or slowly moving actor (measured:
     # a warm ours run with lr 1e-12 went from 100 % to 58 % single-agent success in 100 iterations).
     runner.update_actor_norm = not cfg.init_from
-    try:
-        with _StopFlag() as flag:
-            while progress() < 1.0 and not flag.stop:
-                if cfg.init_from:  # after a warm start, train only the fresh critics at first
-                    freeze = runner.iteration < cfg.critic_warmup
-                    for agent in runner.agents:
-                        agent.actor.requires_grad_(not freeze)
-                    # a fresh critic must reach returns of 10..500 before its advantages mean anything:
-                    # at the preset's rate it had not after 20 iterations (value loss 400-2400 against
-                    # 3-70 for the source run's own critic) and the actors, trained on those advantages,
-                    # forgot how to fly (docs/training.md). So the warm-up runs at its own, higher rate.
-                    if freeze:
-                        runner.set_lr(cfg.critic_warmup_lr)
-                    elif runner.iteration == cfg.critic_warmup:
-                        runner.set_lr(ippo.lr)
-                metrics = runner.iterate()
-                metrics["wall_s"] = wall_before + time.perf_counter() - start
-                csv_log.write(metrics)
-                tb.write(metrics, runner.env_steps)
-                if on_iteration is not None:
-                    on_iteration(metrics, {**info, "progress": progress(),
-                                           "elapsed_s": time.perf_counter() - start})
-                if time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s:
-                    save()
-                    last_ckpt = time.perf_counter()
-            interrupted = flag.stop
-        save()
-    finally:
-        tb.close()
-    curve = plot_training_curve(csv_log.rows, out / "training_curve.png", title, runner.num_agents)
-    return TrainResult(out, ckpt_path, curve, runner.iteration, runner.env_steps,
-                       wall_before + time.perf_counter() - start, interrupted, exact, metrics, runner.precision)
+    info = {"threads": threads, "device": str(device), "num_envs": ippo.num_envs, "ippo": ippo, "meta": meta,
+            "precision": runner.precision}
+    return _Run(cfg, runner, meta, info, out, saved is not None, exact, wall_before)
 
 
-def resolve_precision(mode: str, runner: Runner) -> Precision:
-    """``--precision`` for this runner's networks and minibatch size (measured when auto)."""
-    ippo, env = runner.cfg, runner.env
-    minibatch = ippo.num_envs * ippo.rollout // ippo.minibatches
-    return choose_precision(mode, runner.device, env.obs_dim, env.critic_dim, ippo.actor_hidden,
-                            ippo.critic_hidden, minibatch)
+def _loop(run: _Run, csv_log: CsvLog, tb: TensorBoardLog, flag: _StopFlag,
+          on_iteration: Callable[[dict, dict], None] | None) -> dict:
+    """Iterate until the budget is spent or the flag stops; log every iteration, checkpoint
+    periodically. Returns the last iteration's metrics."""
+    cfg, runner = run.cfg, run.runner
+    metrics: dict = {}
+    last_ckpt = run.start
+    while run.progress() < 1.0 and not flag.stop:
+        if cfg.init_from:
+            _critic_warmup(runner, cfg)
+        metrics = runner.iterate()
+        metrics["wall_s"] = run.wall_s()
+        csv_log.write(metrics)
+        tb.write(metrics, runner.env_steps)
+        if on_iteration is not None:
+            on_iteration(metrics, {**run.info, "progress": run.progress(),
+                                   "elapsed_s": time.perf_counter() - run.start})
+        if time.perf_counter() - last_ckpt >= cfg.checkpoint_every_s:
+            run.save(tb)
+            last_ckpt = time.perf_counter()
+    return metrics
+
+
+def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
+    """After a warm start, train only the fresh critics at first (cfg.critic_warmup iterations)."""
+    freeze = runner.iteration < cfg.critic_warmup
+    for agent in runner.agents:
+        agent.actor.requires_grad_(not freeze)
+    # a fresh critic must reach returns of 10..500 before its advantages mean anything:
+    # at the preset's rate it had not after 20 iterations (value loss 400-2400 against
+    # 3-70 for the source run's own critic) and the actors, trained on those advantages,
+    # forgot how to fly (docs/training.md). So the warm-up runs at its own, higher rate.
+    if freeze:
+        runner.set_lr(cfg.critic_warmup_lr)
+    elif runner.iteration == cfg.critic_warmup:
+        runner.set_lr(runner.cfg.lr)
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
@@ -320,7 +355,8 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
                 num_envs: int | None = None, iterations: int = 3, device: str | None = None,
                 threads: int | None = None, env_factory: Callable | None = None, overrides: tuple = (),
-                precision: str = "auto", drones: int | None = None) -> dict:
+                precision: str = "auto", drones: int | None = None, update_workers: int = 1,
+                compile: bool = False) -> dict:
     """Env-steps/s of whole training iterations, split into simulation (env.step), policy inference
     and the update. One warm-up iteration is not counted."""
     cfg = TrainConfig(method, track, obstacles, preset_name, num_envs, device=device, threads=threads, minutes=1,
@@ -332,8 +368,10 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
     env, meta = (env_factory or make_env)(cfg, dev, ippo.num_envs)
     runner = Runner(env, ippo, seed=0)
     runner.precision = resolve_precision(precision, runner)
+    runner.update_workers = update_workers
+    runner.use_compile(compile)
     setup_s = time.perf_counter() - t0
-    runner.iterate()
+    warmup_s = runner.iterate()["iter_s"]  # with --compile: includes the compilation
     sums = {"iter_s": 0.0, "sim_s": 0.0, "infer_s": 0.0, "update_s": 0.0}
     cpu0 = time.process_time()
     for _ in range(iterations):
@@ -347,7 +385,7 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "device": str(dev), "threads": n_threads, "num_envs": ippo.num_envs, "rollout": ippo.rollout,
             "num_agents": runner.num_agents, "shared": runner.shared, "actor_hidden": list(ippo.actor_hidden),
             "critic_hidden": list(ippo.critic_hidden), "epochs": ippo.epochs, "minibatches": ippo.minibatches,
-            "iterations": iterations, "setup_s": setup_s,
+            "iterations": iterations, "setup_s": setup_s, "warmup_s": warmup_s, "compile": compile,
             "env_steps_per_s": steps / sums["iter_s"], "drone_steps_per_s": drones / sums["iter_s"],
             "env_steps_per_cpu_s": steps / cpu_s if cpu_s > 0 else math.inf,
             "sim_env_steps_per_s": steps / sums["sim_s"] if sums["sim_s"] > 0 else math.inf,
@@ -355,4 +393,4 @@ def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = 
             "share_sim": sums["sim_s"] / sums["iter_s"], "share_inference": sums["infer_s"] / sums["iter_s"],
             "share_update": sums["update_s"] / sums["iter_s"],
             "share_other": 1.0 - (sums["sim_s"] + sums["infer_s"] + sums["update_s"]) / sums["iter_s"],
-            "precision": runner.precision.to_dict()}
+            "precision": runner.precision.to_dict(), "update_workers": update_workers}
