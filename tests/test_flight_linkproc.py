@@ -135,7 +135,7 @@ def test_the_heartbeat_watches_setpoint_streams_not_the_high_level_commander(ser
     """A drone the firmware's high-level commander flies (the hover before a race, a landing) holds
     itself: a silent loop does not get it stopped (the real-time hover start was stopped by the
     heartbeat right after its take-off); once the loop streams setpoints, a silence stops it."""
-    from cfrace.flight.linkproc import LinkKeeper
+    from cfrace.flight.keptlink import LinkKeeper
 
     fleet, server = served
     stop_log = tmp_path / "stops.jsonl"

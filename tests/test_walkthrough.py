@@ -131,7 +131,7 @@ def test_walkthrough_step_by_step(tmp_path):
     assert [d for d in done if d != "serve"][0].startswith("tracks") and "fly refused" in done
     for name in ("dry-run.json", "fly.json"):     # both drones finished the lap; no safety event acted
         r = json.loads((tmp_path / name).read_text())
-        assert r["profile"] == "cf21bl" and r["end"] == "finished", (name, r["end"])
+        assert r["profile"] == "cf2x_paper" and r["end"] == "finished", (name, r["end"])
         assert all(d["laps"] == 1 for d in r["drones"]), (name, r["drones"])
         assert not [e for e in r["safety_events"] if e["action"] != "none"], (name, r["safety_events"])
     from cfrace.flight.flightlog import read_log
