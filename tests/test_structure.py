@@ -162,3 +162,10 @@ def test_no_long_files_or_functions_beyond_the_justified_ones():
     assert set(LONG_FILES) <= long_files, f"no longer over 400 lines: {sorted(set(LONG_FILES) - long_files)}"
     assert set(LONG_FUNCTIONS) <= long_functions, \
         f"no longer over 60 lines: {sorted(set(LONG_FUNCTIONS) - long_functions)}"
+
+
+def test_the_readme_status_is_short():
+    """The README's status section is at most 15 lines (history goes to CHANGELOG.md)."""
+    text = (ROOT.parent / "README.md").read_text()
+    status = text.split("## Status", 1)[1].split("\n## ", 1)[0].strip().splitlines()[1:]
+    assert 0 < len([line for line in status if line.strip()]) <= 15, status

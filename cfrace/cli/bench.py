@@ -226,41 +226,22 @@ def ratio_line(runs: list[dict]) -> str:
     return "one run, ratios to the first: " + "; ".join(parts)
 
 
-#: (label, key in the loop figures) compared by `bench loop --foxglove`
-_FOXGLOVE_FIGURES = (("compute p50", "compute_ms", "p50"), ("compute p99", "compute_ms", "p99"),
-                     ("compute CPU p50", "compute_cpu_ms", "p50"), ("period jitter p99", "period_jitter_ms", "p99"),
-                     ("tick start late p99", "late_ms", "p99"))
-
-
-#: the configurations `bench loop --foxglove` compares: (name, Foxglove scene in the log, live server)
-FOXGLOVE_CONFIGS = (("plain log", False, False), ("scene in log", True, False), ("scene + live", True, True))
-
-
 def _foxglove_compare(duration_s: float, rounds: int, options: dict) -> dict:
-    """The loop with the log of JSON records alone (A), with the Foxglove scene in it (B) and with
-    the scene served live too (C), alternating; medians and ratios to A."""
-    import statistics
+    """`bench loop --foxglove`: cfrace.flight.benchloop.compare_foxglove, printed as a table."""
+    from cfrace.flight.benchloop import compare_foxglove
 
-    from cfrace.flight.benchloop import bench_loop
+    def said(i: int, name: str, r: dict) -> None:
+        console.print(f"round {i + 1}, {name}: compute p99 {r['loop']['compute_ms']['p99']:.3f} ms, "
+                      f"jitter p99 {r['loop']['period_jitter_ms']['p99']:.3f} ms, end {r['end']}", highlight=False)
 
-    runs: dict[str, list] = {name: [] for name, _, _ in FOXGLOVE_CONFIGS}
-    for i in range(rounds):
-        for name, scene, live in FOXGLOVE_CONFIGS:
-            r = bench_loop(duration_s, floor_s=0.0, foxglove=live, scene=scene, **options)
-            runs[name].append(r)
-            console.print(f"round {i + 1}, {name}: compute p99 {r['loop']['compute_ms']['p99']:.3f} ms, "
-                          f"jitter p99 {r['loop']['period_jitter_ms']['p99']:.3f} ms, end {r['end']}",
-                          highlight=False)
+    doc = compare_foxglove(duration_s, rounds, on_run=said, **options)
+    names = doc["configs"]
     t = Table(title=f"flight loop and Foxglove, {options.get('drones', 2)} drones: medians of {rounds} alternating "
                     f"runs of {duration_s:g} s each (ms)")
-    names = [n for n, _, _ in FOXGLOVE_CONFIGS]
     for col in ("figure", *names, *[f"{n} / {names[0]}" for n in names[1:]]):
         t.add_column(col, justify="right" if col != "figure" else "left")
-    doc = {"rounds": rounds, "duration_s": duration_s, "configs": names, "figures": {}, "runs": runs}
-    for label, key, q in _FOXGLOVE_FIGURES:
-        med = [statistics.median(r["loop"][key][q] for r in runs[n]) for n in names]
-        doc["figures"][label] = {"ms": dict(zip(names, med)),
-                                 "ratio_to_plain": {n: (m / med[0] if med[0] else None) for n, m in zip(names[1:], med[1:])}}
+    for label, fig in doc["figures"].items():
+        med = [fig["ms"][n] for n in names]
         t.add_row(label, *[f"{m:.3f}" for m in med], *[f"{m / med[0]:.2f}x" if med[0] else "-" for m in med[1:]])
     console.print(t)
     console.print(f"load average {os.getloadavg()[0]:.2f} (the machine is shared: ratios from one run, "

@@ -201,3 +201,33 @@ def compare_pose_stream(duration_s: float = 10.0, rounds: int = 1, **options) ->
     return {"without": off, "with": on, "ratio_with_over_without": ratio, "rounds": rounds,
             "duration_s": duration_s, "runs": {"without": runs[False], "with": runs[True]},
             "load_avg": os.getloadavg(), "time": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+#: (label, key in the loop figures, quantile) compared by `bench loop --foxglove`
+FOXGLOVE_FIGURES = (("compute p50", "compute_ms", "p50"), ("compute p99", "compute_ms", "p99"),
+                    ("compute CPU p50", "compute_cpu_ms", "p50"), ("period jitter p99", "period_jitter_ms", "p99"),
+                    ("tick start late p99", "late_ms", "p99"))
+#: the configurations `bench loop --foxglove` compares: (name, Foxglove scene in the log, live server)
+FOXGLOVE_CONFIGS = (("plain log", False, False), ("scene in log", True, False), ("scene + live", True, True))
+
+
+def compare_foxglove(duration_s: float, rounds: int, on_run=None, **options) -> dict:
+    """The loop with the log of JSON records alone, with the Foxglove scene in it and with the scene
+    served live too, alternating ``rounds`` times; per figure the medians (ms) and their ratios to
+    the plain log. ``on_run(round, name, result)`` after each run."""
+    import statistics
+
+    runs: dict[str, list] = {name: [] for name, _, _ in FOXGLOVE_CONFIGS}
+    for i in range(rounds):
+        for name, scene, live in FOXGLOVE_CONFIGS:
+            r = bench_loop(duration_s, floor_s=0.0, foxglove=live, scene=scene, **options)
+            runs[name].append(r)
+            if on_run is not None:
+                on_run(i, name, r)
+    names = [n for n, _, _ in FOXGLOVE_CONFIGS]
+    doc = {"rounds": rounds, "duration_s": duration_s, "configs": names, "figures": {}, "runs": runs}
+    for label, key, q in FOXGLOVE_FIGURES:
+        med = [statistics.median(r["loop"][key][q] for r in runs[n]) for n in names]
+        doc["figures"][label] = {"ms": dict(zip(names, med)),
+                                 "ratio_to_plain": {n: (m / med[0] if med[0] else None) for n, m in zip(names[1:], med[1:])}}
+    return doc
