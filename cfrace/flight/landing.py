@@ -138,24 +138,39 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
     return pts[ok]
 
 
-def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig()) -> np.ndarray:
+def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
+    """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
+    allowed ones: this runs in the tick), or None."""
+    near = order[ok[order]][:cfg.max_tries]
+    return next((cand[k] for k in near if _path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
+
+
+def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
     """Landing spots (N, 2) for drones expected to stop at ``stops`` (N, 2 or 3) m; ``others`` (M, 2 or 3):
-    drones that will not move (e.g. already down) and must be kept clear of. ValueError if the arena
-    has no free spot left for some drone."""
+    drones that will not move (e.g. already down) and must be kept clear of; ``paths``: (start, spot)
+    of drones flying to their spots already, whose paths the new ones must neither cross nor come
+    within path_separation_m of. ValueError if the arena has no free spot left for some drone."""
     stops = np.asarray(stops, np.float64).reshape(-1, np.shape(stops)[-1])[:, :2]
     blocked = [np.asarray(o, np.float64)[:2] for o in others]
     cand = candidate_spots(track, cfg)
     still = list(blocked)
     spots = np.zeros((len(stops), 2))
-    paths: list[tuple[np.ndarray, np.ndarray]] = []
+    paths = [(np.asarray(a, np.float64)[:2], np.asarray(b, np.float64)[:2]) for a, b in paths]   # flown already
     for i, stop in enumerate(stops):
         ok = np.ones(len(cand), bool)
         for b in blocked + [stops[j] for j in range(i + 1, len(stops))]:
             ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
-        ok &= _apart(stop, cand, paths, still, cfg.path_separation_m)
         order = np.argsort(np.linalg.norm(cand - stop, axis=1))
-        order = order[ok[order]][:cfg.max_tries]   # the nearest free spots (bounded: this runs in the tick)
-        chosen = next((cand[k] for k in order if _path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
+        # a spot whose path keeps clear of the other drones' paths; else straight down where the drone
+        # stops if that is clear of them; else clear of the drones that stay; else merely free
+        chosen = _nearest(track, stop, cand, order, ok & _apart(stop, cand, paths, still, cfg.path_separation_m), cfg)
+        sep = cfg.path_separation_m
+        if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \
+                and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still):
+            chosen = stop.copy()
+        for apart in (_apart(stop, cand, (), still, cfg.path_separation_m), np.ones(len(cand), bool)):
+            if chosen is None:
+                chosen = _nearest(track, stop, cand, order, ok & apart, cfg)
         if chosen is None:
             raise ValueError(f"no free landing spot in the arena for drone {i}")
         spots[i] = chosen
@@ -289,6 +304,7 @@ class LandingPilot:
     spot: np.ndarray                  #: (2,) m
     ground_z: float                   #: m, the body's height resting on the floor
     cfg: LandingConfig = LandingConfig()
+    start: np.ndarray | None = None   #: (2,) m, where it was expected to stop: its path to the spot starts there
     phase: str = BRAKE
     t_start: float | None = None
     t_phase_end: float = 0.0

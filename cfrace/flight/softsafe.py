@@ -82,13 +82,14 @@ class SoftState:
         d = drones[i]
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
         others += [o.landing.spot for o in drones if o.landing is not None]
+        paths = [(o.landing.start, o.landing.spot) for o in drones if o.landing is not None and o.landing.start is not None]
         stop = ld.stopping_point(est.pos, est.vel, setup.brake.accel_max)
         try:
-            spot = ld.choose_landing_spots(setup.track, [stop], others, setup.cfg)[0]
+            spot = ld.choose_landing_spots(setup.track, [stop], others, setup.cfg, paths)[0]
         except ValueError:
             spot = np.asarray(est.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
         brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
-        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg)
+        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2])
         d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
         self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
                                                 "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
