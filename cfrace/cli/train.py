@@ -24,6 +24,15 @@ _STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "lap done", "{:.0%}"
           ("win_share_agent1", "adv wins", "{:.0%}"))
 
 
+
+#: options of both `train` and `bench train`
+_UPDATE_WORKERS = typer.Option(1, "--update-workers", min=1,
+                               help="threads the agents' PPO updates run in at once (one agent per thread; "
+                                    "the same weights as one after the other)")
+_COMPILE = typer.Option(False, "--compile/--no-compile",
+                        help="the update's forward pass and losses through torch.compile (compiles for tens "
+                             "of seconds at the start)")
+
 def _fmt(value, spec="{:.3g}") -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
@@ -112,12 +121,8 @@ def train_cmd(
     opponent_rule: Optional[str] = typer.Option(None, "--opponent-rule",
                                                 help="with --drones > 2: which drone each one observes: "
                                                      "nearest (default) | ahead | track"),
-    update_workers: int = typer.Option(1, "--update-workers", min=1,
-                                       help="threads the agents' PPO updates run in at once (one agent per "
-                                            "thread; the same weights as one after the other)"),
-    compile_: bool = typer.Option(False, "--compile/--no-compile",
-                                  help="the update's forward pass and losses through torch.compile "
-                                       "(compiles for tens of seconds at the start)"),
+    update_workers: int = _UPDATE_WORKERS,
+    compile_: bool = _COMPILE,
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
@@ -232,12 +237,8 @@ def bench_train_cmd(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     precision: str = typer.Option("auto", "--precision", help="PPO update in auto | fp32 | bf16"),
-    update_workers: int = typer.Option(1, "--update-workers", min=1,
-                                       help="threads the agents' PPO updates run in at once (one agent per "
-                                            "thread; the same weights as one after the other)"),
-    compile_: bool = typer.Option(False, "--compile/--no-compile",
-                                  help="the update's forward pass and losses through torch.compile "
-                                       "(compiles for tens of seconds at the start)"),
+    update_workers: int = _UPDATE_WORKERS,
+    compile_: bool = _COMPILE,
     compare: Optional[str] = typer.Option(None, "--compare",
                                           help="time a second configuration side by side: KEY=VALUE[,...] "
                                                "(e.g. precision=fp32) or a git revision (e.g. main)"),
