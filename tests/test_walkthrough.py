@@ -129,10 +129,12 @@ def test_walkthrough_step_by_step(tmp_path):
             server.kill()
             server.communicate()
     assert [d for d in done if d != "serve"][0].startswith("tracks") and "fly refused" in done
-    for name in ("dry-run.json", "fly.json"):     # both drones finished the lap; no safety event acted
+    for name in ("dry-run.json", "fly.json"):     # a winner, both drones racing to the end; no safety event acted
         r = json.loads((tmp_path / name).read_text())
         assert r["profile"] == "cf2x_paper" and r["end"] == "finished", (name, r["end"])
-        assert all(d["laps"] == 1 for d in r["drones"]), (name, r["drones"])
+        # the winner flew the lap; the race ends at its finish, so the other may be just short of it
+        assert next(d for d in r["drones"] if d["name"] == r["winner"])["laps"] == 1, (name, r["drones"])
+        assert all(d["gates_passed"] >= 3 for d in r["drones"]), (name, r["drones"])
         assert not [e for e in r["safety_events"] if e["action"] != "none"], (name, r["safety_events"])
     from cfrace.flight.flightlog import read_log
     log = read_log(tmp_path / "fly.mcap")
