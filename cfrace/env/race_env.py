@@ -88,6 +88,10 @@ class RaceEnv:
         self._stats: dict[str, list] = {}
 
     # ------------------------------------------------------------------ helpers
+    def set_obstacle_scale(self, scale: float) -> None:
+        """The obstacle curriculum: the obstacles at ``scale`` of their size (Simulator.set_obstacle_scale)."""
+        self.sim.set_obstacle_scale(scale)
+
     def _rand(self, *shape) -> torch.Tensor:
         return torch.rand(*shape, generator=self.gen).to(self.device)
 

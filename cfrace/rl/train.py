@@ -66,6 +66,7 @@ class TrainConfig:
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
     opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
+    obstacle_curriculum: int = 0    #: iterations over which the obstacles grow to full size (0: full from the start)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -116,6 +117,9 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     if cfg.opponent_rule not in OPPONENT_RULES:
         raise ConfigError(f"--opponent-rule {cfg.opponent_rule!r}: one of {', '.join(OPPONENT_RULES)}")
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    if cfg.obstacle_curriculum and not (cfg.obstacles and track.obstacles):
+        raise ConfigError(f"--obstacle-curriculum {cfg.obstacle_curriculum}: needs --obstacles and a track "
+                          f"with obstacles ({track.name} {'has' if track.obstacles else 'has none'})")
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         if not 0.0 <= cfg.ground_start_prob <= 1.0:
             raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
@@ -137,7 +141,17 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
-            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
+            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
+            **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {})}
+
+
+def obstacle_scale(iteration: int, curriculum: int) -> float:
+    """The obstacles' size (Track.obstacle_boxes scale) in training iteration ``iteration`` (0-based)
+    of a run with ``--obstacle-curriculum curriculum``: from 0 at the first iteration linearly to 1
+    at iteration ``curriculum``, full size after (and always full size without a curriculum)."""
+    if curriculum <= 0:
+        return 1.0
+    return min(1.0, max(0, iteration) / curriculum)
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:
@@ -305,7 +319,12 @@ def _loop(run: _Run, csv_log: CsvLog, tb: TensorBoardLog, flag: _StopFlag,
     while run.progress() < 1.0 and not flag.stop:
         if cfg.init_from:
             _critic_warmup(runner, cfg)
+        if cfg.obstacle_curriculum:
+            scale = obstacle_scale(runner.iteration, cfg.obstacle_curriculum)
+            runner.env.set_obstacle_scale(scale)
         metrics = runner.iterate()
+        if cfg.obstacle_curriculum:
+            metrics["obstacle_scale"] = scale
         metrics["wall_s"] = run.wall_s()
         csv_log.write(metrics)
         tb.write(metrics, runner.env_steps)
@@ -347,7 +366,7 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
     if runner.num_agents < 2:
         raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
     opp = AgentModels(runner.env.obs_dim, runner.env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0)
-    info = warm_start(types.SimpleNamespace(agents=[opp]), cfg.fixed_opponent, layout)
+    info = warm_start(types.SimpleNamespace(agents=[opp], env=runner.env), cfg.fixed_opponent, layout)
     n = runner.set_fixed_opponent(opp, cfg.fixed_opponent_frac)
     return {"fixed_opponent": info["init_from"], "fixed_opponent_worlds": n}
 
