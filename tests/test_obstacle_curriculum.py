@@ -18,6 +18,7 @@ from cfrace.env.race_env import RaceEnv
 from cfrace.errors import ConfigError
 from cfrace.export import export_checkpoint
 from cfrace.policy import OnnxPolicy
+from cfrace.rl.curves import read_curve, reduce_metrics
 from cfrace.rl.models import AgentModels
 from cfrace.rl.train import FORMAT, TrainConfig, make_env, obstacle_scale, train
 from cfrace.rl.warmstart import warm_start
@@ -109,6 +110,8 @@ def test_training_follows_the_schedule_and_records_it(tmp_path):
     assert [float(r["obstacle_scale"]) for r in rows] == [0.0, 0.25, 0.5]
     half = LEM.obstacles[0].size[1] / 2
     assert np.allclose(sorted(set(seen)), [0.0, 0.25 * half, 0.5 * half])
+    curve = reduce_metrics(res.out / "metrics.csv", tmp_path / "curve.csv")   # the kept curve keeps the size
+    assert [float(x) for x in read_curve(curve)["obstacle_scale"]] == [0.0, 0.25, 0.5]
     policy = tmp_path / "p.onnx"
     _, meta, _ = export_checkpoint(res.checkpoint, policy)
     assert meta["obstacle_curriculum"] == 4 == OnnxPolicy(policy).meta["obstacle_curriculum"]
