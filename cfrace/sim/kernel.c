@@ -25,8 +25,8 @@ enum { R_NONE = 0, R_FLOOR = 1, R_CEILING = 2, R_ARENA = 3, R_GATE = 4, R_CONTAC
 #define CLAMP(x, lo, hi) MINF(MAXF(x, lo), hi)
 #define SIMD _Pragma("omp simd")
 /* the gate rule's constants (cfrace/sim/gates.py): ckernel.py passes them at build time as -D
- * flags, so that they are literals to the compiler (a constant loaded from cst[] costs a vector
- * register in the physics loop) and defined only in Python */
+ * flags, so that they are literals to the compiler and defined only in Python (read from cst[]
+ * they compiled to other machine code, a few per cent slower: docs/benchmarks.md) */
 #if !defined(PASS_RADIUS) || !defined(PASS_HALF) || !defined(FRAME_HIT_HALF)
 #error "build through cfrace/sim/ckernel.py: it defines PASS_RADIUS, PASS_HALF, FRAME_HIT_HALF"
 #endif
