@@ -176,6 +176,15 @@ class Track:
         return Track(self.name, self.gates, self.gate, (), self.arena, self.spawn, self.source)
 
 
+def obstacle_scale(iteration: int, curriculum: int) -> float:
+    """The obstacles' size (Track.obstacle_boxes scale) in training iteration ``iteration`` (0-based)
+    of a run with ``--obstacle-curriculum curriculum``: from 0 at the first iteration linearly to 1
+    at iteration ``curriculum``, full size after (and always full size without a curriculum)."""
+    if curriculum <= 0:
+        return 1.0
+    return min(1.0, max(0, iteration) / curriculum)
+
+
 def boxes_overlap(c1, h1, yaw1: float, c2, h2, yaw2: float) -> bool:
     """Exact overlap test of two boxes yawed about z (separating axes in xy, intervals in z)."""
     c1, h1, c2, h2 = (np.asarray(v, dtype=np.float64) for v in (c1, h1, c2, h2))

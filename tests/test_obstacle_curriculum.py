@@ -20,11 +20,11 @@ from cfrace.export import export_checkpoint
 from cfrace.policy import OnnxPolicy
 from cfrace.rl.curves import read_curve, reduce_metrics
 from cfrace.rl.models import AgentModels
-from cfrace.rl.train import FORMAT, TrainConfig, make_env, obstacle_scale, train
+from cfrace.rl.train import FORMAT, TrainConfig, make_env, train
 from cfrace.rl.warmstart import warm_start
 from cfrace.sim import ckernel
 from cfrace.sim.simulator import Simulator
-from cfrace.track import load_track
+from cfrace.track import load_track, obstacle_scale
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -87,7 +87,7 @@ def test_the_simulator_collides_with_the_grown_obstacles(backend):
 
 def _cfg(tmp_path, **kw):
     base = dict(method="ss", track="lemniscate", obstacles=True, num_envs=8, steps=8 * 24 * 3, device="cpu",
-                threads=1, seed=3, out=str(tmp_path / "run"), obstacle_curriculum=4,
+                threads=1, seed=3, out=str(tmp_path / "run"), obstacle_curriculum=4, episode_s=0.3,
                 overrides=(("rollout", 24), ("actor_hidden", (16, 16)), ("critic_hidden", (16,))))
     base.update(kw)
     return TrainConfig(**base)
@@ -107,11 +107,11 @@ def test_training_follows_the_schedule_and_records_it(tmp_path):
     res = train(_cfg(tmp_path), env_factory=factory)
     with open(res.out / "metrics.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert [float(r["obstacle_scale"]) for r in rows] == [0.0, 0.25, 0.5]
+    assert [float(r["stat_obstacle_scale"]) for r in rows] == [0.0, 0.25, 0.5]   # 0.3-s races: each iteration ends some
     half = LEM.obstacles[0].size[1] / 2
     assert np.allclose(sorted(set(seen)), [0.0, 0.25 * half, 0.5 * half])
     curve = reduce_metrics(res.out / "metrics.csv", tmp_path / "curve.csv")   # the kept curve keeps the size
-    assert [float(x) for x in read_curve(curve)["obstacle_scale"]] == [0.0, 0.25, 0.5]
+    assert [float(x) for x in read_curve(curve)["stat_obstacle_scale"]] == [0.0, 0.25, 0.5]
     policy = tmp_path / "p.onnx"
     _, meta, _ = export_checkpoint(res.checkpoint, policy)
     assert meta["obstacle_curriculum"] == 4 == OnnxPolicy(policy).meta["obstacle_curriculum"]
@@ -119,11 +119,11 @@ def test_training_follows_the_schedule_and_records_it(tmp_path):
 
 def test_curriculum_without_obstacles_is_one_line_error(tmp_path, monkeypatch, capsys):
     with pytest.raises(ConfigError, match="needs --obstacles"):
-        make_env(_cfg(tmp_path, obstacles=False), torch.device("cpu"), 8)
+        train(_cfg(tmp_path, obstacles=False))
     from cfrace.cli.main import main
 
     monkeypatch.setattr(sys, "argv", ["cfrace", "train", "--method", "ss", "--track", "lemniscate", "--steps", "10",
-                                      "--obstacle-curriculum", "5", "--out", str(tmp_path / "x")])
+                                      "--envs", "8", "--obstacle-curriculum", "5", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit) as exc:
         main()
     err = capsys.readouterr().err.strip().splitlines()

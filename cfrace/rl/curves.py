@@ -19,7 +19,7 @@ from cfrace.rl.logs import finish_steps_plot
 CURVE_COLUMNS = ("env_steps", "wall_s", "return_agent0", "return_agent1", "stat_gates_per_s", "stat_success",
                  "stat_crash_rate", "stat_lap_time_s", "stat_win_share_agent0")
 #: kept too when the run has it (a run with --obstacle-curriculum: the obstacles' size per iteration)
-OPTIONAL_COLUMNS = ("obstacle_scale",)
+OPTIONAL_COLUMNS = ("stat_obstacle_scale",)
 MAX_ROWS = 200
 #: what plot_curves can draw: column -> axis label
 LABELS = {"return_agent0": "episode return (drone 0)", "stat_gates_per_s": "gates per second (training races)",

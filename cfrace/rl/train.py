@@ -31,7 +31,7 @@ from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
 from cfrace.rl.precision import Precision, resolve_precision
 from cfrace.rl.runner import Runner
-from cfrace.track import load_track
+from cfrace.track import load_track, obstacle_scale
 
 
 @dataclass(frozen=True)
@@ -117,9 +117,6 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     if cfg.opponent_rule not in OPPONENT_RULES:
         raise ConfigError(f"--opponent-rule {cfg.opponent_rule!r}: one of {', '.join(OPPONENT_RULES)}")
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
-    if cfg.obstacle_curriculum and not (cfg.obstacles and track.obstacles):
-        raise ConfigError(f"--obstacle-curriculum {cfg.obstacle_curriculum}: needs --obstacles and a track "
-                          f"with obstacles ({track.name} {'has' if track.obstacles else 'has none'})")
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         if not 0.0 <= cfg.ground_start_prob <= 1.0:
             raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
@@ -143,15 +140,6 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
             **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {})}
-
-
-def obstacle_scale(iteration: int, curriculum: int) -> float:
-    """The obstacles' size (Track.obstacle_boxes scale) in training iteration ``iteration`` (0-based)
-    of a run with ``--obstacle-curriculum curriculum``: from 0 at the first iteration linearly to 1
-    at iteration ``curriculum``, full size after (and always full size without a curriculum)."""
-    if curriculum <= 0:
-        return 1.0
-    return min(1.0, max(0, iteration) / curriculum)
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:
@@ -319,12 +307,9 @@ def _loop(run: _Run, csv_log: CsvLog, tb: TensorBoardLog, flag: _StopFlag,
     while run.progress() < 1.0 and not flag.stop:
         if cfg.init_from:
             _critic_warmup(runner, cfg)
-        if cfg.obstacle_curriculum:
-            scale = obstacle_scale(runner.iteration, cfg.obstacle_curriculum)
-            runner.env.set_obstacle_scale(scale)
+        if cfg.obstacle_curriculum:  # the obstacles' size in this iteration (logged as stat_obstacle_scale)
+            runner.env.set_obstacle_scale(obstacle_scale(runner.iteration, cfg.obstacle_curriculum))
         metrics = runner.iterate()
-        if cfg.obstacle_curriculum:
-            metrics["obstacle_scale"] = scale
         metrics["wall_s"] = run.wall_s()
         csv_log.write(metrics)
         tb.write(metrics, runner.env_steps)
