@@ -164,6 +164,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
         meta["fixed_opponent"] = _source_name(meta0["fixed_opponent"])
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
+        if meta0.get("fixed_opponent_drones"):  # it flew more than the last drone (--fixed-opponent-drones)
+            meta["fixed_opponent_drones"] = int(meta0["fixed_opponent_drones"])
     if meta0.get("opponent_rule"):  # trained in fields of more than two drones (--drones N)
         meta["opponent_rule"] = str(meta0["opponent_rule"])
     if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)

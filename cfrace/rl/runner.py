@@ -128,10 +128,10 @@ class Runner:
         t0 = time.perf_counter()
         actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
         if self.fixed_opponent is not None:
-            fixed = ~self._not_fixed[:, -1]
+            fixed = ~self._not_fixed                                # (E, A)
             with torch.no_grad():
                 fo = self.fixed_opponent
-                actions[fixed, -1] = fo.actor(fo.obs_norm(self.obs[fixed, -1])).mean
+                actions[fixed] = fo.actor(fo.obs_norm(self.obs[fixed])).mean
         _sync(self.device)
         t1 = time.perf_counter()
         res = self.env.step(actions)
@@ -220,16 +220,17 @@ class Runner:
             metrics[f"stat_{name}"] = float(np.mean(values))
         return metrics
 
-    def set_fixed_opponent(self, models: AgentModels, fraction: float) -> int:
-        """In the first round(fraction E) worlds the last agent's slot is flown by ``models``'s
-        actor (its mean action, frozen), not by the learner: those samples are not the learner's
-        (treated like dead steps: out of its GAE, losses and statistics). The other agents learn
-        against it there and against each other elsewhere. Returns the number of such worlds."""
-        if self.num_agents < 2:
-            raise ValueError("a fixed opponent needs a multi-agent env")
+    def set_fixed_opponent(self, models: AgentModels, fraction: float, drones: int = 1) -> int:
+        """In the first round(fraction E) worlds the last ``drones`` agents' slots are flown by
+        ``models``'s actor (its mean action, frozen), not by the learners: those samples are not the
+        learners' (treated like dead steps: out of their GAE, losses and statistics). The other agents
+        learn against it there and against each other elsewhere. Returns the number of such worlds."""
+        if not 1 <= drones < self.num_agents:
+            raise ValueError(f"a fixed opponent flies 1 to {self.num_agents - 1} of the {self.num_agents} "
+                             f"drones (at least one learns), not {drones}")
         n = int(round(fraction * self.num_envs))
         mask = torch.ones(self.num_envs, self.num_agents, dtype=torch.bool, device=self.device)
-        mask[:n, -1] = False
+        mask[:n, -drones:] = False
         self.fixed_opponent = models.to(self.device).eval().requires_grad_(False)
         self._not_fixed = mask
         return n

@@ -59,6 +59,7 @@ class TrainConfig:
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
     fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
+    fixed_opponent_drones: int = 1     #: how many drones (the last slots) it flies in those worlds
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
     update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
     compile: bool = False           #: the update's forward pass and losses through torch.compile
@@ -335,7 +336,8 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
     """Load the best actor of cfg.fixed_opponent (padded to this layout like a warm start) and let it
-    fly the last slot in cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent)."""
+    fly the last cfg.fixed_opponent_drones slots in cfg.fixed_opponent_frac of the worlds
+    (Runner.set_fixed_opponent)."""
     import types
 
     from cfrace.rl.models import AgentModels
@@ -346,10 +348,15 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
         raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
     if runner.num_agents < 2:
         raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
+    k = cfg.fixed_opponent_drones
+    if not 1 <= k < runner.num_agents:
+        raise ConfigError(f"--fixed-opponent-drones {k}: from 1 to {runner.num_agents - 1} with "
+                          f"{runner.num_agents} drones per world (at least one drone must learn)")
     opp = AgentModels(runner.env.obs_dim, runner.env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0)
     info = warm_start(types.SimpleNamespace(agents=[opp]), cfg.fixed_opponent, layout)
-    n = runner.set_fixed_opponent(opp, cfg.fixed_opponent_frac)
-    return {"fixed_opponent": info["init_from"], "fixed_opponent_worlds": n}
+    n = runner.set_fixed_opponent(opp, cfg.fixed_opponent_frac, k)
+    return {"fixed_opponent": info["init_from"], "fixed_opponent_worlds": n,
+            **({"fixed_opponent_drones": k} if k > 1 else {})}
 
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
