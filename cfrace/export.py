@@ -162,7 +162,7 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["init_from"] = _source_name(meta0["init_from"])
         meta["init_env_steps"] = int(meta0.get("init_env_steps", 0))
     if meta0.get("fixed_opponent"):  # trained partly against a frozen actor (--fixed-opponent)
-        meta["fixed_opponent"] = _source_name(meta0["fixed_opponent"])
+        meta["fixed_opponent"] = ",".join(_source_name(s) for s in str(meta0["fixed_opponent"]).split(","))
         meta["fixed_opponent_worlds"] = int(meta0.get("fixed_opponent_worlds", 0))
         if meta0.get("fixed_opponent_drones"):  # it flew more than the last drone (--fixed-opponent-drones)
             meta["fixed_opponent_drones"] = int(meta0["fixed_opponent_drones"])

@@ -260,3 +260,30 @@ def test_fixed_opponent_flies_the_last_drones_of_a_field_with_a_shared_learner(t
         with pytest.raises(ConfigError, match="--fixed-opponent-drones"):
             _fixed_opponent(Runner(env, cfg.ippo(), seed=0),
                             _cfg(tmp_path, fixed_opponent=str(src.checkpoint), fixed_opponent_drones=k), "race42")
+
+
+def test_several_fixed_opponents_take_turns_by_world(tmp_path):
+    """--fixed-opponent A,B: the fixed worlds are flown by A and B in turn (world i by the i % 2-th),
+    and the exported metadata names both."""
+    from cfrace.rl.runner import Runner
+    from cfrace.rl.train import _fixed_opponent
+
+    srcs = [train(_cfg(tmp_path, method="ds", steps=16 * 24, seed=s, out=str(tmp_path / f"src{s}")),
+                  env_factory=toy_factory).checkpoint for s in (1, 2)]
+    cfg = _cfg(tmp_path, fixed_opponent=f"{srcs[0]},{srcs[1]}", fixed_opponent_frac=0.75)
+    env, meta = toy_factory(cfg, "cpu", 16)
+    runner = Runner(env, cfg.ippo(), seed=0)
+    assert _fixed_opponent(runner, cfg, meta["obs_layout"])["fixed_opponent_worlds"] == 12
+    seen = _spy_actions(env)
+    runner.iterate()
+    obs = runner.storage.obs[-1, :, 1]
+    with torch.no_grad():
+        means = [fo.actor(fo.obs_norm(obs)).mean for fo in runner.fixed_opponents]
+    assert not torch.allclose(means[0], means[1])
+    for w in range(16):
+        got = seen["a"][w, 1]
+        assert torch.allclose(got, means[w % 2][w], atol=1e-6) == (w < 12)
+    res = train(_cfg(tmp_path, steps=16 * 16, out=str(tmp_path / "two"), fixed_opponent=f"{srcs[0]},{srcs[1]}"),
+                env_factory=toy_factory)
+    path, _, _ = export_checkpoint(res.checkpoint, tmp_path / "two.onnx", "ego")
+    assert OnnxPolicy(path).meta["fixed_opponent"] == "src1,src2"

@@ -102,7 +102,8 @@ def train_cmd(
                                       help="first races start part-way into the time limit (spread time-outs)"),
     fixed_opponent: Optional[Path] = typer.Option(None, "--fixed-opponent",
                                                   help="checkpoint or run whose actor (frozen) flies the "
-                                                       "second drone in part of the worlds"),
+                                                       "second drone in part of the worlds (several: A,B: "
+                                                       "one per world, in turn)"),
     fixed_opponent_frac: float = typer.Option(0.5, "--fixed-opponent-frac",
                                               help="share of the worlds with the fixed opponent"),
     fixed_opponent_drones: int = typer.Option(1, "--fixed-opponent-drones", min=1,
