@@ -7,7 +7,7 @@ OLD and NEW are checkout roots or git revisions of this repository (a revision's
 ... (``rounds`` times each, the order turned every round, with the interpreter running this script
 and PYTHONPATH=SRC), so that both see the same machine load and neither always runs second. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
-Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread), bench train (the cpu preset,
+Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread, 200 steps, best of 5), bench train (the cpu preset,
 ours on complex, one thread), bench loop (10 s, the paper-size actors and the shipped policies).
 """
 
@@ -25,7 +25,7 @@ from pathlib import Path
 from loop_commits_ab import tree
 
 BENCHES: dict[str, list[str]] = {
-    "sim": ["bench", "sim", "--worlds", "4096", "--modes", "c", "--no-peer", "--threads", "1", "--steps", "20"],
+    "sim": ["bench", "sim", "--worlds", "4096", "--modes", "c", "--no-peer", "--threads", "1", "--steps", "200", "--repeats", "5"],
     "train": ["bench", "train", "--threads", "1", "--iterations", "2"],
     "loop_paper": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "paper"],
     "loop_shipped": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "shipped"],

@@ -102,22 +102,20 @@ def test_the_policy_contract_imports_neither_torch_nor_the_trainer():
 
 
 def test_the_gate_rule_is_defined_once():
-    """kernel.c takes the gate rule's constants from cfrace.sim.gates (through the constants array)
-    instead of literals of its own; the flight stack imports them from there too."""
+    """kernel.c takes the gate rule's constants from cfrace.sim.gates (as build flags: ckernel's
+    rule_defines) instead of literals of its own; the flight stack imports them from there too."""
     import re
 
-    from cfrace.drone import load_profile
     from cfrace.sim import ckernel, gates
-    from cfrace.sim.dynamics import Constants
-    from cfrace.sim.simulator import CrashRules
 
     src = (ROOT / "sim" / "kernel.c").read_text()
     for literal in ("1.0f", "0.5f", "0.4f"):
         assert not re.search(rf"(<|>=)\s*{re.escape(literal)}", src), f"kernel.c compares against {literal}"
-    cst = ckernel.constants_array(Constants.from_profile(load_profile("cf2x_paper")), 0.05, 0.01,
-                                  (0, 1, 0, 1, 3), 0.7, CrashRules())
-    rule = [gates.PASS_RADIUS, gates.PASS_HALF, gates.FRAME_HIT_HALF]
-    assert cst[-3:].tolist() == [float(np.float32(v)) for v in rule]
+    for name in ("PASS_RADIUS", "PASS_HALF", "FRAME_HIT_HALF"):
+        assert re.search(rf"(<|>=)\s*{name}\b", src), f"kernel.c does not use {name}"
+    rule = {"PASS_RADIUS": gates.PASS_RADIUS, "PASS_HALF": gates.PASS_HALF, "FRAME_HIT_HALF": gates.FRAME_HIT_HALF}
+    flags = dict(f[2:].split("=") for f in ckernel.rule_defines())
+    assert {k: float(v.rstrip("f")) for k, v in flags.items()} == rule
     for path in ROOT.rglob("*.py"):
         if path.name != "gates.py":
             assert not re.search(r"^(PASS_HALF|PASS_RADIUS|FRAME_HIT_HALF)\s*=", path.read_text(), re.M), path

@@ -24,7 +24,7 @@ from cfrace.evaluate.entrants import common_profile, load_entrants, load_race_tr
 from cfrace.evaluate.metrics import solo_metrics
 from cfrace.evaluate.plots import field_plots, plot_ratings
 from cfrace.evaluate.rating import fit_ratings, pairwise, placings, winners
-from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
+from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, RacesRun, Recording, Starts, rollout, start_poses
 from cfrace.sim.simulator import REASONS
 
 PLOT_RACES = 4            #: races whose positions are recorded for the plots
@@ -45,13 +45,7 @@ def _policy_key(path: Path) -> str:
 
 
 @dataclass
-class FieldResult:
-    track: str
-    obstacles: bool
-    races: int
-    laps: int
-    seed: int
-    time_limit_s: float
+class FieldResult(RacesRun):
     opponent_rule: str
     entrants: list[str]             #: display names, drone k = entrant k
     policies: list[str]             #: the policy each entrant flies (repeats share one)

@@ -22,20 +22,14 @@ from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant, common_profile, load_entrants, load_race_track
 from cfrace.evaluate.metrics import RunSummary, finish_speed, race_outcomes, race_rates, solo_metrics, speed_stats
 from cfrace.evaluate.plots import plot_heatmap, race_plots
-from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, Recording, Starts, rollout, start_poses
+from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, RacesRun, Recording, Starts, rollout, start_poses
 
 PLOT_RACES = 4        #: races whose positions are recorded for the plots
 CRASHED_OPP_RACES = 10  #: extra worlds (with --plot) where the opponent drops at the start
 
 
 @dataclass
-class RaceResult:
-    track: str
-    obstacles: bool
-    races: int
-    laps: int
-    seed: int
-    time_limit_s: float
+class RaceResult(RacesRun):
     ego: str
     opp: str
     outcomes: np.ndarray                   # (races,) outcome codes (metrics.OUTCOMES)

@@ -39,6 +39,17 @@ LAP_TIME_LIMIT_S = 15.0       #: default time limit per lap
 OFF_ACTION = (-1.0, 0.0, 0.0, 0.0)  #: motors off: zero thrust, zero rates
 
 
+@dataclass
+class RacesRun:
+    """What a set of races was run with (the head of every race result)."""
+    track: str
+    obstacles: bool
+    races: int
+    laps: int
+    seed: int
+    time_limit_s: float
+
+
 @dataclass(frozen=True)
 class Starts:
     pos: torch.Tensor     # (W, D, 3) m

@@ -54,14 +54,18 @@ def _rotvec(r_from: np.ndarray, r_to: np.ndarray) -> np.ndarray:
 
 
 class ConsistencyMonitor:
-    """Per drone: the recent poses and commands, the residuals, and whether they disagree."""
+    """Per drone: the recent poses and commands, the residuals, and whether they disagree. The flight
+    loop runs it for every drone on every tick: the sums over the window run on plain floats (a few
+    microseconds a drone; numpy's per-call cost on 3-vectors would be most of the tick's)."""
 
     def __init__(self, n: int, dt: float, mass: float):
         self.dt, self.mass = float(dt), float(mass)
         self.window = max(2, int(round(WINDOW_S / self.dt)))
         self.lag = int(round(LAG_S / self.dt))
         size = self.window + self.lag + 1
-        self.hist = [deque(maxlen=size) for _ in range(n)]   # (pos, vel, rot, rates rad/s, thrust N)
+        #: per drone, oldest first: (z m, velocity m/s, attitude world-from-body, its body z axis,
+        #: commanded body rates rad/s, commanded thrust N)
+        self.hist = [deque(maxlen=size) for _ in range(n)]
         self.over = [0] * n
         self.worst = [[0.0, 0.0] for _ in range(n)]   #: per drone: largest rate residual, dv residual / limit
 
@@ -71,21 +75,26 @@ class ConsistencyMonitor:
         h = self.hist[i]
         if len(h) < h.maxlen:
             return None
-        airborne = min(float(p[2]) for p, *_ in h) >= AIRBORNE_Z_M
-        w, lag = self.window, self.lag
+        w, lag, dt, m = self.window, self.lag, self.dt, self.mass
+        airborne = min(e[0] for e in h) >= AIRBORNE_Z_M
         last, first = h[-1], h[-1 - w]
         rate_res = 0.0
         if airborne:
-            omega_obs = _rotvec(first[2], last[2]) / (w * self.dt)
-            omega_cmd = np.mean([h[-1 - lag - j][3] for j in range(w)], axis=0)
-            rate_res = math.degrees(float(np.linalg.norm(omega_obs - omega_cmd)))
-        dv_obs = last[1] - first[1]
-        dv_exp, impulse = np.zeros(3), 0.0
+            ox, oy, oz = (_rotvec(first[2], last[2]) / (w * dt)).tolist()
+            cx = cy = cz = 0.0
+            for j in range(w):
+                rx, ry, rz = h[-1 - lag - j][4]
+                cx, cy, cz = cx + rx, cy + ry, cz + rz
+            rate_res = math.degrees(math.sqrt((ox - cx / w) ** 2 + (oy - cy / w) ** 2 + (oz - cz / w) ** 2))
+        (v1x, v1y, v1z), (v0x, v0y, v0z) = last[1], first[1]
+        ex = ey = ez = impulse = 0.0
         for j in range(w):           # the thrust commanded lag ticks before each step, along its attitude
-            rot, thrust = h[-1 - j][2], h[-1 - j - lag][4]
-            dv_exp += (rot[:, 2] * (thrust / self.mass) - (0.0, 0.0, GRAVITY)) * self.dt
-            impulse += thrust / self.mass * self.dt
-        dv_res = float(np.linalg.norm(dv_obs - dv_exp)) if airborne else max(0.0, float(dv_exp[2] - dv_obs[2]))
+            bx, by, bz = h[-1 - j][3]
+            a = h[-1 - j - lag][5] / m
+            ex, ey, ez = ex + bx * a * dt, ey + by * a * dt, ez + (bz * a - GRAVITY) * dt
+            impulse += a * dt
+        dx, dy, dz = v1x - v0x - ex, v1y - v0y - ey, v1z - v0z - ez
+        dv_res = math.sqrt(dx * dx + dy * dy + dz * dz) if airborne else max(0.0, -dz)
         return rate_res, dv_res, DV_LIMIT_MPS + DV_LIMIT_REL * impulse
 
     def update_all(self, drones, ests) -> list[str | None]:
@@ -102,9 +111,10 @@ class ConsistencyMonitor:
             self.hist[i].clear()
             self.over[i] = 0
             return None
-        rates = np.radians(np.asarray(rates_dps, dtype=np.float64))
-        self.hist[i].append((np.array(est.pos, np.float64), np.array(est.vel, np.float64),
-                             np.array(est.rot, np.float64), rates, float(thrust_n)))
+        rot = np.asarray(est.rot, np.float64)
+        r = math.pi / 180.0
+        self.hist[i].append((float(est.pos[2]), tuple(float(v) for v in est.vel), rot, tuple(rot[:, 2].tolist()),
+                             tuple(float(v) * r for v in rates_dps), float(thrust_n)))
         res = self.residuals(i)
         if res is None:
             self.over[i] = 0

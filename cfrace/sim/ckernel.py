@@ -41,6 +41,7 @@ def _build() -> ctypes.CDLL:
     flags = ["-O3", "-march=native", "-ffast-math", "-fPIC", "-shared", "-fopenmp", "-std=c99"]
     if platform.machine().lower() in ("x86_64", "amd64"):  # use 512-bit vectors where there are (1.4x here)
         flags.append("-mprefer-vector-width=512")
+    flags += rule_defines()
     key = hashlib.sha256(src + " ".join([cc] + flags).encode()).hexdigest()[:16]
     out = _cache_dir() / f"cfrace_kernel_{key}.so"
     if not out.exists():
@@ -54,6 +55,12 @@ def _build() -> ctypes.CDLL:
     lib = ctypes.CDLL(str(out))
     lib.cfrace_step.restype = ctypes.c_int
     return lib
+
+
+def rule_defines() -> list[str]:
+    """The gate rule's constants (cfrace.sim.gates) as the C kernel's -D flags (float literals)."""
+    return [f"-D{name}={float(v)!r}f" for name, v in
+            (("PASS_RADIUS", PASS_RADIUS), ("PASS_HALF", PASS_HALF), ("FRAME_HIT_HALF", FRAME_HIT_HALF))]
 
 
 def available() -> bool:
@@ -74,12 +81,12 @@ def build_error() -> str | None:
 
 
 def constants_array(c, radius: float, z_rest: float, arena: tuple, outer_half: float, rules) -> torch.Tensor:
-    """Pack constants in the order of the C enum (the gate rule's from cfrace.sim.gates)."""
+    """Pack constants in the order of the C enum (the gate rule's are build flags: rule_defines)."""
     vals = [c.dt, c.mass, *c.inertia, c.k_eta, c.k_ratio, *c.rotor_x, *c.rotor_y, *c.dirs]
     vals += [v for row in c.mix for v in row]
     vals += [c.w_min, c.w_max, *c.i_limit, GRAVITY, radius, z_rest, *arena, outer_half,
              -1.0 if rules.floor_grace_s is None else rules.floor_grace_s, rules.floor_z, rules.floor_impact_speed,
-             rules.long_contact_s, 1.0 if rules.arena else 0.0, PASS_RADIUS, PASS_HALF, FRAME_HIT_HALF]
+             rules.long_contact_s, 1.0 if rules.arena else 0.0]
     return torch.tensor(vals, dtype=torch.float32)
 
 

@@ -32,8 +32,8 @@ def to_gate_frame(pos, gate_pose):
 
 def crossing(prev_local, local, outer_half: float = 0.7):
     """(passed, frame_hit) bool arrays (...,) from gate-frame positions before and after a step
-    (torch tensors or numpy arrays). The rule; the C kernel gets its constants from
-    cfrace.sim.ckernel.constants_array and cfrace.flight.progress repeats it on floats for one drone."""
+    (torch tensors or numpy arrays). The rule; the C kernel gets its constants as build flags
+    (cfrace.sim.ckernel.rule_defines) and cfrace.flight.progress repeats it on floats for one drone."""
     xp = array_module(local)
     crossed = (prev_local[..., 0] > 0.0) & (local[..., 0] <= 0.0)
     # the plane crossing point, interpolated between the two samples

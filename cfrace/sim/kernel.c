@@ -24,13 +24,19 @@ enum { R_NONE = 0, R_FLOOR = 1, R_CEILING = 2, R_ARENA = 3, R_GATE = 4, R_CONTAC
 #define MAXF(a, b) ((a) > (b) ? (a) : (b))
 #define CLAMP(x, lo, hi) MINF(MAXF(x, lo), hi)
 #define SIMD _Pragma("omp simd")
+/* the gate rule's constants (cfrace/sim/gates.py): ckernel.py passes them at build time as -D
+ * flags, so that they are literals to the compiler and defined only in Python (read from cst[]
+ * they compiled to other machine code, a few per cent slower: docs/benchmarks.md) */
+#if !defined(PASS_RADIUS) || !defined(PASS_HALF) || !defined(FRAME_HIT_HALF)
+#error "build through cfrace/sim/ckernel.py: it defines PASS_RADIUS, PASS_HALF, FRAME_HIT_HALF"
+#endif
 
 /* constants: indices into cst[] (filled by ckernel.py, keep in sync) */
 enum {
   C_DT, C_MASS, C_IX, C_IY, C_IZ, C_KETA, C_KRATIO, C_RX0, C_RX1, C_RX2, C_RX3, C_RY0, C_RY1, C_RY2, C_RY3,
   C_DIR0, C_DIR1, C_DIR2, C_DIR3, C_MIX0, /* 16 values */ C_WMIN = C_MIX0 + 16, C_WMAX, C_IL0, C_IL1, C_IL2,
   C_G, C_RADIUS, C_ZREST, C_AX0, C_AX1, C_AY0, C_AY1, C_AZ, C_OUTER, C_GRACE, C_FLOORZ, C_IMPACT, C_LONGC,
-  C_ARENA_ON, C_PASS_RADIUS, C_PASS_HALF, C_HIT_HALF, /* the gate rule (cfrace/sim/gates.py) */ C_COUNT
+  C_ARENA_ON, C_COUNT
 };
 
 /* the tensors, in the order ckernel.py passes their addresses (keep in sync) */
@@ -158,7 +164,6 @@ static void physics(Block *restrict b, const Setup *S) {
   const float zrest = cs[C_ZREST], impact = cs[C_IMPACT], grace = cs[C_GRACE], floorz = cs[C_FLOORZ];
   const float ax0 = cs[C_AX0], ax1 = cs[C_AX1], ay0 = cs[C_AY0], ay1 = cs[C_AY1], az = cs[C_AZ], g = cs[C_G];
   const float outer = cs[C_OUTER], arena_on = cs[C_ARENA_ON], kratio = cs[C_KRATIO];
-  const float pass_r2 = cs[C_PASS_RADIUS] * cs[C_PASS_RADIUS], pass_half = cs[C_PASS_HALF], hit_half = cs[C_HIT_HALF];
   const float *mix = cs + C_MIX0, *rx = cs + C_RX0, *ry = cs + C_RY0, *dir = cs + C_DIR0;
   SIMD
   for (int l = 0; l < NB; l++) {
@@ -238,8 +243,8 @@ static void physics(Block *restrict b, const Setup *S) {
     const int crossed = pl0 > 0.f && nl0 <= 0.f;
     const float frac = pl0 / MAXF(pl0 - nl0, 1e-9f);
     const float cy = fabsf(pl1 + frac * (nl1 - pl1)), cz = fabsf(pl2 + frac * (nl2 - pl2));
-    b->passed[l] = crossed && nl0 * nl0 + nl1 * nl1 + nl2 * nl2 < pass_r2 && cy < pass_half && cz < pass_half;
-    b->hit[l] = crossed && cy < outer && cz < outer && (cy >= hit_half || cz >= hit_half);
+    b->passed[l] = crossed && nl0 * nl0 + nl1 * nl1 + nl2 * nl2 < PASS_RADIUS * PASS_RADIUS && cy < PASS_HALF && cz < PASS_HALF;
+    b->hit[l] = crossed && cy < outer && cz < outer && (cy >= FRAME_HIT_HALF || cz >= FRAME_HIT_HALF);
     b->live[l] = live; b->why[l] = why; b->contact[l] = 0;
     b->np[0][l] = live ? npx : b->p[0][l]; b->np[1][l] = live ? npy : b->p[1][l]; b->np[2][l] = live ? npz : b->p[2][l];
     b->nv[0][l] = nvx; b->nv[1][l] = nvy; b->nv[2][l] = nvz;
