@@ -57,8 +57,7 @@ class TrainConfig:
     random_phase: bool = False      #: spread the first races over the time limit (RaceEnv.random_phase)
     flight_obs: bool = False        #: the flight stack's velocity estimate and thrust floor (RaceEnv.flight_obs)
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
-    fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds;
-                                       #: several, comma-separated: one of them per world, in turn
+    fixed_opponent: str | None = None  #: checkpoint/run flying the last slot(s) in some worlds (A,B: one per world)
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
     fixed_opponent_drones: int = 1     #: how many drones (the last slots) it flies in those worlds
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
@@ -336,9 +335,8 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
-    """Load the best actor of cfg.fixed_opponent (padded to this layout like a warm start; several,
-    comma-separated: each) and let it fly the last cfg.fixed_opponent_drones slots in
-    cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent: several take turns by world)."""
+    """Load the best actor of each of cfg.fixed_opponent (A,B; padded like a warm start) and let them fly the
+    last cfg.fixed_opponent_drones slots in cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent)."""
     import types
 
     from cfrace.rl.models import AgentModels
@@ -349,17 +347,13 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
         raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
     if runner.num_agents < 2:
         raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
-    k = cfg.fixed_opponent_drones
-    if not 1 <= k < runner.num_agents:
-        raise ConfigError(f"--fixed-opponent-drones {k}: from 1 to {runner.num_agents - 1} with "
-                          f"{runner.num_agents} drones per world (at least one drone must learn)")
-    opps, names = [], []
-    for source in cfg.fixed_opponent.split(","):
-        opps.append(AgentModels(runner.env.obs_dim, runner.env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0))
-        names.append(warm_start(types.SimpleNamespace(agents=[opps[-1]]), source.strip(), layout)["init_from"])
+    if not 1 <= (k := cfg.fixed_opponent_drones) < runner.num_agents:
+        raise ConfigError(f"--fixed-opponent-drones {k}: from 1 to {runner.num_agents - 1} (one drone must learn)")
+    env, sources = runner.env, [x.strip() for x in cfg.fixed_opponent.split(",")]
+    opps = [AgentModels(env.obs_dim, env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0) for _ in sources]
+    names = [warm_start(types.SimpleNamespace(agents=[o]), x, layout)["init_from"] for o, x in zip(opps, sources)]
     n = runner.set_fixed_opponent(opps, cfg.fixed_opponent_frac, k)
-    return {"fixed_opponent": ",".join(names), "fixed_opponent_worlds": n,
-            **({"fixed_opponent_drones": k} if k > 1 else {})}
+    return {"fixed_opponent": ",".join(names), "fixed_opponent_worlds": n} | ({"fixed_opponent_drones": k} if k > 1 else {})
 
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",
