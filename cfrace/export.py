@@ -172,6 +172,10 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
+    if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
+        meta["obstacle_curriculum"] = int(meta0["obstacle_curriculum"])
+    if meta0.get("init_layout"):  # warm-started from another observation layout (world position added)
+        meta["init_layout"] = str(meta0["init_layout"])
     out = export_actor(model.actor, model.obs_norm, meta, path)
     err = parity_check(out, model.actor, model.obs_norm, n=1000)
     if not err < 1e-4:

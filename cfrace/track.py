@@ -134,17 +134,55 @@ class Track:
         yaw = np.repeat(self.gate_array()[:, 3], 4)
         return centres.reshape(g * 4, 3), np.tile(half, (g, 1)), yaw
 
-    def obstacle_boxes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Obstacles as boxes: centres (K, 3), half extents (K, 3), yaw (K,)."""
+    def obstacle_boxes(self, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Obstacles as boxes: centres (K, 3), half extents (K, 3), yaw (K,).
+
+        ``scale`` in [0, 1] (the obstacle curriculum, ``cfrace train --obstacle-curriculum``): each
+        box's horizontal extents times ``scale``, shrunk towards its anchor (obstacle_anchors), the
+        height kept. 1 is the track as defined."""
+        if not 0.0 <= scale <= 1.0:
+            raise ValueError(f"obstacle scale must be in [0, 1], got {scale}")
         if not self.obstacles:
             return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0,))
         c = np.array([[o.center[0], o.center[1], o.size[2] / 2] for o in self.obstacles])
         h = np.array([o.size for o in self.obstacles]) / 2.0
         y = np.array([o.yaw for o in self.obstacles])
+        if scale != 1.0:
+            anchors = self.obstacle_anchors()
+            c[:, :2] = anchors + scale * (c[:, :2] - anchors)
+            h[:, :2] *= scale
         return c, h, y
+
+    def obstacle_anchors(self) -> np.ndarray:
+        """(K, 2) m, the point each obstacle shrinks towards in the obstacle curriculum: the end of
+        its long horizontal axis nearest the centre of the first obstacle it overlaps (so that
+        obstacles that join into one barrier stay joined while they grow, and a path around the
+        barrier's free end moves out continuously), or its centre if it overlaps none."""
+        c, h, y = self.obstacle_boxes()
+        out = c[:, :2].copy()
+        for k in range(len(c)):
+            other = next((j for j in range(len(c)) if j != k and boxes_overlap(c[k], h[k], y[k], c[j], h[j], y[j])),
+                         None)
+            if other is None:
+                continue
+            long = 0 if h[k, 0] >= h[k, 1] else 1
+            axis = (np.array([math.cos(y[k]), math.sin(y[k])]) if long == 0
+                    else np.array([-math.sin(y[k]), math.cos(y[k])]))
+            ends = c[k, :2] + np.outer([h[k, long], -h[k, long]], axis)
+            out[k] = ends[np.argmin(np.linalg.norm(ends - c[other, :2], axis=1))]
+        return out
 
     def without_obstacles(self) -> "Track":
         return Track(self.name, self.gates, self.gate, (), self.arena, self.spawn, self.source)
+
+
+def obstacle_scale(iteration: int, curriculum: int) -> float:
+    """The obstacles' size (Track.obstacle_boxes scale) in training iteration ``iteration`` (0-based)
+    of a run with ``--obstacle-curriculum curriculum``: from 0 at the first iteration linearly to 1
+    at iteration ``curriculum``, full size after (and always full size without a curriculum)."""
+    if curriculum <= 0:
+        return 1.0
+    return min(1.0, max(0, iteration) / curriculum)
 
 
 def boxes_overlap(c1, h1, yaw1: float, c2, h2, yaw2: float) -> bool:

@@ -124,6 +124,9 @@ def train_cmd(
     opponent_rule: Optional[str] = typer.Option(None, "--opponent-rule",
                                                 help="with --drones > 2: which drone each one observes: "
                                                      "nearest (default) | ahead | track"),
+    obstacle_curriculum: int = typer.Option(0, "--obstacle-curriculum", min=0,
+                                            help="with --obstacles: the obstacles grow from nothing to full size "
+                                                 "over the first ITERS iterations (0: full size throughout)"),
     update_workers: int = _UPDATE_WORKERS,
     compile_: bool = _COMPILE,
     flight_obs: bool = typer.Option(False, "--flight-obs",
@@ -165,7 +168,8 @@ def train_cmd(
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
                           ground_start_prob=ground_start_prob, drones=drones,
                           update_workers=update_workers, compile=compile_,
-                          opponent_rule=opponent_rule or TrainConfig.opponent_rule)
+                          opponent_rule=opponent_rule or TrainConfig.opponent_rule,
+                          obstacle_curriculum=obstacle_curriculum)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     ippo = cfg.ippo()

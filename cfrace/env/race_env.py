@@ -20,6 +20,7 @@ from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
+from cfrace.errors import ConfigError
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 
@@ -60,6 +61,7 @@ class RaceEnv:
         self.device = torch.device(device)
         self.randomize, self.start_mode, self.scales = randomize, start, rewards
         self.random_phase = random_phase   #: reset(): first races get a random share of the time limit
+        self.obstacle_curriculum = False   #: set_obstacle_scale was called (the size is then logged)
         # flight_obs: the observation and command path of the flight stack (docs/training.md, "Flight
         # observations"): velocity = the last 10 ms pose difference, as the flight loop's estimator
         # computes it from 100 Hz mocap; thrust at least the firmware's least non-zero command
@@ -88,6 +90,14 @@ class RaceEnv:
         self._stats: dict[str, list] = {}
 
     # ------------------------------------------------------------------ helpers
+    def set_obstacle_scale(self, scale: float) -> None:
+        """The obstacle curriculum: the obstacles at ``scale`` of their size (Simulator.set_obstacle_scale)."""
+        if not self.obstacles:
+            raise ConfigError("--obstacle-curriculum: this race has no obstacles (needs --obstacles and a track "
+                              "with obstacles)")
+        self.sim.set_obstacle_scale(scale)
+        self.obstacle_curriculum = True   # from now on the episode figures say the size (stat_obstacle_scale)
+
     def _rand(self, *shape) -> torch.Tensor:
         return torch.rand(*shape, generator=self.gen).to(self.device)
 
@@ -283,6 +293,8 @@ class RaceEnv:
             "crash_rate": r.crashed[done].float().mean().item(),
             "episode_s": (steps * POLICY_DT).mean().item(),
         }
+        if self.obstacle_curriculum:
+            out["obstacle_scale"] = self.sim.obstacle_scale
         lap = r.lap_last[done]
         if bool((~lap.isnan()).any()):
             out["lap_time_s"] = lap[~lap.isnan()].mean().item()

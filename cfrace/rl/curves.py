@@ -18,6 +18,8 @@ from cfrace.rl.logs import finish_steps_plot
 
 CURVE_COLUMNS = ("env_steps", "wall_s", "return_agent0", "return_agent1", "stat_gates_per_s", "stat_success",
                  "stat_crash_rate", "stat_lap_time_s", "stat_win_share_agent0")
+#: kept too when the run has it (a run with --obstacle-curriculum: the obstacles' size per iteration)
+OPTIONAL_COLUMNS = ("stat_obstacle_scale",)
 MAX_ROWS = 200
 #: what plot_curves can draw: column -> axis label
 LABELS = {"return_agent0": "episode return (drone 0)", "stat_gates_per_s": "gates per second (training races)",
@@ -40,22 +42,24 @@ def read_curve(path: Path) -> dict[str, np.ndarray]:
 
 
 def reduce_metrics(metrics_csv: Path, out: Path, offset_steps: int = 0, max_rows: int = MAX_ROWS) -> Path:
-    """Write ``metrics_csv`` reduced to CURVE_COLUMNS and at most ``max_rows`` rows; ``offset_steps``
-    is added to env_steps (a warm-started stage continues its source's count)."""
+    """Write ``metrics_csv`` reduced to CURVE_COLUMNS (and the OPTIONAL_COLUMNS it has) and at most
+    ``max_rows`` rows; ``offset_steps`` is added to env_steps (a warm-started stage continues its
+    source's count)."""
     with Path(metrics_csv).open(newline="") as fh:
         rows = list(csv.DictReader(fh))
+    columns = CURVE_COLUMNS + tuple(k for k in OPTIONAL_COLUMNS if any(r.get(k) for r in rows))
     if len(rows) > max_rows:
         keep = np.unique(np.linspace(0, len(rows) - 1, max_rows).round().astype(int))
         rows = [rows[i] for i in keep]
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, CURVE_COLUMNS, extrasaction="ignore")
+        w = csv.DictWriter(fh, columns, extrasaction="ignore")
         w.writeheader()
         for r in rows:
             r = dict(r)
             r["env_steps"] = str(int(_num(r.get("env_steps")) + offset_steps))
-            w.writerow({k: r.get(k, "") for k in CURVE_COLUMNS})
+            w.writerow({k: r.get(k, "") for k in columns})
     return out
 
 

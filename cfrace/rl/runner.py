@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from cfrace.errors import ConfigError
 from cfrace.rl.config import IPPOConfig
 from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
@@ -235,8 +236,8 @@ class Runner:
         flown by models[i % len(models)] (one per world). Returns the number of such worlds."""
         models = [models] if isinstance(models, AgentModels) else list(models)
         if not 1 <= drones < self.num_agents:
-            raise ValueError(f"a fixed opponent flies 1 to {self.num_agents - 1} of the {self.num_agents} "
-                             f"drones (at least one learns), not {drones}")
+            raise ConfigError(f"--fixed-opponent-drones {drones}: from 1 to {self.num_agents - 1} with "
+                              f"{self.num_agents} drones per world (at least one must learn)")
         n = int(round(fraction * self.num_envs))
         mask = torch.ones(self.num_envs, self.num_agents, dtype=torch.bool, device=self.device)
         mask[:n, -drones:] = False

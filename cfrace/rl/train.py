@@ -31,7 +31,7 @@ from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
 from cfrace.rl.precision import Precision, resolve_precision
 from cfrace.rl.runner import Runner
-from cfrace.track import load_track
+from cfrace.track import load_track, obstacle_scale
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,7 @@ class TrainConfig:
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
     opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
+    obstacle_curriculum: int = 0    #: iterations over which the obstacles grow to full size (0: full from the start)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -138,7 +139,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "critic_dim": int(env.critic_dim), "num_agents": int(env.num_agents),
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
-            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {})}
+            **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
+            **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {})}
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:
@@ -306,6 +308,8 @@ def _loop(run: _Run, csv_log: CsvLog, tb: TensorBoardLog, flag: _StopFlag,
     while run.progress() < 1.0 and not flag.stop:
         if cfg.init_from:
             _critic_warmup(runner, cfg)
+        if cfg.obstacle_curriculum:  # the obstacles' size in this iteration (logged as stat_obstacle_scale)
+            runner.env.set_obstacle_scale(obstacle_scale(runner.iteration, cfg.obstacle_curriculum))
         metrics = runner.iterate()
         metrics["wall_s"] = run.wall_s()
         csv_log.write(metrics)
@@ -335,23 +339,19 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
-    """Load the best actor of each of cfg.fixed_opponent (A,B; padded like a warm start) and let them fly the
-    last cfg.fixed_opponent_drones slots in cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent)."""
+    """The best actors of cfg.fixed_opponent (A,B; padded like a warm start) fly the last slots (Runner.set_fixed_opponent)."""
     import types
 
     from cfrace.rl.models import AgentModels
     from cfrace.rl.warmstart import warm_start
 
-    ippo = runner.cfg
     if not 0.0 < cfg.fixed_opponent_frac <= 1.0:
         raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
     if runner.num_agents < 2:
         raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
-    if not 1 <= (k := cfg.fixed_opponent_drones) < runner.num_agents:
-        raise ConfigError(f"--fixed-opponent-drones {k}: from 1 to {runner.num_agents - 1} (one drone must learn)")
-    env, sources = runner.env, [x.strip() for x in cfg.fixed_opponent.split(",")]
-    opps = [AgentModels(env.obs_dim, env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0) for _ in sources]
-    names = [warm_start(types.SimpleNamespace(agents=[o]), x, layout)["init_from"] for o, x in zip(opps, sources)]
+    env, k, sources = runner.env, cfg.fixed_opponent_drones, [x.strip() for x in cfg.fixed_opponent.split(",")]
+    opps = [AgentModels(env.obs_dim, env.critic_dim, runner.cfg.actor_hidden, runner.cfg.critic_hidden, 1.0) for _ in sources]
+    names = [warm_start(types.SimpleNamespace(agents=[o], env=env), x, layout)["init_from"] for o, x in zip(opps, sources)]
     n = runner.set_fixed_opponent(opps, cfg.fixed_opponent_frac, k)
     return {"fixed_opponent": ",".join(names), "fixed_opponent_worlds": n} | ({"fixed_opponent_drones": k} if k > 1 else {})
 

@@ -78,10 +78,15 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         best = int(torch.argmax(totals)) if len(totals) > 1 else 0
         src = state["agents"][min(best, len(state["agents"]) - 1)]   # a shared run keeps one model
     src_layout = saved.get("meta", {}).get("obs_layout")
+    added_position = False
     if src_layout and env_layout and src_layout != env_layout:
         a, b = LAYOUTS[src_layout], LAYOUTS[env_layout]
-        if a.world_position != b.world_position or (a.opponent and not b.opponent):
-            raise ConfigError(f"--init-from {source}: layout {src_layout} is not a prefix of {env_layout}")
+        if (a.world_position and not b.world_position) or (a.opponent and not b.opponent):
+            raise ConfigError(f"--init-from {source}: layout {src_layout} does not fit into {env_layout}")
+        if b.world_position and not a.world_position:   # a policy of the track without obstacles
+            track = getattr(getattr(runner, "env", None), "track", None)
+            src = with_world_position(src, a.dim, *position_prior(track))
+            added_position = True
     for agent in runner.agents:
         dst = agent.state_dict()
         if critic:
@@ -97,7 +102,41 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         _transplant(src, dst, "actor", blocks=1, what=f"--init-from {source}: the actor")
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0)),
-            "init_critic": bool(critic)}
+            "init_critic": bool(critic), **({"init_layout": src_layout} if added_position else {})}
+
+
+def position_prior(track) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normaliser statistics (mean (3,), var (3,)) for world-position inputs a source never read:
+    the arena's centre and the variance of a uniform position over it (m, m^2)."""
+    if track is None:
+        return torch.zeros(3, dtype=torch.float64), torch.full((3,), OPP_POS_VAR, dtype=torch.float64)
+    a = track.arena
+    lo = torch.tensor([a.x[0], a.y[0], 0.0], dtype=torch.float64)
+    hi = torch.tensor([a.x[1], a.y[1], a.z_max], dtype=torch.float64)
+    return (lo + hi) / 2.0, (hi - lo) ** 2 / 12.0
+
+
+def with_world_position(src: dict, block: int, mean: torch.Tensor, var: torch.Tensor) -> dict:
+    """The source state (actor and, if present, critic) as if each of its observation blocks of
+    ``block`` inputs had read the world position (3) first, as the obstacle layouts do: zero weights
+    for it in the first layer (the network acts exactly as before) and the prior ``mean``/``var``
+    in the normaliser. Other keys unchanged."""
+    out = dict(src)
+    for net, norm in (("actor", "obs_norm."), ("critic", "critic_norm.")):
+        first = next((k for k in src if k.startswith(net + ".") and k.endswith("weight")), None)
+        if first is None:
+            continue
+        w = src[first]
+        n = w.shape[1] // block
+        if n * block != w.shape[1]:
+            raise ConfigError(f"--init-from: {first} reads {w.shape[1]} inputs, not blocks of {block}")
+        out[first] = torch.cat([torch.cat([w.new_zeros(w.shape[0], 3), w[:, b * block:(b + 1) * block]], 1)
+                                for b in range(n)], 1)
+        for key, prior in (("mean", mean), ("var", var)):
+            v = src[norm + key]
+            out[norm + key] = torch.cat([torch.cat([prior.to(v.dtype), v[b * block:(b + 1) * block]])
+                                         for b in range(n)])
+    return out
 
 
 def _transplant(src: dict, dst: dict, net: str, blocks: int, what: str) -> None:

@@ -170,6 +170,7 @@ class Simulator:
         self.num_worlds, self.num_drones = worlds, drones
         self.device = torch.device(device)
         self.obstacles = obstacles
+        self.obstacle_scale = 1.0   #: the obstacles' size (set_obstacle_scale); 1 = as the track defines them
         self.rules = rules
         self.consts = Constants.from_profile(profile, self.dt)
         self.radius = profile.collision_radius
@@ -220,6 +221,16 @@ class Simulator:
             self._step_fn = torch.compile(_step, dynamic=False, fullgraph=False)
 
     # ----------------------------------------------------------------- parameters
+    def set_obstacle_scale(self, scale: float) -> None:
+        """Grow or shrink the obstacles (Track.obstacle_boxes(scale): the obstacle curriculum); the
+        boxes are rewritten in place, so both backends see them at the next step."""
+        if not self.obstacles:
+            return
+        new = col.make_boxes(*self.track.obstacle_boxes(scale), device=self.device)
+        for dst, src in zip(self.geometry.obstacles, new):
+            dst.copy_(src)
+        self.obstacle_scale = float(scale)
+
     def _update_params(self) -> None:
         pr, dev = self.profile, self.device
         base = lambda v: torch.tensor(v, dtype=torch.float32, device=dev)
