@@ -155,7 +155,7 @@ def test_schema_versions(tmp_path):
     from cfrace.contract import SCHEMA_VERSION
     from cfrace.paths import POLICIES_DIR
 
-    shipped = OnnxPolicy(POLICIES_DIR / "ours_lemniscate.onnx")
+    shipped = OnnxPolicy(POLICIES_DIR / "ds_lemniscate.onnx")
     assert "schema_version" not in shipped.meta   # written before the key existed: schema 1
     v1 = OnnxPolicy(_write(tmp_path / "v1.onnx", _meta()))
     assert "schema_version" not in v1.meta

@@ -35,6 +35,18 @@ def _cfg(tmp_path, **kw):
     return TrainConfig(**base)
 
 
+def _spy_actions(env) -> dict:
+    """Make env.step record the actions it was last given (seen["a"], (E, A, 4))."""
+    seen, step = {}, env.step
+
+    def spy(actions):
+        seen["a"] = actions.clone()
+        return step(actions)
+
+    env.step = spy
+    return seen
+
+
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -195,14 +207,7 @@ def test_fixed_opponent_flies_the_second_slot_in_part_of_the_worlds(tmp_path):
     runner = Runner(env, cfg.ippo(), seed=0)
     info = _fixed_opponent(runner, cfg, meta["obs_layout"])
     assert info["fixed_opponent_worlds"] == 8
-    seen = {}
-    step = env.step
-
-    def spy(actions):
-        seen["a"] = actions.clone()
-        return step(actions)
-
-    env.step = spy
+    seen = _spy_actions(env)
     obs = runner.obs.clone()
     runner.iterate()
     fo = runner.fixed_opponent
@@ -225,3 +230,60 @@ def test_fixed_opponent_flies_the_second_slot_in_part_of_the_worlds(tmp_path):
         ds_cfg = _cfg(tmp_path, method="ds", fixed_opponent=str(src.checkpoint))
         ds_env, ds_meta = toy_factory(ds_cfg, "cpu", 16)
         _fixed_opponent(Runner(ds_env, ds_cfg.ippo(), seed=0), ds_cfg, ds_meta["obs_layout"])
+
+
+def test_fixed_opponent_flies_the_last_drones_of_a_field_with_a_shared_learner(tmp_path):
+    """--fixed-opponent-drones 2 in 4-drone worlds: in the fixed worlds the last two drones fly the
+    frozen actor's mean action and are out of the (shared) learner's samples; the first two learn in
+    every world; all four learn elsewhere. At least one drone must learn."""
+    from cfrace.rl.runner import Runner
+    from cfrace.rl.train import _fixed_opponent
+
+    src = train(_cfg(tmp_path, method="ds", steps=16 * 24, out=str(tmp_path / "src")), env_factory=toy_factory)
+    cfg = _cfg(tmp_path, fixed_opponent=str(src.checkpoint), fixed_opponent_frac=0.5, fixed_opponent_drones=2,
+               overrides=(("shared", True),))
+    env = ToyRaceEnv(16, 4, episode_steps=12, seed=2, layout="race42")
+    runner = Runner(env, cfg.ippo(), seed=0)
+    assert len(runner.agents) == 1
+    info = _fixed_opponent(runner, cfg, "race42")
+    assert info == {"fixed_opponent": info["fixed_opponent"], "fixed_opponent_worlds": 8, "fixed_opponent_drones": 2}
+    seen = _spy_actions(env)
+    runner.iterate()
+    st, fo = runner.storage, runner.fixed_opponent
+    assert not st.alive[:, :8, 2:].any() and st.alive[:, 8:, 2:].any() and st.alive[:, :, :2].any()
+    with torch.no_grad():
+        want = fo.actor(fo.obs_norm(st.obs[-1, :8, 2:])).mean
+        learner = fo.actor(fo.obs_norm(st.obs[-1, :8, :2])).mean
+    assert torch.allclose(seen["a"][:8, 2:], want, atol=1e-6)
+    assert not torch.allclose(seen["a"][:8, :2], learner)
+    for k in (0, 4):
+        with pytest.raises(ConfigError, match="--fixed-opponent-drones"):
+            _fixed_opponent(Runner(env, cfg.ippo(), seed=0),
+                            _cfg(tmp_path, fixed_opponent=str(src.checkpoint), fixed_opponent_drones=k), "race42")
+
+
+def test_several_fixed_opponents_take_turns_by_world(tmp_path):
+    """--fixed-opponent A,B: the fixed worlds are flown by A and B in turn (world i by the i % 2-th),
+    and the exported metadata names both."""
+    from cfrace.rl.runner import Runner
+    from cfrace.rl.train import _fixed_opponent
+
+    srcs = [train(_cfg(tmp_path, method="ds", steps=16 * 24, seed=s, out=str(tmp_path / f"src{s}")),
+                  env_factory=toy_factory).checkpoint for s in (1, 2)]
+    cfg = _cfg(tmp_path, fixed_opponent=f"{srcs[0]},{srcs[1]}", fixed_opponent_frac=0.75)
+    env, meta = toy_factory(cfg, "cpu", 16)
+    runner = Runner(env, cfg.ippo(), seed=0)
+    assert _fixed_opponent(runner, cfg, meta["obs_layout"])["fixed_opponent_worlds"] == 12
+    seen = _spy_actions(env)
+    runner.iterate()
+    obs = runner.storage.obs[-1, :, 1]
+    with torch.no_grad():
+        means = [fo.actor(fo.obs_norm(obs)).mean for fo in runner.fixed_opponents]
+    assert not torch.allclose(means[0], means[1])
+    for w in range(16):
+        got = seen["a"][w, 1]
+        assert torch.allclose(got, means[w % 2][w], atol=1e-6) == (w < 12)
+    res = train(_cfg(tmp_path, steps=16 * 16, out=str(tmp_path / "two"), fixed_opponent=f"{srcs[0]},{srcs[1]}"),
+                env_factory=toy_factory)
+    path, _, _ = export_checkpoint(res.checkpoint, tmp_path / "two.onnx", "ego")
+    assert OnnxPolicy(path).meta["fixed_opponent"] == "src1,src2"

@@ -20,6 +20,7 @@ def spec(body: str, tmp_path: Path, name: str = "s.yaml"):
     return load_spec(p)
 
 
+DS_FILE = Path(__file__).resolve().parents[1] / "policies" / "ds_lemniscate.onnx"
 BASE = """
 version: 1
 out: runs/x
@@ -111,6 +112,8 @@ def test_argv_is_accepted_by_the_train_command(tmp_path):
     ("runs: [{name: a, method: ds}, {name: a, method: ss}]", "duplicate run name 'a'"),
     ("runs: [{name: a, method: ds, init_from: nothere}]", "runs[0].init_from: 'nothere' is neither a run"),
     ("runs: [{name: a, method: ds, after: [b]}]", "runs[0].after: unknown run 'b'"),
+    (f"runs: [{{name: a, method: ours, fixed_opponent: '{DS_FILE},nothere.onnx'}}]",
+     "runs[0].fixed_opponent: 'nothere.onnx' is neither a run"),
     ("runs: [{name: a, method: ds, after: [b]}, {name: b, method: ds, init_from: a}]",
      "dependency cycle: a -> b -> a"),
     ("runs: [{name: a, method: ds, init_from: a}]", "refers to itself"),

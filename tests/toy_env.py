@@ -76,7 +76,7 @@ class ToyRaceEnv:
             noise = torch.randn(self.num_envs, self.num_agents, pad, generator=self.gen, device=self.device)
             own = torch.cat([own, noise * (0.1 + 0.2 * k) + k - pad / 2], -1)
         if self.num_agents > 1:
-            critic = torch.cat([own, own.flip(1)], -1)
+            critic = torch.cat([own.roll(-k, 1) for k in range(self.num_agents)], -1)  # own, then the others
         else:
             critic = own.clone()
         return own, critic

@@ -102,9 +102,12 @@ def train_cmd(
                                       help="first races start part-way into the time limit (spread time-outs)"),
     fixed_opponent: Optional[Path] = typer.Option(None, "--fixed-opponent",
                                                   help="checkpoint or run whose actor (frozen) flies the "
-                                                       "second drone in part of the worlds"),
+                                                       "second drone in part of the worlds (several: A,B: "
+                                                       "one per world, in turn)"),
     fixed_opponent_frac: float = typer.Option(0.5, "--fixed-opponent-frac",
                                               help="share of the worlds with the fixed opponent"),
+    fixed_opponent_drones: int = typer.Option(1, "--fixed-opponent-drones", min=1,
+                                              help="drones it flies in those worlds (the last slots)"),
     init_critic: bool = typer.Option(False, "--init-critic",
                                      help="with --init-from: copy the critic too (same layout, sizes, reward)"),
     critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
@@ -160,7 +163,8 @@ def train_cmd(
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
                           init_critic=init_critic, random_phase=random_phase,
                           fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
-                          fixed_opponent_frac=fixed_opponent_frac, flight_obs=flight_obs,
+                          fixed_opponent_frac=fixed_opponent_frac,
+                          fixed_opponent_drones=fixed_opponent_drones, flight_obs=flight_obs,
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
                           ground_start_prob=ground_start_prob, drones=drones,
                           update_workers=update_workers, compile=compile_,

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from cfrace.errors import ConfigError
 from cfrace.rl.config import IPPOConfig
 from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
@@ -91,8 +92,9 @@ class Runner:
         self.env_steps = 0                                         # world transitions (E per step)
         self.total_reward = torch.zeros(self.num_agents, dtype=torch.float64)  # sum of r / E, per agent
         self.ep_return = torch.zeros(self.num_envs, self.num_agents, device=self.device)  # (E, A)
-        self.fixed_opponent: AgentModels | None = None             # see set_fixed_opponent
+        self.fixed_opponents: list[AgentModels] = []                # see set_fixed_opponent
         self._not_fixed = None                                      # (E, A) bool: learner samples
+        self._fixed_which = None                                    # (E,) long: which fixed opponent
         self.obs, self.critic = env.reset()                        # (E, A, D), (E, A, C)
         for a in range(self.num_agents):                            # warm start of the normalisers
             self.model(a).obs_norm.update(self.obs[:, a])
@@ -127,11 +129,12 @@ class Runner:
         """Act, step the env, book the episode figures, bootstrap truncations, store step t."""
         t0 = time.perf_counter()
         actions, log_prob, values, mu, sigma = self._act(self.obs, self.critic)
-        if self.fixed_opponent is not None:
-            fixed = ~self._not_fixed[:, -1]
+        if self.fixed_opponents:
+            fixed = ~self._not_fixed                                # (E, A)
             with torch.no_grad():
-                fo = self.fixed_opponent
-                actions[fixed, -1] = fo.actor(fo.obs_norm(self.obs[fixed, -1])).mean
+                for k, fo in enumerate(self.fixed_opponents):
+                    mine = fixed & (self._fixed_which == k)[:, None]
+                    actions[mine] = fo.actor(fo.obs_norm(self.obs[mine])).mean
         _sync(self.device)
         t1 = time.perf_counter()
         res = self.env.step(actions)
@@ -220,18 +223,28 @@ class Runner:
             metrics[f"stat_{name}"] = float(np.mean(values))
         return metrics
 
-    def set_fixed_opponent(self, models: AgentModels, fraction: float) -> int:
-        """In the first round(fraction E) worlds the last agent's slot is flown by ``models``'s
-        actor (its mean action, frozen), not by the learner: those samples are not the learner's
-        (treated like dead steps: out of its GAE, losses and statistics). The other agents learn
-        against it there and against each other elsewhere. Returns the number of such worlds."""
-        if self.num_agents < 2:
-            raise ValueError("a fixed opponent needs a multi-agent env")
+    @property
+    def fixed_opponent(self) -> AgentModels | None:
+        """The (first) frozen opponent, None without one."""
+        return self.fixed_opponents[0] if self.fixed_opponents else None
+
+    def set_fixed_opponent(self, models: AgentModels | list[AgentModels], fraction: float, drones: int = 1) -> int:
+        """In the first round(fraction E) worlds the last ``drones`` agents' slots are flown by a
+        frozen actor (its mean action), not by the learners: those samples are not the learners'
+        (treated like dead steps: out of their GAE, losses and statistics). The other agents learn
+        against it there and against each other elsewhere. Several ``models``: world i of those is
+        flown by models[i % len(models)] (one per world). Returns the number of such worlds."""
+        models = [models] if isinstance(models, AgentModels) else list(models)
+        if not 1 <= drones < self.num_agents:
+            raise ConfigError(f"--fixed-opponent-drones {drones}: from 1 to {self.num_agents - 1} with "
+                              f"{self.num_agents} drones per world (at least one must learn)")
         n = int(round(fraction * self.num_envs))
         mask = torch.ones(self.num_envs, self.num_agents, dtype=torch.bool, device=self.device)
-        mask[:n, -1] = False
-        self.fixed_opponent = models.to(self.device).eval().requires_grad_(False)
+        mask[:n, -drones:] = False
+        self.fixed_opponents = [m.to(self.device).eval().requires_grad_(False) for m in models]
         self._not_fixed = mask
+        self._fixed_which = torch.where(torch.arange(self.num_envs, device=self.device) < n,
+                                        torch.arange(self.num_envs, device=self.device) % len(models), -1)
         return n
 
     def use_compile(self, on: bool, backend: str = "inductor") -> None:

@@ -57,8 +57,9 @@ class TrainConfig:
     random_phase: bool = False      #: spread the first races over the time limit (RaceEnv.random_phase)
     flight_obs: bool = False        #: the flight stack's velocity estimate and thrust floor (RaceEnv.flight_obs)
     init_critic: bool = False       #: also copy the source's critic (same layout, sizes and reward only)
-    fixed_opponent: str | None = None  #: checkpoint/run whose best actor flies the last slot in some worlds
+    fixed_opponent: str | None = None  #: checkpoint/run flying the last slot(s) in some worlds (A,B: one per world)
     fixed_opponent_frac: float = 0.5   #: share of the worlds with that fixed opponent
+    fixed_opponent_drones: int = 1     #: how many drones (the last slots) it flies in those worlds
     precision: str = "auto"         #: of the PPO update: auto | fp32 | bf16 (cfrace/rl/precision.py)
     update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
     compile: bool = False           #: the update's forward pass and losses through torch.compile
@@ -338,22 +339,21 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
 
 
 def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dict:
-    """Load the best actor of cfg.fixed_opponent (padded to this layout like a warm start) and let it
-    fly the last slot in cfg.fixed_opponent_frac of the worlds (Runner.set_fixed_opponent)."""
+    """The best actors of cfg.fixed_opponent (A,B; padded like a warm start) fly the last slots (Runner.set_fixed_opponent)."""
     import types
 
     from cfrace.rl.models import AgentModels
     from cfrace.rl.warmstart import warm_start
 
-    ippo = runner.cfg
     if not 0.0 < cfg.fixed_opponent_frac <= 1.0:
         raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
     if runner.num_agents < 2:
         raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
-    opp = AgentModels(runner.env.obs_dim, runner.env.critic_dim, ippo.actor_hidden, ippo.critic_hidden, 1.0)
-    info = warm_start(types.SimpleNamespace(agents=[opp], env=runner.env), cfg.fixed_opponent, layout)
-    n = runner.set_fixed_opponent(opp, cfg.fixed_opponent_frac)
-    return {"fixed_opponent": info["init_from"], "fixed_opponent_worlds": n}
+    env, k, sources = runner.env, cfg.fixed_opponent_drones, [x.strip() for x in cfg.fixed_opponent.split(",")]
+    opps = [AgentModels(env.obs_dim, env.critic_dim, runner.cfg.actor_hidden, runner.cfg.critic_hidden, 1.0) for _ in sources]
+    names = [warm_start(types.SimpleNamespace(agents=[o], env=env), x, layout)["init_from"] for o, x in zip(opps, sources)]
+    n = runner.set_fixed_opponent(opps, cfg.fixed_opponent_frac, k)
+    return {"fixed_opponent": ",".join(names), "fixed_opponent_worlds": n} | ({"fixed_opponent_drones": k} if k > 1 else {})
 
 
 def bench_train(method: str = "ours", track: str = "complex", obstacles: bool = False, preset_name: str = "cpu",

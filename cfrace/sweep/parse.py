@@ -188,9 +188,11 @@ def _linked_run(path: str, names: dict, name: str, opts: dict, where: str, extra
                 raise ConfigError(f"{path}: {where}.{key}: run {name!r} refers to itself")
             refs[key] = value
             deps.append(value)
-        elif check_paths and not Path(value).exists():
-            raise ConfigError(f"{path}: {where}.{key}: {value!r} is neither a run of this sweep nor an existing "
-                              f"checkpoint or run folder")
+        elif check_paths:  # fixed_opponent may list several files: A,B
+            for part in str(value).split(",") if key == "fixed_opponent" else [value]:
+                if not Path(part).exists():
+                    raise ConfigError(f"{path}: {where}.{key}: {part!r} is neither a run of this sweep nor an "
+                                      f"existing checkpoint or run folder")
     after = extra.get("after", [])
     if isinstance(after, str):
         after = [after]
