@@ -601,3 +601,33 @@ def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibr
         else:
             assert thrust == float(ref_thrust) and counts == thrust_to_counts(float(ref_thrust), prof.thrust_curve)
         np.testing.assert_array_equal(np.array(rates), ref_dps)
+
+
+def test_the_race_collects_garbage_by_the_automatic_thresholds_between_ticks():
+    import gc
+
+    from cfrace.flight.loop import collect_garbage
+
+    was_on = gc.isenabled()
+    gc.disable()            # as during a race (cfrace.flight.runner._run_realtime_friendly)
+    try:
+        gc.collect()
+        collect_garbage()   # nothing due: no collection
+        assert gc.get_count()[0] < gc.get_threshold()[0]
+        seen = []
+        gc.callbacks.append(cb := lambda phase, info: seen.append((phase, info["generation"])))
+        try:
+            junk = []
+            for _ in range(gc.get_threshold()[0] + 50):   # cyclic garbage past the young threshold
+                a = []
+                a.append(a)
+                junk.append(a)
+            del junk, a
+            assert gc.get_count()[0] >= gc.get_threshold()[0] and seen == []   # off: nothing collected it
+            collect_garbage()
+        finally:
+            gc.callbacks.remove(cb)
+        assert seen and seen[0] == ("start", 0) and gc.get_count()[0] < gc.get_threshold()[0]
+    finally:
+        if was_on:
+            gc.enable()

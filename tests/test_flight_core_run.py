@@ -107,7 +107,11 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
 
 
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
+    import gc
+
+    assert gc.isenabled()
     result = dry_run(cfg(pols, tmp_path, timeout_s=2.0), lockstep=False).to_json()
+    assert gc.isenabled()   # the race turned the automatic collection off (the loop collects) and back on
     assert result["end"] == "timeout", ([(e["t"], e["kind"], e["detail"]) for e in result["safety_events"]],
                                         result.get("landings"))
     # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own

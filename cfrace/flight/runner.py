@@ -77,7 +77,9 @@ def timing_summary(timing: dict, dt: float, names: list[str]) -> dict:
 def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int | None = None
                            ) -> tuple[LoopResult, bool, int | None]:
     """Run the loop with Python tuned for a steady 100 Hz: everything allocated so far is frozen
-    out of the garbage collector (no long full collections mid-race), the GIL switch interval
+    out of the garbage collector (no long full collections mid-race) and the automatic collection is
+    off for the race (the loop collects after each tick's send instead: FlightLoop.collect_garbage,
+    so that no collection lands inside a tick), the GIL switch interval
     drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), the
     loop thread gets ``loop_cpu`` to itself (every other thread of the process goes to the other
     CPUs; cfrace.flight.realtime) and with rt_priority > 0 it runs SCHED_FIFO where permitted (it
@@ -85,6 +87,8 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
     was in effect, the loop's CPU if it was pinned)."""
     gc.collect()
     gc.freeze()
+    gc_was_on = gc.isenabled()
+    gc.disable()
     old_switch = sys.getswitchinterval()
     sys.setswitchinterval(0.0005)
     old_sched = realtime.set_fifo(rt_priority)
@@ -96,6 +100,8 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
         realtime.restore_affinity(old_cpus)
         realtime.restore_scheduler(old_sched)
         sys.setswitchinterval(old_switch)
+        if gc_was_on:
+            gc.enable()
         gc.unfreeze()
 
 
