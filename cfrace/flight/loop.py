@@ -55,8 +55,9 @@ def collect_garbage() -> None:
     """The garbage collection of a race, after a tick's send and bookkeeping (outside its compute
     time): the generations Python's automatic collection would collect now, by its own thresholds.
     The runner turns the automatic collection off for the race (runner._run_realtime_friendly), so
-    that none lands inside a tick: with it on, a young collection (~0.07 ms here) fell inside about
-    3 % of the ticks, which is the compute p99 (`python benchmarks/side_by_side.py`, docs/benchmarks.md)."""
+    that none lands inside a tick: with it on, a young collection (~0.07 ms here) came due about
+    once in 40 ticks, inside the tick or its warm-up, i.e. in the tail that makes the compute p99
+    (docs/benchmarks.md, "Garbage collection")."""
     count, limit = gc.get_count(), gc.get_threshold()
     if count[0] < limit[0]:
         return
