@@ -172,6 +172,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
+    if ippo.init_std != IPPOConfig.init_std:  # the actor's initial action std was set (--set init_std=...)
+        meta["init_std"] = float(ippo.init_std)
     if meta0.get("start_speed"):  # flying gate starts in training (--start-speed)
         meta["start_speed"] = float(meta0["start_speed"])
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
