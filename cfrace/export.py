@@ -129,6 +129,15 @@ def _source_name(path: str) -> str:
     return p.name if p.suffix == ".onnx" else (p.parent.name or str(path))
 
 
+def exploration_meta(ippo: IPPOConfig) -> dict:
+    """The training's exploration noise when a run set it (--set init_std / std_final): the actor's
+    initial action std and the schedule of its cap (config.std_cap); nothing for the defaults."""
+    out = {"init_std": float(ippo.init_std)} if ippo.init_std != IPPOConfig.init_std else {}
+    if ippo.std_final is not None:
+        out.update(std_final=float(ippo.std_final), std_anneal_iters=int(ippo.std_anneal_iters))
+    return out
+
+
 def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "best") -> tuple[Path, dict, float]:
     """Export one actor of a training checkpoint (cfrace/rl/train.py) to ONNX, then check parity.
 
@@ -172,8 +181,7 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
-    if ippo.init_std != IPPOConfig.init_std:  # the actor's initial action std was set (--set init_std=...)
-        meta["init_std"] = float(ippo.init_std)
+    meta.update(exploration_meta(ippo))
     if meta0.get("start_speed"):  # flying gate starts in training (--start-speed)
         meta["start_speed"] = float(meta0["start_speed"])
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
