@@ -182,8 +182,6 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
     meta.update(exploration_meta(ippo))
-    if meta0.get("start_speed"):  # flying gate starts in training (--start-speed)
-        meta["start_speed"] = float(meta0["start_speed"])
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
         meta["obstacle_curriculum"] = int(meta0["obstacle_curriculum"])
     if meta0.get("init_layout"):  # warm-started from another observation layout (world position added)

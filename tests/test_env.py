@@ -234,31 +234,3 @@ def test_flight_obs_observes_the_pose_difference_and_floors_the_thrust():
     flight.step(torch.full((3, 1, 4), -1.0))                       # zero thrust asked
     floor = float(prof.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
     assert len(sent) == 2 and all(torch.allclose(t, torch.full_like(t, floor)) for t in sent) and floor > 0
-
-
-def test_start_speed_flies_airborne_starts_towards_their_gate_and_leaves_the_default_at_rest():
-    import pytest
-
-    rest = RaceEnv(LEM, PROFILE, num_envs=300, method="ours", obstacles=False, seed=4)
-    rest.reset()
-    assert rest.sim.vel.abs().max() == 0.0                                   # default: every start at rest
-    env = RaceEnv(LEM, PROFILE, num_envs=300, method="ours", obstacles=False, seed=4, start_speed=3.0)
-    env.reset()
-    vel, pos = env.sim.vel, env.sim.pos
-    ground = pos[..., 2] < env.sim.z_rest + 1e-3                             # (E, A)
-    assert ground.any() and (~ground).any()
-    assert vel[ground].abs().max() == 0.0                                    # ground starts stay at rest
-    gate = env.gates[env.start_gate]
-    minus_n = -torch.stack([torch.cos(gate[:, 3]), torch.sin(gate[:, 3]), torch.zeros_like(gate[:, 3])], -1)
-    speed = vel.norm(dim=-1)                                                 # (E, A)
-    along = (vel * minus_n[:, None]).sum(-1)
-    fly = ~ground
-    assert torch.allclose(along[fly], speed[fly], atol=1e-5)                 # straight at the gate (along -n)
-    assert speed.max() <= 3.0 and speed[fly].max() > 2.5 and speed[fly].min() < 0.5   # U(0, 3) m/s
-    assert torch.equal(speed[:, 0], speed[:, 1])                             # one speed per world
-    assert torch.equal(pos, rest.sim.pos)                                    # same poses as at rest
-    res = env.step(hover_actions(env))
-    assert not res.terminated.any()
-    with pytest.raises(ValueError):
-        RaceEnv(LEM, PROFILE, num_envs=2, method="ss", obstacles=False, start_speed=-1.0)
-

@@ -1,7 +1,6 @@
-"""Settings for sparse runs from scratch (docs/training.md, "Sparse from scratch: the exploration
-noise"): flying starts (--start-speed), the actor's initial std and the schedule of its cap
-(--set init_std / std_final / std_anneal_iters); what they do and that the checkpoint and the
-exported policy record them."""
+"""The exploration-noise settings for sparse runs from scratch (docs/training.md, "Sparse from
+scratch: the exploration noise"): the actor's initial std and the schedule of its cap (--set
+init_std / std_final / std_anneal_iters); what they do and that the exported policy records them."""
 
 from __future__ import annotations
 
@@ -13,33 +12,26 @@ from cfrace.export import export_checkpoint
 from cfrace.policy import OnnxPolicy
 from cfrace.rl.config import parse_overrides, preset, std_cap
 from cfrace.rl.models import Actor
-from cfrace.rl.train import TrainConfig, make_env, train
+from cfrace.rl.train import TrainConfig, train
 
 SCHEDULE = (("std_final", 0.2), ("std_anneal_iters", 4))
 
 
-def test_start_speed_is_in_the_training_metadata():
-    for speed, expected in ((0.0, None), (2.5, 2.5)):
-        env, meta = make_env(TrainConfig("ss", "lemniscate", start_speed=speed), torch.device("cpu"), 4)
-        assert env.start_speed == speed and meta.get("start_speed") == expected
-
-
-def test_a_run_with_flying_starts_and_a_set_action_std_exports_both(tmp_path):
+def test_a_run_with_a_set_action_std_and_schedule_records_both(tmp_path):
     small = (("actor_hidden", (16, 16)), ("critic_hidden", (16,)))
     cfg = TrainConfig("ss", "lemniscate", num_envs=8, steps=8 * 24 * 3, device="cpu", threads=1, seed=3,
-                      out=str(tmp_path / "run"), start_speed=3.0, overrides=small + (("init_std", 0.6),) + SCHEDULE)
+                      out=str(tmp_path / "run"), overrides=small + (("init_std", 0.6),) + SCHEDULE)
     stds = []
     res = train(cfg, on_iteration=lambda m, info: stds.append(m["std_agent0"]))
     assert stds == pytest.approx([0.6, 0.5, 0.4], abs=1e-3)          # the cap, 0.6 -> 0.2 over 4 iterations
     _, meta, _ = export_checkpoint(res.checkpoint, tmp_path / "p.onnx")
     onnx_meta = OnnxPolicy(tmp_path / "p.onnx").meta
-    assert meta["start_speed"] == 3.0 == onnx_meta["start_speed"]
     assert meta["init_std"] == 0.6 == onnx_meta["init_std"]
     assert (onnx_meta["std_final"], onnx_meta["std_anneal_iters"]) == (0.2, 4)
     plain = TrainConfig("ss", "lemniscate", num_envs=8, steps=8 * 24, device="cpu", threads=1, seed=3,
                         out=str(tmp_path / "plain"), overrides=small)
     _, meta, _ = export_checkpoint(train(plain).checkpoint, tmp_path / "q.onnx")
-    assert not {"start_speed", "init_std", "std_final"} & set(meta)   # the defaults: nothing to record
+    assert not {"init_std", "std_final", "std_anneal_iters"} & set(meta)   # the defaults: nothing to record
 
 
 def test_std_cap_schedule_and_what_the_actor_samples_with():

@@ -117,9 +117,6 @@ def train_cmd(
     ground_start_prob: Optional[float] = typer.Option(None, "--ground-start-prob",
                                                       help="share of training races started on the floor "
                                                            "(default: the track's spawn.ground_start_prob)"),
-    start_speed: float = typer.Option(0.0, "--start-speed", min=0.0, max=20.0,
-                                      help="m/s: airborne training starts fly towards their gate at a "
-                                           "speed uniform in [0, this] (default 0: at rest)"),
     keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
                                           help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
     drones: Optional[int] = typer.Option(None, "--drones", min=2,
@@ -169,7 +166,7 @@ def train_cmd(
                           fixed_opponent_frac=fixed_opponent_frac,
                           fixed_opponent_drones=fixed_opponent_drones, flight_obs=flight_obs,
                           keep_checkpoints=keep_checkpoints, precision=precision or "auto",
-                          ground_start_prob=ground_start_prob, start_speed=start_speed, drones=drones,
+                          ground_start_prob=ground_start_prob, drones=drones,
                           update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
                           obstacle_curriculum=obstacle_curriculum)

@@ -46,7 +46,7 @@ class RaceEnv:
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
                  rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False,
-                 drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE, start_speed: float = 0.0):
+                 drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
         if drones is not None and (drones < 2 or not MULTI_AGENT[method]):
@@ -61,9 +61,6 @@ class RaceEnv:
         self.device = torch.device(device)
         self.randomize, self.start_mode, self.scales = randomize, start, rewards
         self.random_phase = random_phase   #: reset(): first races get a random share of the time limit
-        if not 0.0 <= start_speed < math.inf:
-            raise ValueError(f"start_speed must be a finite speed >= 0 m/s, got {start_speed}")
-        self.start_speed = float(start_speed)   #: m/s, flying gate starts (_start_velocity); 0 = at rest
         self.obstacle_curriculum = False   #: set_obstacle_scale was called (the size is then logged)
         # flight_obs: the observation and command path of the flight stack (docs/training.md, "Flight
         # observations"): velocity = the last 10 ms pose difference, as the flight loop's estimator
@@ -183,23 +180,12 @@ class RaceEnv:
         quat = torch.stack([torch.cos(half), torch.zeros_like(half), torch.zeros_like(half), torch.sin(half)], -1)
         return pos, quat, gate_idx
 
-    def _start_velocity(self, pos: torch.Tensor, gate_idx: torch.Tensor) -> torch.Tensor:
-        """(n, A, 3) m/s of a flying start: the drones of an airborne start fly towards their start
-        gate (along its -n) at one speed per world, uniform in [0, start_speed]; ground starts stay
-        at rest. Level attitude and hover thrust, as a start at rest (only the velocity differs)."""
-        yaw = self.gates[gate_idx, 3]
-        along = -torch.stack([torch.cos(yaw), torch.sin(yaw), torch.zeros_like(yaw)], -1)   # (n, 3) = -n
-        speed = self.start_speed * self._rand(gate_idx.shape[0])                           # (n,)
-        airborne = (pos[..., 2] > self.sim.z_rest + 1e-3).to(pos.dtype)                    # (n, A)
-        return along.unsqueeze(1) * (speed.unsqueeze(-1) * airborne).unsqueeze(-1)
-
     def _reset_worlds(self, ids: torch.Tensor) -> None:
         n, a = ids.shape[0], self.num_agents
         if n == 0:
             return
         pos, quat, gate_idx = self.spawn(n)
-        vel = self._start_velocity(pos, gate_idx) if self.start_speed > 0.0 else None
-        self.sim.reset(ids, pos, vel=vel, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
+        self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
         if self.randomize:
             u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
             scales = dict(k_aero=u(0.5, 2.0, 3), kp=u(0.85, 1.15, 1).expand(n, a, 3),

@@ -64,7 +64,6 @@ class TrainConfig:
     update_workers: int = 1         #: threads the agents' PPO updates run in (Runner._update; same weights)
     compile: bool = False           #: the update's forward pass and losses through torch.compile
     ground_start_prob: float | None = None  #: share of races started on the floor; None = the track's
-    start_speed: float = 0.0        #: m/s, flying gate starts: towards the gate at U(0, this) (RaceEnv); 0 = at rest
     keep_checkpoints: bool = False  #: also keep each periodic checkpoint as checkpoints/it{N}.pt (for choosing one)
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
     opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
@@ -112,6 +111,7 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     if cfg.method not in METHODS:
         raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
     from cfrace.env.race_env import RaceEnv
+
     if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
         raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
                           f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
@@ -126,7 +126,7 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
-                  opponent_rule=cfg.opponent_rule, start_speed=cfg.start_speed)
+                  opponent_rule=cfg.opponent_rule)
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -140,7 +140,6 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
-            **({"start_speed": float(cfg.start_speed)} if cfg.start_speed else {}),
             **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {})}
 
 
@@ -329,9 +328,10 @@ def _critic_warmup(runner: Runner, cfg: TrainConfig) -> None:
     freeze = runner.iteration < cfg.critic_warmup
     for agent in runner.agents:
         agent.actor.requires_grad_(not freeze)
-    # a fresh critic must reach returns of 10..500 before its advantages mean anything: at the preset's rate it had
-    # not after 20 iterations (value loss 400-2400 against 3-70 for the source's own critic) and the actors, trained
-    # on those advantages, forgot how to fly (docs/training.md). So the warm-up runs at its own, higher rate.
+    # a fresh critic must reach returns of 10..500 before its advantages mean anything:
+    # at the preset's rate it had not after 20 iterations (value loss 400-2400 against
+    # 3-70 for the source run's own critic) and the actors, trained on those advantages,
+    # forgot how to fly (docs/training.md). So the warm-up runs at its own, higher rate.
     if freeze:
         runner.set_lr(cfg.critic_warmup_lr)
     elif runner.iteration == cfg.critic_warmup:
