@@ -1,6 +1,6 @@
-"""The exploration-noise settings for sparse runs from scratch (docs/training.md, "Sparse from
-scratch: the exploration noise"): the actor's initial std and the schedule of its cap (--set
-init_std / std_final / std_anneal_iters); what they do and that the exported policy records them."""
+"""Settings tried on sparse runs from scratch (docs/training.md, "Sparse from scratch: what holds it
+back"): the discount, the actor's initial std and the schedule of its cap (--set gamma / init_std /
+std_final / std_anneal_iters); what the schedule does and that the exported policy records them."""
 
 from __future__ import annotations
 
@@ -17,10 +17,10 @@ from cfrace.rl.train import TrainConfig, train
 SCHEDULE = (("std_final", 0.2), ("std_anneal_iters", 4))
 
 
-def test_a_run_with_a_set_action_std_and_schedule_records_both(tmp_path):
+def test_the_exported_policy_records_a_set_discount_action_std_and_schedule(tmp_path):
     small = (("actor_hidden", (16, 16)), ("critic_hidden", (16,)))
     cfg = TrainConfig("ss", "lemniscate", num_envs=8, steps=8 * 24 * 3, device="cpu", threads=1, seed=3,
-                      out=str(tmp_path / "run"), overrides=small + (("init_std", 0.6),) + SCHEDULE)
+                      out=str(tmp_path / "run"), overrides=small + (("init_std", 0.6), ("gamma", 0.995)) + SCHEDULE)
     stds = []
     res = train(cfg, on_iteration=lambda m, info: stds.append(m["std_agent0"]))
     assert stds == pytest.approx([0.6, 0.5, 0.4], abs=1e-3)          # the cap, 0.6 -> 0.2 over 4 iterations
@@ -28,10 +28,11 @@ def test_a_run_with_a_set_action_std_and_schedule_records_both(tmp_path):
     onnx_meta = OnnxPolicy(tmp_path / "p.onnx").meta
     assert meta["init_std"] == 0.6 == onnx_meta["init_std"]
     assert (onnx_meta["std_final"], onnx_meta["std_anneal_iters"]) == (0.2, 4)
+    assert meta["gamma"] == 0.995 == onnx_meta["gamma"]
     plain = TrainConfig("ss", "lemniscate", num_envs=8, steps=8 * 24, device="cpu", threads=1, seed=3,
                         out=str(tmp_path / "plain"), overrides=small)
     _, meta, _ = export_checkpoint(train(plain).checkpoint, tmp_path / "q.onnx")
-    assert not {"init_std", "std_final", "std_anneal_iters"} & set(meta)   # the defaults: nothing to record
+    assert not {"init_std", "std_final", "std_anneal_iters", "gamma"} & set(meta)   # the defaults: nothing to record
 
 
 def test_std_cap_schedule_and_what_the_actor_samples_with():
