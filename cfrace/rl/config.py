@@ -38,8 +38,8 @@ class IPPOConfig:
     lr_min: float = 1e-5             #: adaptive LR bounds
     lr_max: float = 1e-2
     shared: bool = False             #: one actor + critic for every drone of a world (False: one per drone, IPPO)
-    std_final: float | None = None   #: exploration-noise schedule: the action std's cap falls from init_std
-    std_anneal_iters: int = 1        #: to std_final over this many iterations (std_cap); None = no cap
+    std_final: float | None = None   #: action-std cap schedule: the cap falls from init_std to this (None: no cap)
+    std_anneal_iters: int = 1        #: ... over this many iterations (std_cap)
 
     def to_dict(self) -> dict:
         return asdict(self)
