@@ -5,11 +5,12 @@
 
 For each run (``cfrace train --keep-checkpoints``, no --init-from: no dense reward in its history)
 and each kept checkpoint about ``--every-min`` minutes of wall clock apart: the training's own
-figures at that iteration (gates per second and the share of episodes that complete a lap, from
-RUN/metrics.csv, mean of the 5 logged iterations up to it) and the exported actor flown alone
-(``--runs`` runs of 3 laps, gate starts: success, time per lap) and, for a multi-agent run,
-against the shipped DS (``--runs`` races of 3 laps: win rate). One seed for every row: nothing is
-chosen here. Prints a markdown table; ``--plot`` draws gates per second over env steps and the
+figures at that iteration (gates per second, the share of episodes that complete a lap and the
+action std the rollouts sampled with, from RUN/metrics.csv, mean of the 5 logged iterations up to
+it) and the exported actor flown alone (``--runs`` runs of 3 laps, gate starts: success, laps
+completed per run, time per lap) and, for a multi-agent run, against the shipped DS (``--runs``
+races of 3 laps: win rate). One seed for every row: nothing is chosen here. Prints a markdown
+table; ``--plot`` draws the training figures over env steps and over wall-clock minutes, and the
 flown figures at the checkpoints.
 """
 
@@ -28,7 +29,7 @@ def training_figures(run: Path) -> list[dict]:
     with (run / "metrics.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     keys = {"iteration": "iteration", "env_steps": "env_steps", "wall_s": "wall_s",
-            "gates_per_s": "stat_gates_per_s", "lap_share": "stat_success"}
+            "gates_per_s": "stat_gates_per_s", "lap_share": "stat_success", "std": "std_agent0"}
     out = []
     for r in rows:
         try:
@@ -69,14 +70,16 @@ def progress(run: Path, track: str, runs: int, seed: int, every_min: float) -> l
         it = alone["iteration"]
         row = {"run": run.name, "iteration": it, "env_steps": alone["env_steps"], "wall_min": alone["wall_min"],
                "gates_per_s": round(near(rows, it, "gates_per_s"), 3), "lap_share": round(near(rows, it, "lap_share"), 3),
-               "success": alone["success"], "lap_time_s": alone["lap_time_s"]}
+               "std": round(near(rows, it, "std"), 3), "success": alone["success"],
+               "laps_per_run": alone["laps_per_run"], "lap_time_s": alone["lap_time_s"]}
         if multi:
             row["win_rate_vs_ds"] = score_checkpoint(ckpt, track, False, "ds", runs, 3, seed, "ego")["win_rate"]
         out.append(row)
         vs = f" | {row['win_rate_vs_ds']:.0%}" if multi else " | –"
         ttc = "–" if row["lap_time_s"] is None else f"{row['lap_time_s']:.2f}"
-        print(f"| {run.name} | {row['wall_min']:.0f} | {row['env_steps'] / 1e6:.1f} | {row['gates_per_s']:.2f} | "
-              f"{row['lap_share']:.0%} | {row['success']:.0%} | {ttc}{vs} |", flush=True)
+        print(f"| {run.name} | {row['wall_min']:.0f} | {row['env_steps'] / 1e6:.1f} | {row['std']:.2f} | "
+              f"{row['gates_per_s']:.2f} | {row['lap_share']:.0%} | {row['success']:.0%} | {row['laps_per_run']:.2f} | "
+              f"{ttc}{vs} |", flush=True)
     return out
 
 
@@ -86,19 +89,29 @@ def plot(path: Path, runs: list[Path], table: list[dict]) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4))
-    for run in runs:
-        rows = training_figures(run)
-        ax0.plot([r["env_steps"] / 1e6 for r in rows], [r["gates_per_s"] for r in rows], label=run.name, lw=0.8)
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7.5))
+    (ax0, ax1), (ax2, ax3) = axes
+    for k, run in enumerate(runs):
+        rows, colour = training_figures(run), f"C{k}"
+        steps = [r["env_steps"] / 1e6 for r in rows]
+        ax0.plot(steps, [r["gates_per_s"] for r in rows], label=run.name, lw=0.8, color=colour)
+        ax1.plot(steps, [r["lap_share"] for r in rows], label=run.name, lw=0.8, color=colour)
+        ax2.plot([r["wall_s"] / 60.0 for r in rows], [r["lap_share"] for r in rows], label=run.name, lw=0.8,
+                 color=colour)
         mine = [r for r in table if r["run"] == run.name]
-        ax1.plot([r["env_steps"] / 1e6 for r in mine], [r["success"] for r in mine], "o-", label=f"{run.name}: success alone")
+        at = [r["env_steps"] / 1e6 for r in mine]
+        ax3.plot(at, [r["success"] for r in mine], "o-", color=colour, label=f"{run.name}: success (3 laps)")
+        ax3.plot(at, [r["laps_per_run"] / 3.0 for r in mine], "^:", color=colour, label=f"{run.name}: laps / 3")
         if mine and "win_rate_vs_ds" in mine[0]:
-            ax1.plot([r["env_steps"] / 1e6 for r in mine], [r["win_rate_vs_ds"] for r in mine], "s--",
-                     label=f"{run.name}: win rate vs DS")
-    ax0.set(xlabel="env steps (M)", ylabel="gates per second (training episodes)", title="from scratch: training")
-    ax1.set(xlabel="env steps (M)", ylabel="share of 50", ylim=(-0.05, 1.05), title="checkpoints flown (3 laps)")
-    ax0.legend()
-    ax1.legend(fontsize=8)
+            ax3.plot(at, [r["win_rate_vs_ds"] for r in mine], "s--", color=colour, label=f"{run.name}: win rate vs DS")
+    ax0.set(xlabel="env steps (M)", ylabel="gates per second", title="training episodes: gates per second")
+    ax1.set(xlabel="env steps (M)", ylabel="share of episodes", ylim=(-0.02, 1.02),
+            title="training episodes with a lap, over env steps")
+    ax2.set(xlabel="wall clock (min)", ylabel="share of episodes", ylim=(-0.02, 1.02),
+            title="training episodes with a lap, over wall clock")
+    ax3.set(xlabel="env steps (M)", ylabel="share", ylim=(-0.05, 1.05), title="checkpoints flown alone (mean action)")
+    for ax in axes.flat:
+        ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -115,8 +128,9 @@ def main() -> None:
     ap.add_argument("--plot", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    print("| run | wall min | env steps (M) | gates/s (training) | episodes with a lap | success alone | s per lap | win rate vs DS |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| run | wall min | env steps (M) | action std | gates/s (training) | episodes with a lap | success alone | "
+          "laps per run alone | s per lap | win rate vs DS |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     table = [row for run in args.runs for row in progress(run, args.track, args.n, args.seed, args.every_min)]
     if args.json is not None:
         args.json.write_text(json.dumps({"seed": args.seed, "runs_per_point": args.n, "rows": table}, indent=1))

@@ -26,7 +26,7 @@ from cfrace.errors import PolicyError
 from cfrace.policy import OnnxPolicy
 from cfrace.policygraph import Layer, build_model
 from cfrace.rl.checkpoint import load_checkpoint
-from cfrace.rl.config import IPPOConfig
+from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.models import AgentModels
 
 def module_layers(actor: torch.nn.Module) -> list[Layer]:
@@ -129,6 +129,18 @@ def _source_name(path: str) -> str:
     return p.name if p.suffix == ".onnx" else (p.parent.name or str(path))
 
 
+def training_meta(ippo: IPPOConfig, multi_agent: bool) -> dict:
+    """What a run set away from its preset that changes what it learns (docs/training.md, "Sparse
+    from scratch: what holds it back"): the discount (--set gamma), the actor's initial action std
+    and the schedule of its cap (--set init_std / std_final, config.std_cap); nothing for the defaults."""
+    out = {"init_std": float(ippo.init_std)} if ippo.init_std != IPPOConfig.init_std else {}
+    if ippo.std_final is not None:
+        out.update(std_final=float(ippo.std_final), std_anneal_iters=int(ippo.std_anneal_iters))
+    if ippo.gamma != preset(ippo.preset, multi_agent).gamma:
+        out["gamma"] = float(ippo.gamma)
+    return out
+
+
 def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "best") -> tuple[Path, dict, float]:
     """Export one actor of a training checkpoint (cfrace/rl/train.py) to ONNX, then check parity.
 
@@ -172,6 +184,7 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
+    meta.update(training_meta(ippo, int(meta0.get("num_agents", n)) >= 2))
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
         meta["obstacle_curriculum"] = int(meta0["obstacle_curriculum"])
     if meta0.get("init_layout"):  # warm-started from another observation layout (world position added)

@@ -61,7 +61,7 @@ def score_checkpoint(ckpt: Path, track: str, obstacles: bool, opp: str | None, r
     if opp is None:
         r = evaluate([str(onnx)], track, obstacles, runs, laps, seed).rows[0]
         row.update(success=r["success_rate"], lap_time_s=r["lap_time_s"], avg_speed_mps=r["avg_speed_mps"],
-                   collisions=r["collisions"])
+                   collisions=r["collisions"], laps_per_run=r["laps_completed"] / max(r["runs"], 1))
     elif "," in opp:
         from cfrace.evaluate.field import race_field
 

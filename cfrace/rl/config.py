@@ -38,6 +38,8 @@ class IPPOConfig:
     lr_min: float = 1e-5             #: adaptive LR bounds
     lr_max: float = 1e-2
     shared: bool = False             #: one actor + critic for every drone of a world (False: one per drone, IPPO)
+    std_final: float | None = None   #: action-std cap schedule: the cap falls from init_std to this (None: no cap)
+    std_anneal_iters: int = 1        #: ... over this many iterations (std_cap)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -79,9 +81,9 @@ _CPU = {
 }
 
 
-_INTS = ("num_envs", "rollout", "epochs", "minibatches")
+_INTS = ("num_envs", "rollout", "epochs", "minibatches", "std_anneal_iters")
 _LAYERS = ("actor_hidden", "critic_hidden")
-_OPTIONAL = ("desired_kl", "value_clip")
+_OPTIONAL = ("desired_kl", "value_clip", "std_final")
 _BOOLS = ("shared",)
 
 
@@ -138,3 +140,14 @@ def _preset(name: str, multi_agent: bool, **overrides) -> IPPOConfig:
         raise ConfigError(f"unknown preset {name!r} (choose from {', '.join(PRESETS)})")
     overrides = {k: v for k, v in overrides.items() if v is not None}
     return replace(table[multi_agent], **overrides)
+
+
+def std_cap(cfg: IPPOConfig, iteration: int) -> float | None:
+    """The cap on the actors' action std in ``iteration`` (0-based): None without a schedule; else
+    linear from init_std at iteration 0 to std_final at std_anneal_iters, then std_final. The
+    learned std may fall below it; it never samples above it (docs/training.md, "Sparse from
+    scratch: what holds it back")."""
+    if cfg.std_final is None:
+        return None
+    frac = min(1.0, iteration / max(cfg.std_anneal_iters, 1))
+    return cfg.init_std + (cfg.std_final - cfg.init_std) * frac

@@ -66,19 +66,26 @@ class RunningNorm(nn.Module):
 
 
 class Actor(nn.Module):
-    """Gaussian policy N(mu(o), diag(exp(log_std))^2), state-independent log std."""
+    """Gaussian policy N(mu(o), diag(std)^2), std = exp(log_std) state-independent, at most ``std_max``
+    when that is set (the exploration-noise schedule, config.std_cap; None: no cap)."""
 
     def __init__(self, obs_dim: int, hidden: Sequence[int], init_std: float = 1.0, action_dim: int = 4):
         super().__init__()
         self.mean_net = mlp(obs_dim, hidden, action_dim, out_gain=0.01)
         self.log_std = nn.Parameter(torch.full((action_dim,), math.log(init_std)))
+        self.std_max: float | None = None
 
     def forward(self, obs_n: torch.Tensor) -> torch.distributions.Normal:
         return self.distribution(self.mean_net(obs_n))
 
+    def std(self) -> torch.Tensor:
+        """(4,) the action std the policy samples with."""
+        std = self.log_std.exp()
+        return std if self.std_max is None else std.clamp(max=self.std_max)
+
     def distribution(self, mu: torch.Tensor) -> torch.distributions.Normal:
         """The Gaussian around means ``mu`` (N, 4), in mu's dtype (float32 for log-probs and losses)."""
-        return torch.distributions.Normal(mu, self.log_std.exp().expand_as(mu))
+        return torch.distributions.Normal(mu, self.std().expand_as(mu))
 
 
 class Critic(nn.Module):

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from cfrace.errors import ConfigError
-from cfrace.rl.config import IPPOConfig
+from cfrace.rl.config import IPPOConfig, std_cap
 from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
 from cfrace.rl.precision import Precision
@@ -108,6 +108,9 @@ class Runner:
     def iterate(self) -> dict[str, float]:
         """Rollout, GAE, one PPO update per model, normaliser update; the iteration's metrics."""
         t_start = time.perf_counter()
+        cap = std_cap(self.cfg, self.iteration)
+        for m in self.agents:   # the exploration-noise schedule (config.std_cap) of this iteration
+            m.actor.std_max = cap
         roll = _RolloutSums(self.num_agents, self.device)
         for t in range(self.cfg.rollout):
             self._rollout_step(t, roll)
@@ -214,7 +217,7 @@ class Runner:
             metrics[f"return_agent{a}"] = float(np.mean(roll.returns[a])) if roll.returns[a] else float("nan")
             metrics[f"total_reward_agent{a}"] = float(self.total_reward[a])
             metrics[f"lr_agent{a}"] = self.lrs[0 if self.shared else a]
-            metrics[f"std_agent{a}"] = float(m.actor.log_std.detach().exp().mean())
+            metrics[f"std_agent{a}"] = float(m.actor.std().detach().mean())
             metrics[f"alive_agent{a}"] = float(alive_count[a]) / steps
         for name, value in roll.term_sums.items():
             for a, v in enumerate((value / alive_count.clamp(min=1)).tolist()):
