@@ -55,9 +55,8 @@ def collect_garbage() -> None:
     """The garbage collection of a race, after a tick's send and bookkeeping (outside its compute
     time): the generations Python's automatic collection would collect now, by its own thresholds.
     The runner turns the automatic collection off for the race (runner._run_realtime_friendly), so
-    that none lands inside a tick: with it on, a young collection (~0.07 ms here) came due about
-    once in 40 ticks, inside the tick or its warm-up, i.e. in the tail that makes the compute p99
-    (docs/benchmarks.md, "Garbage collection")."""
+    that none lands inside a tick, where a young collection would sit in the tail that makes the
+    compute p99 (docs/benchmarks.md, "Garbage collection")."""
     count, limit = gc.get_count(), gc.get_threshold()
     if count[0] < limit[0]:
         return

@@ -78,7 +78,7 @@ def _run_realtime_friendly(loop: FlightLoop, rt_priority: int = 0, loop_cpu: int
                            ) -> tuple[LoopResult, bool, int | None]:
     """Run the loop with Python tuned for a steady 100 Hz: everything allocated so far is frozen
     out of the garbage collector (no long full collections mid-race) and the automatic collection is
-    off for the race (the loop collects after each tick's send instead: FlightLoop.collect_garbage,
+    off for the race (the loop collects after each tick's send instead: cfrace.flight.loop.collect_garbage,
     so that no collection lands inside a tick), the GIL switch interval
     drops from 5 ms to 0.5 ms (a woken loop thread waits at most that for cflib's threads), the
     loop thread gets ``loop_cpu`` to itself (every other thread of the process goes to the other
