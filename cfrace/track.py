@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cfrace.errors import ConfigError
 from cfrace.paths import TRACKS_DIR
 from cfrace.yamlcfg import Reader, open_named
 
@@ -42,6 +43,12 @@ class Arena:
     x: tuple[float, float]   #: m, allowed x range
     y: tuple[float, float]   #: m, allowed y range
     z_max: float             #: m, ceiling
+
+    def outside_xy(self, xy) -> np.ndarray:
+        """(...) bool: the points (..., >=2) [x, y] m lie outside the arena's floor plan (the
+        simulator's arena crash rule and the flight fence's soft limit both start there)."""
+        p = np.asarray(xy, dtype=np.float64)
+        return (p[..., 0] < self.x[0]) | (p[..., 0] > self.x[1]) | (p[..., 1] < self.y[0]) | (p[..., 1] > self.y[1])
 
 
 @dataclass(frozen=True)
@@ -263,19 +270,35 @@ def list_tracks() -> list[Path]:
     return sorted(TRACKS_DIR.glob("*.yaml"))
 
 
-def ground_start_positions(track: "Track", drones: int, floor_z: float = 0.0) -> tuple[np.ndarray, float]:
-    """(drones, 3) positions on the floor in the track's start grid (start_grid: two side by side,
-    spawn.opponent_offset apart; more in rows behind each other), its rows centred on
-    track.spawn.ground_distance before gate 0 on its +n side, at height floor_z; and the yaw (rad)
-    facing gate 0. Where a ground
-    start's drones stand: the simulated drones (cfrace.simcf.firmware), the hover start's targets
-    and the take-off check of a flight (cfrace.flight.swarm)."""
+def _ground_slots(track: "Track", drones: int) -> np.ndarray:
+    """(drones, 2) [x, y] m of the start grid on the floor (ground_start_positions)."""
     gx, gy, _, gyaw = track.gates[0]
     n = np.array([math.cos(gyaw), math.sin(gyaw)])
     lateral = np.array([-n[1], n[0]])
     centre = np.array([gx, gy]) + track.spawn.ground_distance * n
     grid = start_grid(track.spawn, track.gate, drones)             # (N, 2) [sideways, back] m
+    return centre + grid[:, :1] * lateral + grid[:, 1:] * n
+
+
+def ground_start_positions(track: "Track", drones: int, floor_z: float = 0.0) -> tuple[np.ndarray, float]:
+    """(drones, 3) positions on the floor in the track's start grid (start_grid: two side by side,
+    spawn.opponent_offset apart; more in rows behind each other), its rows centred on
+    track.spawn.ground_distance before gate 0 on its +n side, at height floor_z; and the yaw (rad)
+    facing gate 0. Where a ground start's drones stand: the simulated drones
+    (cfrace.simcf.firmware), the hover start's targets and the take-off check of a flight
+    (cfrace.flight.swarm). ConfigError if a slot lies outside the arena (a drone would start
+    outside the flight's fence soft limit, or crash at once in the simulator), saying how many
+    drones fit."""
+    xy = _ground_slots(track, drones)
+    out = np.nonzero(track.arena.outside_xy(xy))[0]
+    if len(out):
+        fit = max([k for k in range(1, drones) if not track.arena.outside_xy(_ground_slots(track, k)).any()], default=0)
+        i, a = int(out[0]), track.arena
+        raise ConfigError(f"{drones} drones do not fit the {track.name} track's start grid: drone {i + 1}'s slot "
+                          f"({xy[i, 0]:.2f}, {xy[i, 1]:.2f}) m lies outside the arena (x {a.x[0]:g}..{a.x[1]:g}, "
+                          f"y {a.y[0]:g}..{a.y[1]:g} m); at most {fit} drones start there")
     pos = np.zeros((drones, 3))
-    pos[:, :2] = centre + grid[:, :1] * lateral + grid[:, 1:] * n
+    pos[:, :2] = xy
     pos[:, 2] = floor_z
+    _, _, _, gyaw = track.gates[0]
     return pos, _wrap(gyaw + math.pi)

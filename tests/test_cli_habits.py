@@ -130,6 +130,12 @@ def test_swarm_options_with_the_profile_rule_config_and_json_dash(tmp_path, caps
     assert cfg.policies == ("ours", "ds", "ds") and cfg.profile == "cf2x_paper" and "training" in rule
     code, _, err = run(["bench", "loop", "--drones", "2,x", "--foxglove"], capsys)
     assert code == 2 and "--drones" in err and "Traceback" not in err
+    # a field the track's start grid cannot hold inside its arena: one line, before any run or drone
+    for args in (["bench", "loop", "--drones", "2,8", "--duration-s", "30"],
+                 ["sim", "dry-run", "--track", "lemniscate", "--drones", "8", "--ego", "ds", "--lockstep"]):
+        code, out, err = run(args, capsys)
+        assert code == 2 and "Traceback" not in err and out == "", (args, out, err)
+        assert err.strip().endswith("at most 6 drones start there") and err.count("\n") == 1, err
 
 
 # 2 -- examples fly the shipped policies; messages with enough digits ------------------------

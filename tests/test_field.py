@@ -16,7 +16,8 @@ from cfrace.env.observations import (OPPONENT_RULES, build_observation, build_ob
                                      critic_observations, layout_for)
 from cfrace.env.rewards import leading, overtaking
 from cfrace.evaluate.rating import expected_score, fit_ratings, pairwise, placings, winners
-from cfrace.track import load_track, start_grid
+from cfrace.errors import ConfigError
+from cfrace.track import ground_start_positions, load_track, start_grid
 
 
 @pytest.fixture
@@ -154,6 +155,38 @@ def test_env_with_four_drones_spawns_a_grid_and_steps():
     with pytest.raises(ValueError, match="multi-agent"):
         RaceEnv(load_track("lemniscate"), load_profile(DEFAULT_PROFILE), num_envs=1, method="ds", obstacles=False,
                 drones=4)
+
+
+def test_starts_of_a_field_stay_inside_the_arena():
+    """8 drones on the lemniscate: some gate starts would put the grid's back row behind the arena's
+    wall (gate 0 stands 1.5 m from it); those are drawn again. A ground start cannot fit at all."""
+    from cfrace.env.race_env import RaceEnv
+
+    track = load_track("lemniscate")
+    env = RaceEnv(track, load_profile(DEFAULT_PROFILE), num_envs=1, method="dm", obstacles=False, drones=8,
+                  start="gate", seed=5)
+    pos, _, gate = env.spawn(400)
+    assert not track.arena.outside_xy(pos.numpy()).any()
+    assert (gate == 0).any()                      # gate 0 itself still starts races, with a fitting draw
+    ground = RaceEnv(track, load_profile(DEFAULT_PROFILE), num_envs=1, method="dm", obstacles=False, drones=8,
+                     start="ground")
+    with pytest.raises(ConfigError, match="8-drone start grid of the lemniscate track leaves its arena"):
+        ground.spawn(4)
+    four = RaceEnv(track, load_profile(DEFAULT_PROFILE), num_envs=1, method="dm", obstacles=False, drones=4,
+                   start="ground")
+    assert not track.arena.outside_xy(four.spawn(4)[0].numpy()).any()
+
+
+def test_ground_start_grid_must_fit_the_arena():
+    lem, cpx = load_track("lemniscate"), load_track("complex")
+    for n in (2, 4, 6):
+        pos, _ = ground_start_positions(lem, n)
+        assert not lem.arena.outside_xy(pos).any()
+    with pytest.raises(ConfigError, match=r"8 drones do not fit the lemniscate track's start grid: drone 7's slot "
+                                          r"\(1.30, 1.90\) m lies outside the arena .* at most 6 drones"):
+        ground_start_positions(lem, 8)
+    pos, _ = ground_start_positions(cpx, 16)
+    assert not cpx.arena.outside_xy(pos).any()
 
 
 def test_placings_winners_and_pairwise():

@@ -8,13 +8,14 @@ import pytest
 
 from cfrace.errors import ConfigError
 from cfrace.flight.config import FlightConfig, drone_names
+from cfrace.flight.holdpolicy import make_hold_policy
 
 from test_flight_faults import PROFILE, check_landings, checked_dry_run, pols  # noqa: F401  (pols: a fixture)
 
 
-def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5):
+def run(pols, tmp_path, n, faults=None, *, lockstep=True, timeout_s=2.5, track="lemniscate"):
     specs = tuple(pols["ego"] if i % 2 == 0 else pols["opp"] for i in range(n))
-    cfg = FlightConfig(track="lemniscate", ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
+    cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs, profile=PROFILE, quiet=True,
                        timeout_s=timeout_s, log=tmp_path / "f.mcap")
     return checked_dry_run(cfg, faults, lockstep)
 
@@ -61,9 +62,18 @@ def test_faults_with_four_drones(pols, tmp_path, fault, kind, stopped, end):
 
 
 def test_eight_drones_lockstep(pols, tmp_path):
-    result, _ = run(pols, tmp_path, 8, timeout_s=1.5)
+    """Eight fit the complex track's start grid, not the lemniscate's (its back row would stand behind
+    the arena's wall, inside the fence's soft limit): refused there before anything is sent."""
+    d = tmp_path / "complex"
+    d.mkdir()
+    cpx = {"ego": str(make_hold_policy(d / "ego.onnx", "race42", "complex", False)),
+           "opp": str(make_hold_policy(d / "opp.onnx", "solo36", "complex", False))}
+    result, _ = run(cpx, tmp_path, 8, timeout_s=1.5, track="complex")
     assert result["end"] == "timeout" and len(result["drones"]) == 8
     assert result["loop"]["skipped"] == 0
+    assert not any(e["action"] != "none" for e in result["safety_events"])   # every drone in the fence
+    with pytest.raises(ConfigError, match="8 drones do not fit the lemniscate track's start grid"):
+        run(pols, tmp_path, 8, timeout_s=1.5)
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ from rich.table import Table
 
 from cfrace.cli.common import write_json
 from cfrace.errors import ConfigError
+from cfrace.track import ground_start_positions, load_track
 
 bench_app = typer.Typer(help="Benchmarks that print figures (speed, latency).", no_args_is_help=True)
 console = Console()
@@ -151,6 +152,8 @@ def bench_loop_cmd(
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
     counts = drone_counts(drones)
+    for n in counts:                  # every count fits the track's start grid (one line if not) before any run
+        ground_start_positions(load_track(track), n)
     options = dict(track=track, profile=profile, rt_priority=rt_priority, policies=policies,
                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)

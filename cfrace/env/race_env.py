@@ -24,6 +24,8 @@ from cfrace.errors import ConfigError
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 
+SPAWN_REDRAWS = 50   #: draws of the starts that left the arena before giving up (cfrace.env.RaceEnv.spawn)
+
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
 
@@ -137,8 +139,23 @@ class RaceEnv:
         """Start poses for n worlds: a random gate start (before a gate, on its +n side) or a ground
         start before gate 0. Drones side by side (track spawn ``opponent_offset``), one of them
         ``opponent_stagger`` m further back (which one is random). More drones: the track's start
-        grid (cfrace.track.start_grid), each drone in a random slot.
+        grid (cfrace.track.start_grid), each drone in a random slot; a start that puts a slot
+        outside the arena (a deep grid before a gate near a wall) is drawn again.
         Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
+        pos, quat, gate_idx = self._draw_starts(n)
+        for _ in range(SPAWN_REDRAWS if self.num_agents > 2 else 0):
+            out = torch.as_tensor(self.track.arena.outside_xy(pos.cpu().numpy())).any(-1)
+            if not out.any():
+                return pos, quat, gate_idx
+            ids = torch.nonzero(out).squeeze(-1)
+            pos[ids], quat[ids], gate_idx[ids] = self._draw_starts(len(ids))
+        if self.num_agents > 2 and self.track.arena.outside_xy(pos.cpu().numpy()).any():
+            raise ConfigError(f"the {self.num_agents}-drone start grid of the {self.track.name} track leaves its "
+                              f"arena in {SPAWN_REDRAWS} draws in a row: fewer drones, or gate starts")
+        return pos, quat, gate_idx
+
+    def _draw_starts(self, n: int):
+        """One draw of ``spawn``'s start poses, some maybe outside the arena."""
         sp, a, g = self.track.spawn, self.num_agents, self.gates.shape[0]
         if self.start_mode == "ground":
             ground = torch.ones(n, dtype=torch.bool)
