@@ -24,7 +24,7 @@ from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.safety import CommandLimits, Fence
 from cfrace.policy import OnnxPolicy, resolve_policy
-from cfrace.track import Track, load_track
+from cfrace.track import Track, ground_start_positions, load_track
 
 
 @dataclass(frozen=True)
@@ -77,6 +77,7 @@ def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
     A policy named more than once is loaded once: its drones share one ONNX session, and the tick
     runs them in one batched call."""
     track = track if track is not None else load_track(cfg.track)
+    ground_start_positions(track, len(cfg.specs))   # the field fits the start grid inside the arena, else one line
     profile = load_profile(cfg.profile)
     loaded: dict[str, CheckedPolicy] = {}
     for spec in cfg.specs:
