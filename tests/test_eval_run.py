@@ -203,3 +203,22 @@ def test_swapped_races_of_one_policy_are_mirror_images(tmp_path):
         np.testing.assert_allclose(rec.pos[:, k], rec.pos[:, k + 1][:, ::-1], atol=1e-5)
         assert np.array_equal(rec.crashed[:, k], rec.crashed[:, k + 1][:, ::-1])
     assert np.abs(np.diff(rec.pos[:, 0, 0], axis=0)).max() > 0      # it does move
+
+
+def test_a_multi_agent_policy_flying_alone_sees_its_opponent_crashed_beside_its_start():
+    """The opponent of a policy flying alone lies on the floor in the start slot next to it (left in
+    even worlds, right in odd ones), where a training race leaves an opponent that crashed at the start."""
+    from cfrace.evaluate.rollout import parked_opponents
+
+    track, prof = load_track("complex"), load_profile(DEFAULT_PROFILE)
+    starts = start_poses(track, prof, 6, 1, False, seed=3)
+    parked = parked_opponents(track, prof, starts)
+    assert parked.shape == (6, 3)
+    assert torch.allclose(parked[:, 2], torch.full((6,), prof.collision_box[2] / 2))
+    gap = parked[:, :2] - starts.pos[:, 0, :2]
+    assert torch.allclose(gap.norm(dim=-1), torch.full((6,), track.spawn.opponent_offset), atol=1e-5)
+    yaw = torch.as_tensor(track.gate_array()[:, 3], dtype=torch.float32)[starts.target[:, 0]]
+    normal = torch.stack([torch.cos(yaw), torch.sin(yaw)], -1)
+    assert (gap * normal).sum(-1).abs().max() < 1e-5                       # beside, not ahead or behind
+    left = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)
+    assert torch.equal(torch.sign((gap * left).sum(-1)), torch.tensor([1.0, -1, 1, -1, 1, -1]))

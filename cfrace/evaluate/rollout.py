@@ -109,11 +109,19 @@ def start_poses(track: Track, profile: DroneProfile, n: int, drones: int, obstac
     return Starts(pos.cpu(), quat.cpu(), target.cpu())
 
 
-def parked_opponent(track: Track, profile: DroneProfile) -> torch.Tensor:
-    """(3,) where a multi-agent policy flying alone sees its opponent: resting on the floor in the
-    arena corner (x_min, y_min), zero velocity, as if it had crashed out of the way."""
-    a = track.arena
-    return torch.tensor([a.x[0], a.y[0], profile.collision_box[2] / 2.0], dtype=torch.float32)
+def parked_opponents(track: Track, profile: DroneProfile, starts: Starts) -> torch.Tensor:
+    """(W, 3) where a multi-agent policy flying alone sees its opponent in each world: crashed at the
+    start, resting on the floor in the slot beside the drone's start (the track's side-by-side
+    ``opponent_offset`` to its left in even worlds, to its right in odd ones), zero velocity. That is
+    what a race shows once the opponent crashes at the start: a crashed drone stays where it fell
+    (cfrace.env.race_env), so no training race shows an opponent anywhere else at rest."""
+    yaw = torch.as_tensor(track.gate_array()[:, 3], dtype=torch.float32)[starts.target[:, 0]]
+    side = torch.stack([-torch.sin(yaw), torch.cos(yaw)], -1)                        # (W, 2)
+    sign = 1.0 - 2.0 * (torch.arange(yaw.shape[0]) % 2).to(torch.float32)
+    out = torch.empty(yaw.shape[0], 3)
+    out[:, :2] = starts.pos[:, 0, :2] + side * (sign * track.spawn.opponent_offset).unsqueeze(-1)
+    out[:, 2] = profile.collision_box[2] / 2.0
+    return out
 
 
 @dataclass(frozen=True)
@@ -126,7 +134,7 @@ class _Setup:
     cum: torch.Tensor          # race line (cfrace.env.observations.polyline)
     lap_len: torch.Tensor
     start_gate: torch.Tensor   # (W,) int64
-    parked: torch.Tensor       # (3,) m, the opponent of a policy flying alone
+    parked: torch.Tensor       # (W, 3) m, the opponent of a policy flying alone
     off_thrust: float          # N, motors off
     profile: DroneProfile
     rec_ids: torch.Tensor      # (K,) recorded worlds
@@ -150,7 +158,7 @@ def _setup(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[E
     off_thrust, _ = action_to_command(np.asarray(OFF_ACTION, np.float32), profile.mass, profile.max_thrust_weights,
                                       profile.max_rates_deg)
     return _Setup(groups, rules, opponent_rule, gates, cum, lap_len, starts.target[:, 0].to(torch.int64),
-                  parked_opponent(track, profile), off_thrust, profile, torch.as_tensor(record, dtype=torch.int64),
+                  parked_opponents(track, profile, starts), off_thrust, profile, torch.as_tensor(record, dtype=torch.int64),
                   2.0 * (sim.radius + CONTACT_MARGIN), torch.eye(d, dtype=torch.bool))
 
 
@@ -184,7 +192,7 @@ def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch
             elif d == 2:
                 opp_pos, opp_vel = pos[tw, 1 - td], vel[tw, 1 - td]
             else:
-                opp_pos, opp_vel = f.parked.expand(iw.shape[0], 3), torch.zeros(iw.shape[0], 3)
+                opp_pos, opp_vel = f.parked[tw], torch.zeros(iw.shape[0], 3)
         obs = build_observation(pos[tw, td], vel[tw, td], rot[tw, td], target[tw, td], sim.gate_corners,
                                 e.layout, opp_pos, opp_vel)
         act = e.policy(obs.numpy())                      # one onnxruntime call for all its slots

@@ -1,9 +1,9 @@
 """Single-agent benchmark (paper Table I): every policy flies the same N start poses alone, all
 policies and runs batched in one simulator (worlds = policies x runs, one drone each).
 
-Multi-agent policies fly alone too; their opponent block shows a parked opponent (resting on the
-floor in the arena corner, zero velocity: what they saw in training once the opponent had crashed),
-see cfrace.evaluate.rollout.parked_opponent.
+Multi-agent policies fly alone too; their opponent block shows an opponent that crashed at the start
+(resting on the floor in the slot beside the drone's start, zero velocity: what a training race shows
+once the opponent has crashed there), see cfrace.evaluate.rollout.parked_opponents.
 """
 
 from __future__ import annotations
