@@ -56,6 +56,55 @@ def test_choose_rule():
     assert choose(races)["iteration"] == 2
 
 
+def test_choose_rule_with_a_least_success_alone():
+    """select.alone_min: the highest win rate among the checkpoints that also fly alone that often;
+    the plain highest win rate when none does."""
+    races = [{"iteration": 1, "win_rate": 0.9, "success": 0.0}, {"iteration": 2, "win_rate": 0.7, "success": 0.92},
+             {"iteration": 3, "win_rate": 0.8, "success": 0.9}, {"iteration": 4, "win_rate": 0.8, "success": 1.0}]
+    assert choose(races)["iteration"] == 1
+    assert choose(races, alone_min=0.9)["iteration"] == 3
+    assert choose(races, alone_min=0.95)["iteration"] == 4
+    assert choose(races, alone_min=1.01)["iteration"] == 1
+
+
+def test_score_checkpoint_against_an_opponent_flies_it_alone_too(tmp_path, monkeypatch):
+    """With alone=True a checkpoint is raced and flown alone (the flights stubbed: what is called with
+    what, and what lands in the row)."""
+    from types import SimpleNamespace
+
+    import cfrace.evaluate.race as race_mod
+    import cfrace.evaluate.single as single_mod
+    import cfrace.export as export_mod
+    import cfrace.rl.train as train_mod
+    from cfrace.evaluate.select import score_checkpoint
+
+    calls = []
+    monkeypatch.setattr(export_mod, "export_checkpoint", lambda c, o, a: (o, {"train_steps": 7}, 0.0))
+    monkeypatch.setattr(train_mod, "load_checkpoint", lambda c: {"wall_s": 60.0})
+    alone_row = {"success_rate": 0.9, "lap_time_s": 5.5, "avg_speed_mps": 5.0, "collisions": 1, "laps_completed": 27,
+                 "runs": 10}
+    monkeypatch.setattr(single_mod, "evaluate", lambda *a: calls.append(("alone", a)) or SimpleNamespace(rows=[alone_row]))
+    monkeypatch.setattr(race_mod, "race", lambda *a: calls.append(("race", a)) or SimpleNamespace(
+        rates=lambda: {"ego_win_rate": 0.8, "opp_win_rate": 0.1}))
+    ckpt = tmp_path / "it00042.pt"
+    row = score_checkpoint(ckpt, "complex", False, "ds", 10, 3, 0, "ego", alone=True)
+    assert [c[0] for c in calls] == ["alone", "race"]
+    assert row["iteration"] == 42 and row["win_rate"] == 0.8 and row["success"] == 0.9 and row["laps_per_run"] == 2.7
+    calls.clear()
+    assert "success" not in score_checkpoint(ckpt, "complex", False, "ds", 10, 3, 0, "ego")
+    assert [c[0] for c in calls] == ["race"]
+
+
+def test_reproduce_train_says_the_least_success_alone(tmp_path):
+    spec = tmp_path / "p.yaml"
+    spec.write_text("version: 1\nout: runs/x\nruns:\n  - {name: a, method: ours, track: complex, steps: 1, select: "
+                    "{against: ds, alone_min: 0.9, export: policies/x.onnx}}\n")
+    from cfrace.evaluate.pipeline import describe
+
+    text = "\n".join(describe(load_pipeline(spec), tmp_path))
+    assert "races against ds among those finishing >= 90% of the runs alone" in text
+
+
 def test_post_stage_scores_kept_checkpoints_and_exports_the_choice(tmp_path):
     """A one-iteration DS run with kept checkpoints; the stage flies each one and exports the chosen."""
     out_root = tmp_path / "runs"

@@ -15,6 +15,8 @@ the last one (cfrace.evaluate.select):
       laps: 3
       seed: 0            # the validation seed; report on other seeds
       agent: ego         # which actor of a multi-agent checkpoint (ego | adversary | best)
+      alone_min: 0.9     # with against: fly each checkpoint alone too, choose among those that
+                         # finish at least this share of the runs (optional)
       export: policies/ours_complex.onnx
 
 The chosen checkpoint is linked as OUT/NAME/selected.pt: later stages that name this one
@@ -37,7 +39,7 @@ from cfrace.paths import POLICIES_DIR, ROOT
 from cfrace.sweep.spec import SELECTED
 
 PIPELINE = POLICIES_DIR / "pipeline.yaml"
-SELECT_KEYS = {"against", "runs", "laps", "seed", "agent", "export"}
+SELECT_KEYS = {"against", "runs", "laps", "seed", "agent", "export", "alone_min"}
 
 
 def load_pipeline(path: Path = PIPELINE, only: str | None = None):
@@ -87,6 +89,8 @@ def describe(sweep, out_root: Path) -> list[str]:
         if run.select is not None:
             s = run.select
             vs = f"races against {s['against']}" if s.get("against") else "runs alone"
+            if s.get("against") and s.get("alone_min") is not None:
+                vs += f" among those finishing >= {s['alone_min']:.0%} of the runs alone"
             lines.append(f"# choose among {run.out_dir(out_root)}/checkpoints/ by {s.get('runs', 50)} {vs} "
                          f"(seed {s.get('seed', 0)}), export the chosen {s.get('agent', 'best')} actor to "
                          f"{s['export']}")
@@ -129,7 +133,7 @@ def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR /
                            int(s.get("seed", 0)), s.get("agent", "best"),
                            on_row=lambda r: echo(f"  it {r['iteration']}: " + ", ".join(
                                f"{k} {r[k]}" for k in ("success", "lap_time_s", "win_rate") if r.get(k) is not None)),
-                           min_iteration=first)
+                           min_iteration=first, alone_min=s.get("alone_min"))
         dest = Path(s["export"])
         dest.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(scored.chosen["onnx"], dest)
