@@ -1,6 +1,7 @@
 """`cfrace bench sim|train|loop` of two code versions side by side, in one run, interleaved.
 
     python benchmarks/side_by_side.py OLD NEW [--rounds 2] [--benches sim,train,...] [--json F]
+    python benchmarks/side_by_side.py --pool F1.json,F2.json,...    (the rounds of earlier runs together)
 
 OLD and NEW are checkout roots or git revisions of this repository (a revision's tree is taken with
 `git archive` into a temporary directory; `.` is this checkout); each benchmark runs as A B B A A B
@@ -63,14 +64,38 @@ def source(arg: str, tmp: Path) -> Path:
     return tree(arg, tmp)
 
 
+def pool(paths: list[str]) -> int:
+    """The rounds of several --json runs together: per figure the medians, the speed and in how
+    many rounds the new version was worse."""
+    runs: dict[str, dict[str, list[float]]] = {}
+    for p in paths:
+        for row in json.loads(Path(p).read_text())["rows"]:
+            r = runs.setdefault(row["figure"], {"old": [], "new": []})
+            r["old"] += row["runs"]["old"]
+            r["new"] += row["runs"]["new"]
+    for fig, v in runs.items():
+        old, new = statistics.median(v["old"]), statistics.median(v["new"])
+        higher = fig.endswith("/s")                       # rates: higher is better; latencies: lower
+        speed = new / old if higher else old / new
+        worse = sum((b < a) if higher else (b > a) for a, b in zip(v["old"], v["new"]))
+        print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x  "
+              f"new worse in {worse} of {len(v['old'])} rounds")
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("old")
-    ap.add_argument("new")
+    ap.add_argument("old", nargs="?")
+    ap.add_argument("new", nargs="?")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--benches", default=",".join(BENCHES))
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--pool", default=None, help="comma-separated --json files of earlier runs")
     args = ap.parse_args()
+    if args.pool:
+        return pool(args.pool.split(","))
+    if not (args.old and args.new):
+        ap.error("OLD and NEW are required (or --pool)")
     values: dict[str, dict[str, list[float]]] = {}
     better: dict[str, bool] = {}
     loads = []

@@ -197,3 +197,33 @@ def test_landing_paths_of_drones_that_land_together_neither_cross_nor_touch():
             continue
     assert np.mean(batch) >= 0.95 and np.mean(one_by_one) >= 0.95, (np.mean(batch), np.mean(one_by_one))
     assert worst < 0.05, worst
+
+
+def test_eight_drones_landing_at_once_on_a_large_arena_fit_in_a_tick(monkeypatch):
+    """The complex track's arena holds 15 k candidate spots: the choice looks at the nearest ones
+    first and gives the spots a search of the whole arena gives, fast enough for one tick (its CPU time)."""
+    import time
+
+    import cfrace.flight.landing as ld
+
+    track, cfg = load_track("complex"), LandingConfig()
+    rng = np.random.default_rng(3)
+    a = track.arena
+    ld.candidate_spots(track, cfg)                       # as LandingSetup.for_race does before the race
+    for _ in range(4):
+        stops = np.column_stack([rng.uniform(a.x[0] + 0.1, a.x[1] - 0.1, 8), rng.uniform(a.y[0] + 0.1, a.y[1] - 0.1, 8)])
+        t0 = time.thread_time()
+        paths, others, spots = [], [], []
+        for stop in stops:                               # one tick: every drone starts landing (race end)
+            spots.append(ld.choose_landing_spots(track, [stop], others, cfg, paths)[0])
+            paths.append((stop, spots[-1]))
+            others.append(spots[-1])
+        assert time.thread_time() - t0 < 0.06
+        with monkeypatch.context() as m:                 # the whole arena every time: the same spots
+            m.setattr(ld, "NEAR_CANDIDATES", 10 ** 9)
+            paths, others, full = [], [], []
+            for stop in stops:
+                full.append(ld.choose_landing_spots(track, [stop], others, cfg, paths)[0])
+                paths.append((stop, full[-1]))
+                others.append(full[-1])
+        assert np.array_equal(np.array(spots), np.array(full))
