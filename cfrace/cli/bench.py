@@ -152,8 +152,9 @@ def bench_loop_cmd(
     if policies not in ("paper", "shipped"):
         raise ConfigError(f"--policies: paper or shipped, got {policies!r}")
     counts = drone_counts(drones)
+    grid_track = load_track(track)
     for n in counts:                  # every count fits the track's start grid (one line if not) before any run
-        ground_start_positions(load_track(track), n)
+        ground_start_positions(grid_track, n)
     options = dict(track=track, profile=profile, rt_priority=rt_priority, policies=policies,
                    prewarm_s=prewarm_ms / 1e3, loop_cpu=loop_cpu, log=log,
                    latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3)

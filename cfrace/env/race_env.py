@@ -143,15 +143,15 @@ class RaceEnv:
         outside the arena (a deep grid before a gate near a wall) is drawn again.
         Returns pos (n, A, 3), quat (n, A, 4), target (n,)."""
         pos, quat, gate_idx = self._draw_starts(n)
-        for _ in range(SPAWN_REDRAWS if self.num_agents > 2 else 0):
+        for draw in range(SPAWN_REDRAWS + 1 if self.num_agents > 2 else 0):
             out = torch.as_tensor(self.track.arena.outside_xy(pos.cpu().numpy())).any(-1)
             if not out.any():
-                return pos, quat, gate_idx
+                break
+            if draw == SPAWN_REDRAWS:
+                raise ConfigError(f"the {self.num_agents}-drone start grid of the {self.track.name} track leaves its "
+                                  f"arena in {SPAWN_REDRAWS} draws in a row: fewer drones, or gate starts")
             ids = torch.nonzero(out).squeeze(-1)
             pos[ids], quat[ids], gate_idx[ids] = self._draw_starts(len(ids))
-        if self.num_agents > 2 and self.track.arena.outside_xy(pos.cpu().numpy()).any():
-            raise ConfigError(f"the {self.num_agents}-drone start grid of the {self.track.name} track leaves its "
-                              f"arena in {SPAWN_REDRAWS} draws in a row: fewer drones, or gate starts")
         return pos, quat, gate_idx
 
     def _draw_starts(self, n: int):

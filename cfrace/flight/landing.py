@@ -127,14 +127,10 @@ def _path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> 
     return bool(np.all((d >= clearance) | (d >= start_d - 1e-9)))
 
 
+@functools.lru_cache(maxsize=8)
 def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
     """(K, 2) floor points inside the arena that are clear of gates and obstacles (computed once per
     track and config: a read-only array)."""
-    return _candidate_spots(track, cfg)
-
-
-@functools.lru_cache(maxsize=8)
-def _candidate_spots(track, cfg: LandingConfig) -> np.ndarray:
     a = track.arena
     xs = np.arange(a.x[0] + cfg.wall_margin_m, a.x[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
     ys = np.arange(a.y[0] + cfg.wall_margin_m, a.y[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
@@ -175,18 +171,24 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
     for i, stop in enumerate(stops):
         dist = np.linalg.norm(everything - stop, axis=1)
         near = np.argpartition(dist, NEAR_CANDIDATES)[:NEAR_CANDIDATES] if len(dist) > NEAR_CANDIDATES else None
-        sets = [everything[near], everything] if near is not None else [everything]
         pending = blocked + [stops[j] for j in range(i + 1, len(stops))]
+        @functools.cache
+        def candidates(idx: int) -> tuple:
+            """(candidates, nearest first, clear of the pending drones): the nearest ones (0) or all (1)."""
+            sel = near if idx == 0 and near is not None else slice(None)
+            cand = everything[sel]
+            ok = np.ones(len(cand), bool)
+            for b in pending:
+                ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
+            return cand, np.argsort(dist[sel]), ok
 
         def nearest(rule) -> np.ndarray | None:
             """The nearest allowed candidate under ``rule`` (cand -> extra mask): among the nearest
             candidates first, then (none of them allowed) the whole arena: the same spot either way."""
-            for cand in sets:
-                ok = np.ones(len(cand), bool)
-                for b in pending:
-                    ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
-                ok &= rule(cand)
-                found = _nearest(track, stop, cand, np.argsort(np.linalg.norm(cand - stop, axis=1)), ok, cfg)
+            for idx in ((0, 1) if near is not None else (1,)):
+                cand, order, clear = candidates(idx)
+                ok = clear & rule(cand)
+                found = _nearest(track, stop, cand, order, ok, cfg)
                 if found is not None or np.count_nonzero(ok) >= cfg.max_tries:
                     return found          # the max_tries nearest allowed ones overall were all looked at
             return None
