@@ -145,8 +145,8 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
 
 #: candidate spots a drone's choice looks at first, the nearest to where it stops (the whole arena
 #: only when none of them will do): the choice runs in the tick, and on a large arena (the complex
-#: track: 15 k candidates) checking every candidate against every other drone's path took 30 ms for
-#: one drone and 270 ms for eight landing at once (tests/test_flight_landing.py)
+#: track: 15 k candidates) checking every candidate against every other drone's path made the tick in
+#: which eight drones start landing overrun the loop (tests/test_flight_landing.py, docs/flight.md)
 NEAR_CANDIDATES = 1500
 
 
