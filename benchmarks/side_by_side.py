@@ -1,6 +1,6 @@
 """`cfrace bench sim|train|loop` of two code versions side by side, in one run, interleaved.
 
-    python benchmarks/side_by_side.py OLD NEW [--rounds 2] [--benches sim,train,...] [--json F]
+    python benchmarks/side_by_side.py OLD NEW [--rounds 2] [--benches sim,train,...] [--loop-s 10] [--json F]
     python benchmarks/side_by_side.py --pool F1.json,F2.json,...    (the rounds of earlier runs together)
 
 OLD and NEW are checkout roots or git revisions of this repository (a revision's tree is taken with
@@ -9,7 +9,8 @@ OLD and NEW are checkout roots or git revisions of this repository (a revision's
 and PYTHONPATH=SRC), so that both see the same machine load and neither always runs second. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
 Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread, 200 steps, best of 5), bench train (the cpu preset,
-ours on complex, one thread), bench loop (10 s, the paper-size actors and the shipped policies).
+ours on complex, one thread), bench loop (10 s, or --loop-s, the paper-size actors and the shipped policies; the jitter p99 of a 10-s
+loop is its 10th-largest period error and moves with a handful of the VM's stalls: longer loops measure it better).
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ from loop_commits_ab import tree
 BENCHES: dict[str, list[str]] = {
     "sim": ["bench", "sim", "--worlds", "4096", "--modes", "c", "--no-peer", "--threads", "1", "--steps", "200", "--repeats", "5"],
     "train": ["bench", "train", "--threads", "1", "--iterations", "2"],
-    "loop_paper": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "paper"],
-    "loop_shipped": ["bench", "loop", "--duration-s", "10", "--floor-s", "0", "--policies", "shipped"],
+    "loop_paper": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "paper"],
+    "loop_shipped": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "shipped"],
 }
 
 
@@ -89,6 +90,7 @@ def main() -> int:
     ap.add_argument("new", nargs="?")
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--benches", default=",".join(BENCHES))
+    ap.add_argument("--loop-s", type=float, default=10.0, help="seconds of each bench loop run")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--pool", default=None, help="comma-separated --json files of earlier runs")
     args = ap.parse_args()
@@ -106,7 +108,8 @@ def main() -> int:
                 for label in (("old", "new") if r % 2 == 0 else ("new", "old")):   # A B B A ...
                     src = srcs[label]
                     loads.append(os.getloadavg()[0])
-                    doc = run_one(src, BENCHES[name], Path(tmp) / f"{name}_{label}_{r}.json")
+                    cmd = [a.format(loop_s=f"{args.loop_s:g}") for a in BENCHES[name]]
+                    doc = run_one(src, cmd, Path(tmp) / f"{name}_{label}_{r}.json")
                     for fig, (v, hib) in figures(name, doc).items():
                         values.setdefault(fig, {"old": [], "new": []})[label].append(v)
                         better[fig] = hib
@@ -120,7 +123,7 @@ def main() -> int:
         print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x")
     print(f"load average during the runs: {min(loads):.2f}-{max(loads):.2f} on {os.cpu_count()} CPUs")
     if args.json:
-        args.json.write_text(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds, "rows": rows,
+        args.json.write_text(json.dumps({"old": args.old, "new": args.new, "rounds": args.rounds, "loop_s": args.loop_s, "rows": rows,
                                          "load_avg": loads}, indent=1))
     return 0
 
