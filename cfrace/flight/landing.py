@@ -301,13 +301,16 @@ class LandingSetup:
     ground_z: float
     cfg: LandingConfig = LandingConfig()
     timeout_s: float = 8.0          #: s from the landing's start: then the motors are cut
+    gate_half: float = 0.7          #: m, half the gates' outer width (their frames' extent from the centre)
+    radius: float = 0.0             #: m, the drone's collision radius
 
     @classmethod
     def for_race(cls, track, profile, cfg: LandingConfig = LandingConfig()) -> "LandingSetup":
         brake = BrakeController(profile.mass, 0.9 * float(profile.thrust_curve.newtons[-1]),
                                 rate_max_dps=LANDING_RATE_FACTOR * np.asarray(profile.max_rates_deg, np.float64))
         candidate_spots(track, cfg)                 # computed now, not in the tick of the first landing
-        return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg)
+        return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg,
+                   gate_half=track.gate.outer / 2.0, radius=profile.collision_radius)
 
 
 #: the landing's braking may use this many times the profile's body rates (the racing limit; the

@@ -10,8 +10,12 @@ import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
 from cfrace.flight import landing as ld
+from cfrace.sim.gates import to_gate_frame
 
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
+BRAKE_LAG_S = 0.1        #: s the braking takes to turn the thrust round (flown on at speed meanwhile)
+BRAKE_DRIFT_M = 0.2      #: m a braking drone may drift sideways of its straight path (it was turning)
+FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
 
@@ -33,6 +37,35 @@ def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) ->
         if u * length >= OPPONENT_AHEAD_M and float(np.linalg.norm(pos + u * seg - p)) < clearance:
             return f"{o.name} down at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
     return ""
+
+
+def braking_distance(speed: float, brake: ld.BrakeController) -> float:
+    """m a drone at ``speed`` m/s flies on while ``brake`` stops it: BRAKE_LAG_S at speed, then the
+    deceleration k_vel v, at most accel_max."""
+    v_cap = brake.accel_max / brake.k_vel        # below this speed the deceleration is k_vel v
+    if speed <= v_cap:
+        return speed * BRAKE_LAG_S + speed / brake.k_vel
+    return speed * BRAKE_LAG_S + (speed * speed - v_cap * v_cap) / (2.0 * brake.accel_max) + v_cap / brake.k_vel
+
+
+def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
+    """Would braking from here take the drone into ``gate`` (x, y, z, yaw): it flies towards the
+    gate's plane from the approach side and reaches it, on its straight path within
+    braking_distance, inside the gate's outer frame (grown by its radius and BRAKE_DRIFT_M)? It
+    cannot stop before the gate then, and only its policy flies it through the opening."""
+    pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
+    local = to_gate_frame(pos, np.asarray(gate, np.float64))
+    c, s = math.cos(float(gate[3])), math.sin(float(gate[3]))
+    lv = np.array([c * vel[0] + s * vel[1], -s * vel[0] + c * vel[1], vel[2]])
+    if not (np.all(np.isfinite(local)) and np.all(np.isfinite(lv)) and local[0] > 0.0 and lv[0] < 0.0):
+        return False
+    tau = local[0] / -lv[0]                       # s to the plane at the present velocity
+    speed = float(np.linalg.norm(vel))
+    if tau * speed > braking_distance(speed, setup.brake):
+        return False                              # it stops before the plane
+    half = setup.gate_half + setup.radius + BRAKE_DRIFT_M
+    at = local + tau * lv
+    return abs(at[1]) < half and abs(at[2]) < half
 
 
 class SoftState:
@@ -75,6 +108,20 @@ class SoftState:
 
     def low_battery_s(self, i: int, t: float) -> float:
         return 0.0 if self.vbat_low_since[i] is None else t - self.vbat_low_since[i]
+
+    def land_after_race(self, drones: list, ests: list, t: float, t_end: float, targets, setup: ld.LandingSetup) -> None:
+        """After the race's end (at t_end) every drone still racing lands, but one whose braking would
+        take it into its target gate's frame (brakes_into_gate) flies on through the gate on its
+        policy first, for at most FLY_THROUGH_MAX_S: it lands once it is through (its next gate is
+        then its target) or that time is up."""
+        for i, d in enumerate(drones):
+            if d.stopped or d.landing is not None:
+                continue
+            e = ests[i]
+            if t - t_end < FLY_THROUGH_MAX_S and e.valid and \
+                    brakes_into_gate(e.pos, e.vel, setup.gates[int(targets[i])], setup):
+                continue
+            self.start_landing(drones, i, e, t, "race_end", setup)
 
     def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
         """Drone i stops racing and lands (brake, then the firmware's high-level commander) on a spot
