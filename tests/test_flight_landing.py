@@ -277,10 +277,10 @@ def test_a_path_along_a_gate_frame_is_not_clear():
     """A drone that braked to a stop 0.1 m in front of gate 5's plane (a lockstep race ended by the
     timeout at 3.34 s): its go-to along the frame touched the frame's side bar. Near a gate, a clear
     path leads away from it."""
-    from cfrace.flight.landing import _path_clear
+    from cfrace.flight.landing import path_clear
     track = load_track("lemniscate")
     here = np.array([-2.01, 3.61])
-    assert not _path_clear(track, here, np.array([-0.7, 3.7]), LandingConfig().path_clearance_m)
-    assert _path_clear(track, here, np.array([-2.0, 4.3]), LandingConfig().path_clearance_m)
-    assert _path_clear(track, np.array([0.5, 4.5]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
-    assert not _path_clear(track, np.array([1.0, 4.3]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
+    assert not path_clear(track, here, np.array([-0.7, 3.7]), LandingConfig().path_clearance_m)
+    assert path_clear(track, here, np.array([-2.0, 4.3]), LandingConfig().path_clearance_m)
+    assert path_clear(track, np.array([0.5, 4.5]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
+    assert not path_clear(track, np.array([1.0, 4.3]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)

@@ -112,7 +112,7 @@ def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float)
     return ok
 
 
-def _path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
+def path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
     """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from the gate
     footprints and the obstacles (points of the path already closer at the start do not count: the
     drone is where it is; near a gate the path must lead away from it, not along its frame)."""
@@ -161,7 +161,7 @@ def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
     """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
     allowed ones: this runs in the tick), or None."""
     near = order[ok[order]][:cfg.max_tries]
-    return next((cand[k] for k in near if _path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
+    return next((cand[k] for k in near if path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
 
 
 def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:

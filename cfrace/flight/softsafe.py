@@ -65,7 +65,8 @@ def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
 
 
 class SoftState:
-    """Per drone: when its pose glitched, since when its battery is low; log records to flush."""
+    """Per drone: when its pose glitched, since when its battery is low, the gate ahead of it at the
+    race's end; log records to flush."""
 
     def __init__(self, n: int):
         self.glitches = [[] for _ in range(n)]   # times of pose dropouts / outliers
@@ -141,10 +142,10 @@ class SoftState:
 
     def _respot(self, drones: list, i: int, setup: ld.LandingSetup, pos, spot) -> np.ndarray:
         """Drone i's spot once its braking is over: the one chosen if the straight path from where it
-        stopped keeps clear of the gates and obstacles (ld._path_clear), else the nearest spot that
+        stopped keeps clear of the gates and obstacles (ld.path_clear), else the nearest spot that
         does (the braking ends where it ends, not always where stopping_point expected it)."""
         d, here = drones[i], np.asarray(pos, np.float64)[:2]
-        if ld._path_clear(setup.track, here, np.asarray(spot, np.float64), setup.cfg.path_clearance_m):
+        if ld.path_clear(setup.track, here, np.asarray(spot, np.float64), setup.cfg.path_clearance_m):
             return spot
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
         others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
