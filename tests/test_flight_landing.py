@@ -284,3 +284,30 @@ def test_a_path_along_a_gate_frame_is_not_clear():
     assert path_clear(track, here, np.array([-2.0, 4.3]), LandingConfig().path_clearance_m)
     assert path_clear(track, np.array([0.5, 4.5]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
     assert not path_clear(track, np.array([1.0, 4.3]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
+
+
+def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
+    """SoftState.land_after_race: the drone of RACE_END_STATE keeps racing until its target is the next
+    gate (it is through) or 1 s has passed; a drone that can stop clear of its gate lands at once."""
+    from types import SimpleNamespace
+
+    from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState
+    from cfrace.drone import load_profile
+    setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf2x_paper"))
+
+    def drone(name):
+        return SimpleNamespace(stopped=False, landing=None, frozen_pos=None, name=name, body=name, landing_result=None)
+
+    def est(pos, vel):
+        return SimpleNamespace(pos=np.array(pos), vel=np.array(vel), valid=True)
+
+    through, late, away = drone("a"), drone("b"), drone("c")
+    drones = [through, late, away]
+    ests = [est(RACE_END_STATE["pos"], RACE_END_STATE["vel"])] * 2 + [est((-2.0, 3.0, 0.75), (0.0, -4.0, 0.0))]
+    soft = SoftState(3)
+    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 5, 0], setup)
+    assert through.landing is None and late.landing is None and away.landing is not None
+    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 5, 0], setup)      # a is through gate 5
+    assert through.landing is not None and through.landing_result["reason"] == "race_end" and late.landing is None
+    soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], setup)
+    assert late.landing is not None                                       # not through in time: lands anyway
