@@ -33,17 +33,21 @@ def test_race_ends_with_every_drone_landed(tmp_path, start):
     assert sum(t.startswith("go_to") for t in texts) == 2 and sum(t == "notify_stop" for t in texts) == 2
 
 
-#: race ends (the timeout, s) of lockstep races of ds against ours on cf2x_paper at which a landing
-#: used to hit a gate frame: braking into the gate ahead (2.83: the crash hidden, the drone dropped
-#: less than the outlier limit; 6.79: a drone turning into the gate from the side), or stopping just
-#: in front of it and then flying the go-to along its frame (3.34) or through it (3.01); each crash
-#: showed as pose outliers and a speed stop, as in the real-time flight against `sim serve`
-CRASHING_ENDS = (2.83, 3.01, 3.34, 6.79)
+#: race ends (ego, opp, profile, the timeout s) of lockstep races at which a landing used to hit
+#: something: ds against ours on cf2x_paper braking into the gate ahead (2.83: the crash unseen, the
+#: drone dropped less than the outlier limit; 6.79: turning into the gate from the side), or stopping
+#: just in front of it and then flying the go-to along its frame (3.34) or through it (3.01); ours
+#: against ds on cf21bl (the README's pair) flying the go-tos into each other (4.42: the paths were
+#: chosen from where the drones were expected to stop). Each crash showed as a speed stop (after pose
+#: outliers when it dropped from higher up), as in the real-time flight against `sim serve`
+CRASHING_ENDS = (("ds", "ours", "cf2x_paper", 2.83), ("ds", "ours", "cf2x_paper", 3.01),
+                 ("ds", "ours", "cf2x_paper", 3.34), ("ds", "ours", "cf2x_paper", 6.79),
+                 ("ours", "ds", "cf21bl", 4.42))
 
 
-@pytest.mark.parametrize("timeout_s", CRASHING_ENDS)
-def test_race_end_landings_keep_clear_of_the_gates(timeout_s):
-    cfg = FlightConfig(track="lemniscate", ego="ds", opp="ours", profile="cf2x_paper", laps=3, quiet=True,
+@pytest.mark.parametrize("ego, opp, profile, timeout_s", CRASHING_ENDS)
+def test_race_end_landings_keep_clear(ego, opp, profile, timeout_s):
+    cfg = FlightConfig(track="lemniscate", ego=ego, opp=opp, profile=profile, laps=3, quiet=True,
                        timeout_s=timeout_s)
     result = dry_run(cfg, lockstep=True).to_json()
     assert result["end"] == "timeout"
