@@ -92,7 +92,7 @@ def _to_segments(start: np.ndarray, ends: np.ndarray, p: np.ndarray) -> np.ndarr
     return np.linalg.norm(start + t[:, None] * d - p, axis=1)
 
 
-def apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float) -> np.ndarray:
+def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float) -> np.ndarray:
     """(K,) bool: the straight path start-ends[k] keeps ``separation`` from every path (a, b) of
     ``paths`` (other drones flying to their spots at the same time) and from the points ``still``,
     or, where a drone starts nearer than that, no less than at the start (it is where it is)."""
@@ -202,12 +202,12 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
 
         # a spot whose path keeps clear of the other drones' paths; else straight down where the drone
         # stops if that is clear of them; else clear of the drones that stay; else merely free
-        chosen = nearest(lambda cand: apart(stop, cand, paths, still, cfg.path_separation_m))
+        chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m))
         sep = cfg.path_separation_m
         if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \
                 and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still):
             chosen = stop.copy()
-        for rule in (lambda cand: apart(stop, cand, (), still, cfg.path_separation_m),
+        for rule in (lambda cand: _apart(stop, cand, (), still, cfg.path_separation_m),
                      lambda cand: np.ones(len(cand), bool)):
             if chosen is None:
                 chosen = nearest(rule)

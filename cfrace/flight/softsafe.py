@@ -142,23 +142,20 @@ class SoftState:
 
     def _respot(self, drones: list, i: int, setup: ld.LandingSetup, pos, spot) -> np.ndarray:
         """Drone i's spot once its braking is over: the one chosen if the straight path from where it
-        stopped keeps clear of the gates and obstacles (ld.path_clear) and of the other drones' paths
-        and spots (ld.apart), else the nearest spot whose path does (the braking ends where it ends,
-        not always where stopping_point expected it). Its path starts there from now on."""
+        stopped keeps clear of the gates and obstacles (ld.path_clear), else the nearest spot that
+        does (the braking ends where it ends, not always where stopping_point expected it)."""
         d, here = drones[i], np.asarray(pos, np.float64)[:2]
-        d.landing.start = here.copy()
+        if ld.path_clear(setup.track, here, np.asarray(spot, np.float64), setup.cfg.path_clearance_m):
+            return spot
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
         others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
         paths = [(o.landing.start, o.landing.spot) for o in drones
                  if o is not d and o.landing is not None and o.landing.start is not None]
-        cfg, spot = setup.cfg, np.asarray(spot, np.float64)
-        if ld.path_clear(setup.track, here, spot, cfg.path_clearance_m) and \
-                ld.apart(here, spot[None], paths, others, cfg.path_separation_m)[0]:
-            return spot
         try:
-            new = ld.choose_landing_spots(setup.track, [here], others, cfg, paths)[0]
+            new = ld.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
         except ValueError:
             return spot
+        d.landing.start = here.copy()
         d.landing_result["spot"] = [round(float(v), 3) for v in new]
         self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
                                                 "text": f"braked at ({here[0]:.2f}, {here[1]:.2f}): landing at "
