@@ -227,3 +227,87 @@ def test_eight_drones_landing_at_once_on_a_large_arena_fit_in_a_tick(monkeypatch
                 paths.append((stop, full[-1]))
                 others.append(full[-1])
         assert np.array_equal(np.array(spots), np.array(full))
+
+
+#: the loser's estimate when the race ended in a real-time flight against `sim serve` (the walkthrough's
+#: `fly`, ds against ours on cf2x_paper): 0.6 m before its target, the finish gate 5 (-2.0, 3.5, 0.75),
+#: at 4.4 m/s towards the gate's left bar
+RACE_END_STATE = dict(pos=(-1.949, 4.091, 0.84), vel=(-3.34, -2.62, -1.14), quat=(0.8041, -0.1291, 0.3099, -0.4905))
+
+
+def test_braking_at_the_race_end_into_the_gate_ahead_crashes_so_the_drone_flies_through_first():
+    """From that state the landing's braking (on the simulated firmware) hits gate 5's frame within
+    0.3 s: the simulator drops the crashed drone to the floor in one step, which the flight loop saw as
+    three pose outliers and then a 16 m/s speed stop. brakes_into_gate finds it: at the race's end such
+    a drone flies on through the gate on its policy before it lands (SoftState.land_after_race)."""
+    from cfrace.flight.landing import LandingPilot
+    from cfrace.flight.softsafe import brakes_into_gate
+    track = load_track("lemniscate")
+    fleet = SimFleet(track, "cf2x_paper", 1, arming_required=True, decks=())
+    fleet.arm(0, True)
+    for name in ("flightmode.stabModeRoll", "flightmode.stabModePitch"):
+        fleet.set_param(0, name, 0)
+    fleet.handle_setpoint(0, 0, 0, 0, 0)
+    fleet.teleport(0, RACE_END_STATE["pos"], RACE_END_STATE["vel"], RACE_END_STATE["quat"])
+    setup = LandingSetup.for_race(track, fleet.profile)
+    pilot = LandingPilot(BrakeController(**{**setup.brake.__dict__, "hold_z": None}), np.array([-2.0, 4.2]),
+                         setup.ground_z)
+    for _ in range(50):
+        s = fleet.state(0)
+        fleet.external_position(0, s["pos"])
+        step = pilot.step(fleet.time, s["pos"], s["vel"], s["quat"])
+        assert step.rates_dps is not None                     # still braking
+        rate_setpoint(fleet, 0, step.rates_dps, step.thrust_n)
+        fleet.advance(0.01)
+        if fleet.status(0)["crashed"]:
+            break
+    assert fleet.status(0)["crash_reason"] == "gate_frame" and fleet.time < 0.3
+    gate = setup.gates[5]
+    assert brakes_into_gate(RACE_END_STATE["pos"], RACE_END_STATE["vel"], gate, setup)
+    # a drone turning into gate 3 from the side (a lockstep race ended by the timeout at 6.79 s): its
+    # straight path passes 1.6 m beside the gate, but braking it drifted on into the frame's side bar
+    assert brakes_into_gate((0.751, 7.882, 0.689), (4.54, -1.69, -0.61), setup.gates[3], setup)
+    # not: moving away from the gate, far from it, or passing its plane far beside the frame
+    assert not brakes_into_gate((-2.0, 3.0, 0.75), (0.0, -4.0, 0.0), gate, setup)
+    assert not brakes_into_gate((-2.0, 7.0, 0.75), (0.0, -4.0, 0.0), gate, setup)
+    assert not brakes_into_gate((2.0, 4.5, 0.75), (0.0, -4.0, 0.0), gate, setup)
+
+
+def test_a_path_along_a_gate_frame_is_not_clear():
+    """A drone that braked to a stop 0.1 m in front of gate 5's plane (a lockstep race ended by the
+    timeout at 3.34 s): its go-to along the frame touched the frame's side bar. Near a gate, a clear
+    path leads away from it."""
+    from cfrace.flight.landing import path_clear
+    track = load_track("lemniscate")
+    here = np.array([-2.01, 3.61])
+    assert not path_clear(track, here, np.array([-0.7, 3.7]), LandingConfig().path_clearance_m)
+    assert path_clear(track, here, np.array([-2.0, 4.3]), LandingConfig().path_clearance_m)
+    assert path_clear(track, np.array([0.5, 4.5]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
+    assert not path_clear(track, np.array([1.0, 4.3]), np.array([0.5, 3.0]), LandingConfig().path_clearance_m)
+
+
+def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
+    """SoftState.land_after_race: the drone of RACE_END_STATE keeps racing until its target is the next
+    gate (it is through) or 1 s has passed; a drone that can stop clear of its gate lands at once."""
+    from types import SimpleNamespace
+
+    from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState
+    from cfrace.drone import load_profile
+    setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf2x_paper"))
+
+    def drone(name):
+        return SimpleNamespace(stopped=False, landing=None, frozen_pos=None, name=name, body=name, landing_result=None)
+
+    def est(pos, vel):
+        return SimpleNamespace(pos=np.array(pos), vel=np.array(vel), valid=True)
+
+    through, late, away = drone("a"), drone("b"), drone("c")
+    drones = [through, late, away]
+    ests = [est(RACE_END_STATE["pos"], RACE_END_STATE["vel"])] * 2 + [est((-2.0, 3.0, 0.75), (0.0, -4.0, 0.0))]
+    soft = SoftState(3)
+    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 5, 0], setup)
+    assert through.landing is None and late.landing is None and away.landing is not None
+    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 5, 0], setup)      # a is through gate 5
+    assert through.landing is not None and through.landing_result["reason"] == "race_end" and late.landing is None
+    soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], setup)
+    assert late.landing is not None                                       # not through in time: lands anyway

@@ -33,6 +33,27 @@ def test_race_ends_with_every_drone_landed(tmp_path, start):
     assert sum(t.startswith("go_to") for t in texts) == 2 and sum(t == "notify_stop" for t in texts) == 2
 
 
+#: race ends (ego, opp, profile, the timeout s) of lockstep races at which a landing used to hit a
+#: gate frame: ds against ours on cf2x_paper braking into the gate ahead (2.83: the crash unseen, the
+#: drone dropped less than the outlier limit; 6.79: turning into the gate from the side), or stopping
+#: just in front of it and then flying the go-to along its frame (3.34) or through it (3.01). Each
+#: crash showed as pose outliers and a speed stop, as in the real-time flight against `sim serve`
+CRASHING_ENDS = (("ds", "ours", "cf2x_paper", 2.83), ("ds", "ours", "cf2x_paper", 3.01),
+                 ("ds", "ours", "cf2x_paper", 3.34), ("ds", "ours", "cf2x_paper", 6.79))
+
+
+@pytest.mark.parametrize("ego, opp, profile, timeout_s", CRASHING_ENDS)
+def test_race_end_landings_keep_clear(ego, opp, profile, timeout_s):
+    cfg = FlightConfig(track="lemniscate", ego=ego, opp=opp, profile=profile, laps=3, quiet=True,
+                       timeout_s=timeout_s)
+    result = dry_run(cfg, lockstep=True).to_json()
+    assert result["end"] == "timeout"
+    assert not [d for d in result["drones_final"] if d["crashed"]], result["drones_final"]
+    assert not [e for e in result["safety_events"] if e["action"] != "none" or e["kind"] == "pose_outlier"], \
+        result["safety_events"]
+    assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
+
+
 def test_no_landing_keeps_the_old_stop(tmp_path):
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf2x_paper", laps=1, quiet=True,
                        timeout_s=30.0, landing=False)

@@ -112,16 +112,23 @@ def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float)
     return ok
 
 
-def _path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
-    """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from obstacles
-    (points of the path already closer at the start do not count: the drone is where it is)."""
-    for a, b in gate_footprints(track):
+def path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
+    """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from the gate
+    footprints and the obstacles (points of the path already closer at the start do not count: the
+    drone is where it is; near a gate the path must lead away from it, not along its frame)."""
+    footprints = gate_footprints(track)
+    for a, b in footprints:
         if _segments_cross(start, end, a, b) and _seg_point_dist(a, b, start[None])[0] > 1e-6:
             return False
+    step = 0.05
+    n = max(2, int(np.linalg.norm(end - start) / step) + 1)
+    pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
+    gd = np.minimum.reduce([_seg_point_dist(a, b, pts) for a, b in footprints]) if footprints else np.full(n, np.inf)
+    leaving = np.diff(gd, prepend=-np.inf) >= 0.5 * float(np.linalg.norm(pts[1] - pts[0]))   # at 30 deg or more
+    if not np.all((gd >= clearance) | leaving):
+        return False
     if not track.obstacles:
         return True
-    n = max(2, int(np.linalg.norm(end - start) / 0.05) + 1)
-    pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
     d = _obstacle_dist(track, pts)
     start_d = d[0]
     return bool(np.all((d >= clearance) | (d >= start_d - 1e-9)))
@@ -154,7 +161,7 @@ def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
     """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
     allowed ones: this runs in the tick), or None."""
     near = order[ok[order]][:cfg.max_tries]
-    return next((cand[k] for k in near if _path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
+    return next((cand[k] for k in near if path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
 
 
 def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
@@ -301,13 +308,16 @@ class LandingSetup:
     ground_z: float
     cfg: LandingConfig = LandingConfig()
     timeout_s: float = 8.0          #: s from the landing's start: then the motors are cut
+    gate_half: float = 0.7          #: m, half the gates' outer width (their frames' extent from the centre)
+    radius: float = 0.0             #: m, the drone's collision radius
 
     @classmethod
     def for_race(cls, track, profile, cfg: LandingConfig = LandingConfig()) -> "LandingSetup":
         brake = BrakeController(profile.mass, 0.9 * float(profile.thrust_curve.newtons[-1]),
                                 rate_max_dps=LANDING_RATE_FACTOR * np.asarray(profile.max_rates_deg, np.float64))
         candidate_spots(track, cfg)                 # computed now, not in the tick of the first landing
-        return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg)
+        return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg,
+                   gate_half=track.gate.outer / 2.0, radius=profile.collision_radius)
 
 
 #: the landing's braking may use this many times the profile's body rates (the racing limit; the
@@ -343,6 +353,8 @@ class LandingPilot:
     t_start: float | None = None
     t_phase_end: float = 0.0
     touchdown: Touchdown | None = None
+    #: (pos (3,), spot (2,)) -> the spot to fly to from where the braking ended (None: the spot as chosen)
+    respot: object = None
 
     def step(self, t: float, pos, vel, quat) -> LandingStep:
         """The drone's estimate at loop time t -> what to do now."""
@@ -356,6 +368,8 @@ class LandingPilot:
             if speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s:
                 rates, thrust = self.brake.command(pos, vel, quat)
                 return LandingStep(rates_dps=rates, thrust_n=thrust)
+            if self.respot is not None:      # chosen from where it was expected to stop: still reachable?
+                self.spot = np.asarray(self.respot(pos, self.spot), np.float64)
             w, x, y, z = (float(v) for v in quat)
             yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
             duration = max(1.0, float(np.linalg.norm(self.spot - pos[:2])) / self.cfg.approach_speed_mps)

@@ -4,14 +4,18 @@ landing and running one tick of it. docs/flight.md, "Safety" and "Landing"."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
 from cfrace.flight import landing as ld
+from cfrace.sim.gates import to_gate_frame
 
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
+BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown on at speed meanwhile)
+FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
 
@@ -35,8 +39,34 @@ def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) ->
     return ""
 
 
+def braking_distance(speed: float, brake: ld.BrakeController) -> float:
+    """m a drone at ``speed`` m/s flies on while ``brake`` stops it: BRAKE_LAG_S at speed, then the
+    deceleration k_vel v, at most accel_max."""
+    v_cap = brake.accel_max / brake.k_vel        # below this speed the deceleration is k_vel v
+    if speed <= v_cap:
+        return speed * BRAKE_LAG_S + speed / brake.k_vel
+    return speed * BRAKE_LAG_S + (speed * speed - v_cap * v_cap) / (2.0 * brake.accel_max) + v_cap / brake.k_vel
+
+
+def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
+    """Would braking from here take the drone into ``gate`` (x, y, z, yaw)? It flies towards the
+    gate's plane from the approach side and some part of the gate's frame lies within its braking
+    distance (a braking drone does not fly straight on: one in a turn drifts half a metre sideways
+    while it brakes, towards the gate its policy was turning to). It cannot be sure to stop clear of
+    the frame then, and only its policy flies it through the opening."""
+    pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
+    local = to_gate_frame(pos, np.asarray(gate, np.float64))
+    c, s = math.cos(float(gate[3])), math.sin(float(gate[3]))
+    closing = c * vel[0] + s * vel[1]              # velocity along the gate's normal
+    if not (np.all(np.isfinite(local)) and math.isfinite(closing) and local[0] > 0.0 and closing < 0.0):
+        return False
+    reach = braking_distance(float(np.linalg.norm(vel)), setup.brake) + setup.gate_half + setup.radius
+    return float(np.linalg.norm(local)) < reach
+
+
 class SoftState:
-    """Per drone: when its pose glitched, since when its battery is low; log records to flush."""
+    """Per drone: when its pose glitched, since when its battery is low, the gate ahead of it at the
+    race's end; log records to flush."""
 
     def __init__(self, n: int):
         self.glitches = [[] for _ in range(n)]   # times of pose dropouts / outliers
@@ -45,6 +75,7 @@ class SoftState:
         self.rejecting = [False] * n              # the last tick rejected an outlier (an episode runs)
         self.vbat_low_since: list = [None] * n
         self.pending_records: list = []           # log records made outside the tick's _records
+        self.gate_at_end: dict = {}               # per drone: its target gate when the race ended
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
         """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S, or began to be rejected
@@ -76,6 +107,20 @@ class SoftState:
     def low_battery_s(self, i: int, t: float) -> float:
         return 0.0 if self.vbat_low_since[i] is None else t - self.vbat_low_since[i]
 
+    def land_after_race(self, drones: list, ests: list, t: float, t_end: float, targets, setup: ld.LandingSetup) -> None:
+        """After the race's end (at t_end) every drone still racing lands, but one whose braking would
+        take it into the gate ahead of it at the end (brakes_into_gate) flies on through that gate on
+        its policy first, for at most FLY_THROUGH_MAX_S: it lands once it is through (its target is
+        the next gate) or that time is up."""
+        for i, d in enumerate(drones):
+            if d.stopped or d.landing is not None:
+                continue
+            gate, e = self.gate_at_end.setdefault(i, int(targets[i])), ests[i]
+            if int(targets[i]) == gate and t - t_end < FLY_THROUGH_MAX_S and e.valid and \
+                    brakes_into_gate(e.pos, e.vel, setup.gates[gate], setup):
+                continue
+            self.start_landing(drones, i, e, t, "race_end", setup)
+
     def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
         """Drone i stops racing and lands (brake, then the firmware's high-level commander) on a spot
         clear of the drones already down and of the other landing drones' spots."""
@@ -89,10 +134,33 @@ class SoftState:
         except ValueError:
             spot = np.asarray(est.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
         brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
-        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2])
+        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2],
+                                    respot=functools.partial(self._respot, drones, i, setup))
         d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
         self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
                                                 "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
+
+    def _respot(self, drones: list, i: int, setup: ld.LandingSetup, pos, spot) -> np.ndarray:
+        """Drone i's spot once its braking is over: the one chosen if the straight path from where it
+        stopped keeps clear of the gates and obstacles (ld.path_clear), else the nearest spot that
+        does (the braking ends where it ends, not always where stopping_point expected it)."""
+        d, here = drones[i], np.asarray(pos, np.float64)[:2]
+        if ld.path_clear(setup.track, here, np.asarray(spot, np.float64), setup.cfg.path_clearance_m):
+            return spot
+        others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
+        others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
+        paths = [(o.landing.start, o.landing.spot) for o in drones
+                 if o is not d and o.landing is not None and o.landing.start is not None]
+        try:
+            new = ld.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
+        except ValueError:
+            return spot
+        d.landing.start = here.copy()
+        d.landing_result["spot"] = [round(float(v), 3) for v in new]
+        self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
+                                                "text": f"braked at ({here[0]:.2f}, {here[1]:.2f}): landing at "
+                                                        f"({new[0]:.2f}, {new[1]:.2f}) instead"}))
+        return new
 
 
 def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) -> tuple | None:

@@ -236,17 +236,17 @@ class TickCore:
         return out
 
     def _end(self, decision, ests: list, t: float) -> tuple[str, str]:
-        """(end, winner) of this tick. With landing: once the race is decided every drone still
-        flying lands, and the loop ends when none is landing any more (a hard stop ends it at once)."""
+        """(end, winner) of this tick. With landing: once the race is decided every drone still flying
+        lands (SoftState.land_after_race: through its target gate first if it would brake into its
+        frame), and the loop ends when every drone is down or stopped (a hard stop ends it at once)."""
         end, winner = self.race_end(decision, t)
         if self.landing is None or decision.stop_all:
             return end, winner
         if self.race_over is None and end:
             self.race_over = (end, winner, t)
-            for i, d in enumerate(self.drones):
-                if not d.stopped and d.landing is None:
-                    self.soft.start_landing(self.drones, i, ests[i], t, "race_end", self.landing)
-        if any(d.landing is not None and not d.stopped for d in self.drones):
+        if self.race_over is not None:
+            self.soft.land_after_race(self.drones, ests, t, self.race_over[2], self.progress.target, self.landing)
+        if any(not d.stopped and (d.landing is not None or self.race_over is not None) for d in self.drones):
             return "", "draw"
         return (self.race_over[0], self.race_over[1]) if self.race_over is not None else (end, winner)
 

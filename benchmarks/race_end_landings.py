@@ -1,0 +1,64 @@
+"""Do the landings at a race's end keep clear of the gates? Lockstep races ended by the timeout at
+every moment of a window, each ending with both drones landing from wherever they were.
+
+    .venv/bin/python benchmarks/race_end_landings.py [--ego ds] [--opp ours] [--profile cf2x_paper]
+        [--from 1.0] [--to 9.0] [--step 0.03] [--json FILE]
+
+Per race end: whether a simulated drone crashed (the simulator's crash flag at the end: a gate frame,
+an obstacle, a floor impact), the safety events that acted and the pose outliers (a crash in the
+air drops the simulated drone to the floor in one step, which the flight loop sees as outliers).
+Prints the race ends with a crash or an event and a summary line; the JSON holds every race end.
+A race end is a landing from one place and speed: the window samples the places of a lap and more
+(the races run 3 laps; the timeout ends them before).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+
+from cfrace.flight.config import FlightConfig
+from cfrace.flight.dryrun import dry_run
+
+
+def race_end(ego: str, opp: str, profile: str, t_end: float) -> dict:
+    cfg = FlightConfig(track="lemniscate", ego=ego, opp=opp, profile=profile, laps=3, quiet=True, timeout_s=t_end)
+    r = dry_run(cfg, lockstep=True).to_json()
+    return {"t_end": t_end, "end": r["end"],
+            "crashed": [f["body"] for f in r["drones_final"] if f["crashed"]],
+            "acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"],
+            "outliers": sum(e["kind"] == "pose_outlier" for e in r["safety_events"]),
+            "landings": {d["name"]: (d["stop_kind"], (d["landing"] or {}).get("t_start")) for d in r["drones"]}}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ego", default="ds")
+    ap.add_argument("--opp", default="ours")
+    ap.add_argument("--profile", default="cf2x_paper")
+    ap.add_argument("--from", dest="t0", type=float, default=1.0)
+    ap.add_argument("--to", dest="t1", type=float, default=9.0)
+    ap.add_argument("--step", type=float, default=0.03)
+    ap.add_argument("--json", default="")
+    a = ap.parse_args()
+    rows = []
+    for t_end in np.round(np.arange(a.t0, a.t1 + 1e-9, a.step), 3):
+        row = race_end(a.ego, a.opp, a.profile, float(t_end))
+        rows.append(row)
+        if row["crashed"] or row["acted"] or row["outliers"]:
+            print(f"{row['t_end']:.2f} s: crashed {row['crashed']}, acted {row['acted']}, outliers {row['outliers']}",
+                  flush=True)
+    bad = [r for r in rows if r["crashed"] or r["acted"]]
+    print(f"{a.ego} vs {a.opp} on {a.profile}: {len(bad)} of {len(rows)} race ends ({a.t0:g}-{a.t1:g} s every "
+          f"{a.step:g} s) crashed a drone or stopped one")
+    if a.json:
+        doc = {"ego": a.ego, "opp": a.opp, "profile": a.profile, "from": a.t0, "to": a.t1, "step": a.step,
+               "bad": len(bad), "runs": len(rows), "rows": rows}
+        with open(a.json, "w") as f:
+            json.dump(doc, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
