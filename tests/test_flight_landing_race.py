@@ -54,6 +54,19 @@ def test_race_end_landings_keep_clear(ego, opp, profile, timeout_s):
     assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
 
 
+def test_a_drone_flying_through_after_the_race_scores_nothing_more():
+    """At 2.83 s both drones would brake into the gate ahead and fly through it before they land
+    (above); the result counts the gates and laps as the race ended, as the same race without landing."""
+    results = []
+    for landing in (True, False):
+        cfg = FlightConfig(track="lemniscate", ego="ds", opp="ours", profile="cf2x_paper", laps=3, quiet=True,
+                           timeout_s=2.83, landing=landing)
+        results.append(dry_run(cfg, lockstep=True).to_json())
+    tally = [[(d["name"], d["gates_passed"], d["laps"], d["lap_times"]) for d in r["drones"]] for r in results]
+    assert tally[0] == tally[1] and results[0]["end"] == results[1]["end"] == "timeout"
+    assert check_landings(results[0]) == {"ego": "race_end", "opp": "race_end"}
+
+
 def test_no_landing_keeps_the_old_stop(tmp_path):
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf2x_paper", laps=1, quiet=True,
                        timeout_s=30.0, landing=False)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -67,11 +67,7 @@ class TickOut:
     ests: list
     end: str = ""         #: "" while the race goes on
     winner: str = "draw"
-    commands: list = None  #: (drone index, "notify_stop" or a high-level command, args) to send, in order
-
-    def __post_init__(self):
-        if self.commands is None:
-            self.commands = []
+    commands: list = field(default_factory=list)  #: (drone index, "notify_stop" or a high-level command, args)
 
 
 class TickCore:
@@ -83,7 +79,7 @@ class TickCore:
                  hover_start: bool = False, consistency: bool = True):
         self.landing = landing   #: None: every stop cuts the motors (no landing)
         self.hover_start = hover_start   #: drones hover (high-level commander) until their first inference
-        self.race_over: tuple | None = None   #: (end, winner, t) once the race is decided; landings may follow
+        self.race_over: tuple | None = None   #: (end, winner, t, _tally()) once the race is decided
         self.soft = SoftState(len(drones))   #: what the soft failsafes and the landings remember
         self.drones, self.estimator, self.progress = drones, estimator, progress
         self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
@@ -150,9 +146,7 @@ class TickCore:
         if self.filters is not None:
             act = self.filters.filter_action(d, act, self.t)
         thrust, rates, counts = d.setpoint_map(act)
-        d.obs, d.action = obs, act
-        d.thrust_n = thrust
-        d.rates_dps = rates
+        d.obs, d.action, d.thrust_n, d.rates_dps = obs, act, thrust, rates
         # FLYING_MIN_COUNTS, not 0: a zero-thrust setpoint makes the firmware reset its rate
         # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
         # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
@@ -243,7 +237,7 @@ class TickCore:
         if self.landing is None or decision.stop_all:
             return end, winner
         if self.race_over is None and end:
-            self.race_over = (end, winner, t)
+            self.race_over = (end, winner, t, self._tally())
         if self.race_over is not None:
             self.soft.land_after_race(self.drones, ests, t, self.race_over[2], self.progress.target, self.landing)
         if any(not d.stopped and (d.landing is not None or self.race_over is not None) for d in self.drones):
@@ -377,19 +371,25 @@ class TickCore:
                 d.setpoint_map(np.asarray(d.policy(obs), dtype=np.float32).reshape(4))
 
     # ------------------------------------------------------------------ results
-    def race_state(self) -> dict:
+    def _tally(self) -> list[tuple[int, int, list]]:
+        """Per drone (gates passed, laps, lap times): as at the race's end once it is decided (a drone
+        flying on through the gate ahead before it lands scores nothing more), else as now."""
+        if self.race_over is not None:
+            return self.race_over[3]
         p = self.progress
-        return {d.body: {"drone": d.name, "gates_passed": int(p.gates_passed[i]), "laps": int(p.laps[i]),
-                         "target": int(p.target[i]), "lap_times": list(p.lap_times[i]), "stopped": d.stopped,
-                         "stop_kind": d.stop_kind} for i, d in enumerate(self.drones)}
+        return [(int(p.gates_passed[i]), int(p.laps[i]), list(p.lap_times[i])) for i in range(len(self.drones))]
+
+    def race_state(self) -> dict:
+        return {d.body: {"drone": d.name, "gates_passed": g, "laps": laps, "target": int(self.progress.target[i]),
+                         "lap_times": list(lt), "stopped": d.stopped, "stop_kind": d.stop_kind}
+                for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self._tally()))}
 
     def drone_results(self) -> list[dict]:
-        p = self.progress
         out = []
-        for i, d in enumerate(self.drones):
+        for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self._tally())):
             out.append({"name": d.name, "body": d.body, "policy": str(d.meta.get("path", "")),
-                        "method": d.meta.get("method"), "laps": int(p.laps[i]), "gates_passed": int(p.gates_passed[i]),
-                        "lap_times": [round(x, 3) for x in p.lap_times[i]], "stopped": d.stopped,
+                        "method": d.meta.get("method"), "laps": laps, "gates_passed": g,
+                        "lap_times": [round(x, 3) for x in lt], "stopped": d.stopped,
                         "stop_kind": d.stop_kind, "stop_t": None if d.stop_t != d.stop_t else round(d.stop_t, 3),
                         "landing": d.landing_result,
                         "speed_max": round(d.speed_max, 3),
