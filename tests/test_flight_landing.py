@@ -311,3 +311,37 @@ def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
     assert through.landing is not None and through.landing_result["reason"] == "race_end" and late.landing is None
     soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], setup)
     assert late.landing is not None                                       # not through in time: lands anyway
+
+
+def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_other():
+    """ds against ours on cf21bl, a lockstep race ended by the timeout at 1.18 s: both flew through
+    gate 2 side by side and braked to a stop 0.16 m apart, then flew go-tos to the spots chosen at
+    the landing's start across each other, touched for 0.3 s and crashed. The drone that hands over
+    first swaps spots with the one still braking when that makes their paths shorter together."""
+    from types import SimpleNamespace
+
+    from cfrace.drone import load_profile
+    from cfrace.flight.landing import LandingPilot, swap_pays
+    from cfrace.flight.softsafe import SoftState
+    setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf21bl"))
+    here, there = np.array([-2.15, 7.98, 0.6]), np.array([-2.25, 7.85, 0.57])
+    south, north = np.array([-2.0, 7.7]), np.array([-2.0, 8.5])
+    assert swap_pays(here[:2], south, there[:2], north) and not swap_pays(here[:2], north, there[:2], south)
+
+    def drones(other_phase):
+        out = []
+        for name, spot, pos in (("ego", north, there), ("opp", south, here)):
+            pilot = LandingPilot(setup.brake, spot.copy(), setup.ground_z, setup.cfg, pos=pos)
+            pilot.phase = other_phase if name == "ego" else pilot.phase
+            out.append(SimpleNamespace(name=name, body=name, stopped=False, frozen_pos=None, landing=pilot,
+                                       landing_result={"spot": list(spot)}))
+        return out
+
+    braking = drones("brake")
+    soft = SoftState(2)
+    assert np.allclose(soft._respot(braking, 1, setup, here, south), north)     # opp hands over first
+    assert np.allclose(braking[0].landing.spot, south) and braking[0].landing_result["spot"] == [-2.0, 7.7]
+    assert sum("spots swapped" in r[1]["text"] for r in soft.pending_records) == 2
+    flying = drones("approach")                  # the other one's go-to is under way: nothing to swap
+    assert np.allclose(SoftState(2)._respot(flying, 1, setup, here, south), south)
+    assert np.allclose(flying[0].landing.spot, north)

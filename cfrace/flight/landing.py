@@ -219,6 +219,14 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
     return spots
 
 
+def swap_pays(a, spot_a, b, spot_b, margin: float = 0.05) -> bool:
+    """Drones at a and b (2,) fly straight to spot_a and spot_b: are the two paths together at least
+    ``margin`` m shorter with the spots swapped? Then the swapped paths do not cross (crossing
+    straight paths can always be uncrossed into a shorter pair)."""
+    n = np.linalg.norm
+    return bool(n(a - spot_b) + n(b - spot_a) + margin < n(a - spot_a) + n(b - spot_b))
+
+
 def stopping_point(pos, vel, accel: float) -> np.ndarray:
     """Where (3,) a drone at pos with velocity vel stops braking at ``accel`` m/s^2 in a straight line."""
     pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
@@ -355,13 +363,14 @@ class LandingPilot:
     touchdown: Touchdown | None = None
     #: (pos (3,), spot (2,)) -> the spot to fly to from where the braking ended (None: the spot as chosen)
     respot: object = None
+    pos: np.ndarray | None = None     #: (3,) m, the newest estimate it was fed
 
     def step(self, t: float, pos, vel, quat) -> LandingStep:
         """The drone's estimate at loop time t -> what to do now."""
         if self.t_start is None:
             self.t_start = t
             self.touchdown = Touchdown(self.ground_z)
-        pos = np.asarray(pos, np.float64)
+        pos = self.pos = np.asarray(pos, np.float64)
         self.touchdown.update(t - self.t_start, pos, vel)
         if self.phase == BRAKE:
             speed = float(np.linalg.norm(vel))

@@ -145,7 +145,8 @@ class SoftState:
         stopped keeps clear of the gates and obstacles (ld.path_clear), else the nearest spot that
         does (the braking ends where it ends, not always where stopping_point expected it)."""
         d, here = drones[i], np.asarray(pos, np.float64)[:2]
-        if ld.path_clear(setup.track, here, np.asarray(spot, np.float64), setup.cfg.path_clearance_m):
+        spot = self._swap_with_braking(drones, i, setup, here, np.asarray(spot, np.float64))
+        if ld.path_clear(setup.track, here, spot, setup.cfg.path_clearance_m):
             return spot
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
         others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
@@ -161,6 +162,27 @@ class SoftState:
                                                 "text": f"braked at ({here[0]:.2f}, {here[1]:.2f}): landing at "
                                                         f"({new[0]:.2f}, {new[1]:.2f}) instead"}))
         return new
+
+    def _swap_with_braking(self, drones: list, i: int, setup: ld.LandingSetup, here, spot) -> np.ndarray:
+        """Drone i, about to fly from ``here`` to ``spot``, swaps spots with a drone still braking when
+        that makes their two paths shorter together (ld.swap_pays: then they do not cross) and both
+        new paths are clear. Two drones that brake side by side otherwise may fly their go-tos across
+        each other from a few centimetres apart. Returns drone i's spot."""
+        clear = functools.partial(ld.path_clear, setup.track, clearance=setup.cfg.path_clearance_m)
+        for j, o in enumerate(drones):
+            lp = o.landing
+            if j == i or o.stopped or lp is None or lp.phase != ld.BRAKE or lp.pos is None:
+                continue
+            there = lp.pos[:2]
+            if ld.swap_pays(here, spot, there, lp.spot) and clear(here, lp.spot) and clear(there, spot):
+                spot, lp.spot = np.asarray(lp.spot, np.float64), spot
+                for k, new in ((i, spot), (j, lp.spot)):
+                    drones[k].landing_result["spot"] = [round(float(v), 3) for v in new]
+                    self.pending_records.append(("/event", {
+                        "kind": "landing", "drone": drones[k].name, "body": drones[k].body,
+                        "text": f"spots swapped ({drones[i].name}, {o.name}): landing at ({new[0]:.2f}, {new[1]:.2f})"}))
+                break
+        return spot
 
 
 def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) -> tuple | None:
