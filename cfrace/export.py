@@ -187,6 +187,8 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
     meta.update(training_meta(ippo, int(meta0.get("num_agents", n)) >= 2))
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
         meta["obstacle_curriculum"] = int(meta0["obstacle_curriculum"])
+    if meta0.get("rewards"):  # reward weights other than the paper's (--reward)
+        meta["rewards"] = {str(k): float(v) for k, v in dict(meta0["rewards"]).items()}
     if meta0.get("init_layout"):  # warm-started from another observation layout (world position added)
         meta["init_layout"] = str(meta0["init_layout"])
     out = export_actor(model.actor, model.obs_norm, meta, path)

@@ -51,3 +51,32 @@ def test_std_cap_schedule_and_what_the_actor_samples_with():
     with pytest.raises(ConfigError):
         parse_overrides(["std_anneal_iters=0.5"])
     assert parse_overrides(["std_final=none"]) == (("std_final", None),)
+
+
+def test_reward_weights_from_the_command_line_change_the_reward_and_are_recorded(tmp_path):
+    """`cfrace train --reward gate=10` (ours from scratch: docs/training.md): a drone that passes a gate
+    while not leading earns 10 instead of the paper's 5; the weights reach the checkpoint, the
+    exported metadata and a resumed run; bad ones are refused with one line."""
+    from cfrace.env.rewards import RewardInputs, parse_reward_overrides, reward_scales, reward_terms
+    from cfrace.rl.train import resume_config
+
+    assert parse_reward_overrides(["gate=10", "crash=4"]) == (("gate", 10.0), ("crash", 4.0))
+    for bad in (["gate"], ["gate=x"], ["gate=nan"], ["nope=1"]):
+        with pytest.raises(ConfigError, match="--reward"):
+            parse_reward_overrides(bad)
+    one = torch.ones(1, 2)
+    x = RewardInputs(torch.zeros(1, 2, 4), one.long(), one.bool() & False, torch.tensor([[True, False]]),
+                     one.bool() & False, one.bool() & False, one * 0, one * 0, 0.02)
+    assert reward_terms("ours", x)["gate"].tolist() == [[10.0, 5.0]]
+    assert reward_terms("ours", x, reward_scales((("gate", 10.0),)))["gate"].tolist() == [[10.0, 10.0]]
+    small = (("actor_hidden", (16, 16)), ("critic_hidden", (16,)))
+    cfg = TrainConfig("ours", "lemniscate", num_envs=8, steps=8 * 16 * 2, device="cpu", threads=1, seed=3,
+                      out=str(tmp_path / "run"), overrides=small, rewards=(("gate", 10.0),))
+    res = train(cfg)
+    _, meta, _ = export_checkpoint(res.checkpoint, tmp_path / "p.onnx")
+    assert meta["rewards"] == {"gate": 10.0} == OnnxPolicy(tmp_path / "p.onnx").meta["rewards"]
+    assert resume_config(res.checkpoint, steps=8 * 16 * 3).rewards == (("gate", 10.0),)
+    _, plain, _ = export_checkpoint(train(TrainConfig("ss", "lemniscate", num_envs=8, steps=8 * 24, device="cpu",
+                                                      threads=1, seed=3, out=str(tmp_path / "plain"),
+                                                      overrides=small)).checkpoint, tmp_path / "q.onnx")
+    assert "rewards" not in plain

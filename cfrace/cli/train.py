@@ -93,6 +93,8 @@ def train_cmd(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     checkpoint_min: float = typer.Option(5.0, "--checkpoint-min", min=0.0, help="minutes between checkpoints"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
+    reward: Optional[list[str]] = typer.Option(None, "--reward", help="override a reward weight, e.g. --reward gate=10 "
+                                               "(cfrace.env.rewards.RewardScales; recorded in the policy)"),
     init_from: Optional[Path] = typer.Option(None, "--init-from",
                                              help="warm-start every actor from this checkpoint or run folder"),
     episode_s: float = typer.Option(30.0, "--episode-s", min=1.0, help="race length before the time-out (s)"),
@@ -141,13 +143,15 @@ def train_cmd(
     if resume is None and (method is None or track is None):   # before any heavy import
         raise ConfigError("--method and --track are required (or --resume DIR)")
     overrides = parse_overrides(set_ or [])
+    from cfrace.env.rewards import parse_reward_overrides
+    rewards = parse_reward_overrides(reward or [])
     from cfrace.rl.train import TrainConfig, resume_config, train
 
     if minutes is None and steps is None:
         minutes = 30.0
     if resume is not None:
-        if overrides:
-            raise ConfigError("--set cannot change the hyperparameters of a resumed run")
+        if overrides or rewards:
+            raise ConfigError("--set and --reward cannot change a resumed run")
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
                             out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
@@ -169,7 +173,7 @@ def train_cmd(
                           ground_start_prob=ground_start_prob, drones=drones,
                           update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
-                          obstacle_curriculum=obstacle_curriculum)
+                          obstacle_curriculum=obstacle_curriculum, rewards=rewards)
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     ippo = cfg.ippo()

@@ -22,11 +22,13 @@ term keeps its weight next to progress whatever N).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields, replace
 
 import torch
 
 from cfrace.contract import METHODS, MULTI_AGENT_METHODS
+from cfrace.errors import ConfigError
 
 MULTI_AGENT = {m: m in MULTI_AGENT_METHODS for m in METHODS}   #: method -> trained two drones per world
 
@@ -47,6 +49,31 @@ class RewardScales:
     overtake: float = 50.0
     ot_min: float = -5.0
     ot_max: float = 10.0
+
+
+def reward_scales(overrides=()) -> RewardScales:
+    """The paper's weights with ``overrides`` ((field, value), ...) over them (`cfrace train --reward`)."""
+    names = {f.name for f in fields(RewardScales)}
+    for key, _ in overrides:
+        if key not in names:
+            raise ConfigError(f"--reward {key}: unknown reward weight (one of {', '.join(sorted(names))})")
+    return replace(RewardScales(), **{k: float(v) for k, v in overrides})
+
+
+def parse_reward_overrides(items) -> tuple[tuple[str, float], ...]:
+    """``KEY=NUMBER`` strings (`cfrace train --reward`) -> ((key, value), ...), checked."""
+    out = []
+    for item in items:
+        key, sep, text = item.partition("=")
+        try:
+            value = float(text) if sep else math.nan
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise ConfigError(f"--reward {item!r}: expected KEY=NUMBER, e.g. --reward gate=10")
+        out.append((key.strip(), value))
+    reward_scales(out)
+    return tuple(out)
 
 
 @dataclass

@@ -8,13 +8,12 @@ out/training_curve.png   episode return per drone against env steps
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import signal
 import threading
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Callable
 
@@ -68,6 +67,7 @@ class TrainConfig:
     drones: int | None = None       #: drones per world (multi-agent methods); None = 2
     opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
     obstacle_curriculum: int = 0    #: iterations over which the obstacles grow to full size (0: full from the start)
+    rewards: tuple = ()             #: ((RewardScales field, value), ...) over the paper's reward weights (--reward)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -111,7 +111,7 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     if cfg.method not in METHODS:
         raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
     from cfrace.env.race_env import RaceEnv
-
+    from cfrace.env.rewards import reward_scales
     if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
         raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
                           f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
@@ -121,12 +121,11 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         if not 0.0 <= cfg.ground_start_prob <= 1.0:
             raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
-        track = dataclasses.replace(track, spawn=dataclasses.replace(track.spawn,
-                                                                     ground_start_prob=cfg.ground_start_prob))
+        track = replace(track, spawn=replace(track.spawn, ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
-                  opponent_rule=cfg.opponent_rule)
+                  opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards))
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -140,7 +139,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
-            **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {})}
+            **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {}),
+            **({"rewards": {str(k): float(v) for k, v in cfg.rewards}} if cfg.rewards else {})}
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:
@@ -152,7 +152,7 @@ def resume_config(resume: str | Path, **given) -> TrainConfig:
             raise ConfigError(f"--resume {resume}: {key} is {saved[key]!r} in the checkpoint, not {given[key]!r}")
     names = {f.name for f in fields(TrainConfig)}
     keep = {k: v for k, v in saved.items() if k in names}
-    keep["overrides"] = tuple(tuple(p) for p in keep.get("overrides", ()))
+    keep.update({k: tuple(tuple(p) for p in keep.get(k, ())) for k in ("overrides", "rewards")})
     for key in ("minutes", "steps", "device", "threads", "checkpoint_every_s"):
         keep[key] = given.get(key)
     if given.get("precision") is not None:  # how the update computes, not what the task is
