@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from cfrace.flight.landing import (BrakeController, LandingConfig, LandingSetup, Touchdown, candidate_spots,
-                                   choose_landing_spots,
-                                   gate_footprints, stopping_point, _obstacle_dist, _seg_point_dist)
+from cfrace.flight.landing import BrakeController, LandingSetup, Touchdown, stopping_point
+from cfrace.flight.spots import (LandingConfig, candidate_spots, choose_landing_spots, gate_footprints, _obstacle_dist,
+                                 _seg_point_dist)
 from cfrace.flight.link import packet_values
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
@@ -46,7 +46,7 @@ def test_a_spot_is_not_reached_through_a_gate_or_an_obstacle():
     stop = np.array([1.5, 3.7])
     spot = choose_landing_spots(track, [stop])[0]
     g0, g1 = gate_footprints(track)[0]
-    from cfrace.flight.landing import _segments_cross
+    from cfrace.flight.spots import _segments_cross
     assert not _segments_cross(stop, spot, g0, g1)
 
 
@@ -165,13 +165,7 @@ def test_landing_paths_of_drones_that_land_together_neither_cross_nor_touch():
     the drones that stay, else merely free); the choice is bounded in time (it runs in the tick)."""
     import time
 
-    from cfrace.flight.landing import _seg_point_dist, _segments_cross
-
-    def seg_dist(p1, p2, q1, q2) -> float:
-        if _segments_cross(p1, p2, q1, q2):
-            return 0.0
-        return float(min(_seg_point_dist(q1, q2, np.stack([p1, p2])).min(),
-                         _seg_point_dist(p1, p2, np.stack([q1, q2])).min()))
+    from cfrace.flight.spots import segment_gap as seg_dist
 
     def apart(stops, spots) -> list[bool]:
         return [seg_dist(stops[i], spots[i], stops[j], spots[j])
@@ -204,7 +198,7 @@ def test_eight_drones_landing_at_once_on_a_large_arena_fit_in_a_tick(monkeypatch
     first and gives the spots a search of the whole arena gives, fast enough for one tick (its CPU time)."""
     import time
 
-    import cfrace.flight.landing as ld
+    import cfrace.flight.spots as ld
 
     track, cfg = load_track("complex"), LandingConfig()
     rng = np.random.default_rng(3)
@@ -277,7 +271,7 @@ def test_a_path_along_a_gate_frame_is_not_clear():
     """A drone that braked to a stop 0.1 m in front of gate 5's plane (a lockstep race ended by the
     timeout at 3.34 s): its go-to along the frame touched the frame's side bar. Near a gate, a clear
     path leads away from it."""
-    from cfrace.flight.landing import path_clear
+    from cfrace.flight.spots import path_clear
     track = load_track("lemniscate")
     here = np.array([-2.01, 3.61])
     assert not path_clear(track, here, np.array([-0.7, 3.7]), LandingConfig().path_clearance_m)
@@ -321,7 +315,8 @@ def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_o
     from types import SimpleNamespace
 
     from cfrace.drone import load_profile
-    from cfrace.flight.landing import LandingPilot, swap_pays
+    from cfrace.flight.landing import LandingPilot
+    from cfrace.flight.spots import swap_pays
     from cfrace.flight.softsafe import SoftState
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf21bl"))
     here, there = np.array([-2.15, 7.98, 0.6]), np.array([-2.25, 7.85, 0.57])
@@ -345,3 +340,47 @@ def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_o
     flying = drones("approach")                  # the other one's go-to is under way: nothing to swap
     assert np.allclose(SoftState(2)._respot(flying, 1, setup, here, south), south)
     assert np.allclose(flying[0].landing.spot, north)
+
+
+def test_a_braked_drone_holds_while_a_lower_one_lands_along_its_path():
+    """ours against ds on cf21bl, a lockstep race ended by the timeout at 4.42 s: both braked to a
+    stop 0.1 m apart seen from above, ego 0.38 m over opp, and flew their go-tos west along the same
+    line; ego, faster and descending, came down on opp (0.15 m) and both crashed. A braked drone now
+    holds where it is while its path runs within path_separation_m of the way ahead of a drone that
+    goes first (one flying its go-to, or one braking at a lower height), and goes once that way is
+    clear; the lower drone does not wait for the higher one, and a hold ends after hold_max_s."""
+    from types import SimpleNamespace
+
+    from cfrace.drone import load_profile
+    from cfrace.flight.landing import APPROACH, HOLD, LandingPilot
+    from cfrace.flight.softsafe import SoftState
+    setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf21bl"))
+    high, low = np.array([0.70, 2.97, 0.69]), np.array([0.75, 2.87, 0.31])
+    west, far_west = np.array([0.0, 2.8]), np.array([-0.8, 2.7])
+    drones, soft = [], SoftState(2)
+    for name, spot, pos in (("ego", west, high), ("opp", far_west, low)):
+        pilot = LandingPilot(BrakeController(**{**setup.brake.__dict__, "hold_z": None}), spot.copy(), setup.ground_z,
+                             setup.cfg)
+        drones.append(SimpleNamespace(name=name, body=name, stopped=False, frozen_pos=None, landing=pilot,
+                                      landing_result={"spot": list(spot)}))
+    hover = np.array([1.0, 0.0, 0.0, 0.0])
+    for i, d in enumerate(drones):                  # both still braking (their hold heights are set)
+        d.landing.brake.hold_z = float((high, low)[i][2])
+        d.landing.may_go = lambda t, i=i: soft._may_go(drones, i, setup, t)
+        d.landing.step(0.0, (high, low)[i], [1.0, 0.0, 0.0], hover)
+    step = drones[0].landing.step(0.5, high, [0.0, 0.0, 0.0], hover)     # ego braked: opp is in its way
+    assert drones[0].landing.phase == HOLD and step.rates_dps is not None and not step.high_level
+    assert sum("until opp is out of its way" in r[1]["text"] for r in soft.pending_records) == 1
+    step = drones[1].landing.step(0.5, low, [0.0, 0.0, 0.0], hover)      # opp braked: it goes first
+    assert drones[1].landing.phase == APPROACH and step.high_level[0][0] == "go_to"
+    drones[0].landing.step(1.0, high, [0.0, 0.0, 0.0], hover)
+    assert drones[0].landing.phase == HOLD                                # opp still on ego's line
+    drones[1].landing.pos = np.array([-0.45, 2.74, 0.25])                 # opp 0.45 m past ego's spot
+    step = drones[0].landing.step(1.5, high, [0.0, 0.0, 0.0], hover)
+    assert drones[0].landing.phase == APPROACH and step.high_level[0][0] == "go_to" and step.notify_stop
+    stuck = LandingPilot(BrakeController(**setup.brake.__dict__), west.copy(), setup.ground_z, setup.cfg,
+                         may_go=lambda t: False)                          # never clear: goes after hold_max_s
+    stuck.step(0.0, high, [0.0, 0.0, 0.0], hover)
+    assert stuck.phase == HOLD
+    stuck.step(setup.cfg.hold_max_s + 0.01, high, [0.0, 0.0, 0.0], hover)
+    assert stuck.phase == APPROACH

@@ -67,7 +67,9 @@ def print_result(result: dict, con: Console = out) -> None:
         if land is None:
             continue
         how = (f"down {land['t']:.2f} s after it began, {abs(land['vz_mps']):.2f} m/s at "
-               f"({land['place'][0]:.2f}, {land['place'][1]:.2f})" if land.get("down") and land.get("t") is not None
+               f"({land['place'][0]:.2f}, {land['place'][1]:.2f})"
+               + (f", after holding {land['held_s']:.2f} s for another drone" if land.get("held_s") else "")
+               if land.get("down") and land.get("t") is not None
                else f"not down ({land.get('cut') or 'landing timeout'})")
         con.print(f"landing {name} ({land['reason']}): spot ({land['spot'][0]:.2f}, {land['spot'][1]:.2f}), {how}")
     for d in result.get("drones_final") or []:

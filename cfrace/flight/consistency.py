@@ -30,7 +30,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY
 from cfrace.errors import MocapError
-from cfrace.flight.landing import BRAKE
+from cfrace.flight.landing import BRAKE, HOLD
 
 WINDOW_S = 0.1           #: s, the window the residuals average over
 LAG_S = 0.02             #: s, commanded rates show in the poses this much later (rate loop + rotors)
@@ -99,10 +99,10 @@ class ConsistencyMonitor:
 
     def update_all(self, drones, ests) -> list[str | None]:
         """update() for every drone of the tick (cfrace.flight.loopstate.Drone): judged while it flies
-        on body rates, racing or braking before a landing (the high-level commander's moves are not)."""
-        return [self.update(i, e, d.rates_dps, d.thrust_n,
-                            not d.stopped and (d.action is not None if d.landing is None else d.landing.phase == BRAKE))
-                for i, (d, e) in enumerate(zip(drones, ests))]
+        on body rates, racing or braking (and holding) before a landing (the high-level commander's moves are not)."""
+        on_rates = [d.action is not None if d.landing is None else d.landing.phase in (BRAKE, HOLD) for d in drones]
+        return [self.update(i, e, d.rates_dps, d.thrust_n, not d.stopped and r)
+                for i, (d, e, r) in enumerate(zip(drones, ests, on_rates))]
 
     def update(self, i: int, est, rates_dps, thrust_n: float, flying: bool) -> str | None:
         """Add drone i's newest estimate and the command sent with it; a detail text when the poses

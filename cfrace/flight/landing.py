@@ -1,21 +1,17 @@
-"""Landing instead of dropping: where each drone lands, how it brakes before the firmware takes
-over, and what its touchdown was.
+"""Landing instead of dropping: how a drone brakes before the firmware takes over, when it may fly
+to its spot, and what its touchdown was. Where it lands: cfrace.flight.spots.
 
-* ``choose_landing_spots``: per drone a spot on the floor inside the arena, clear of the gates'
-  frames, the obstacles and the other drones (their spots and where they are), as near as possible
-  to where the drone will have stopped, reachable in a straight line that crosses no gate and no
-  obstacle. Greedy in drone order; each spot then blocks the next drones.
 * ``BrakeController``: rate-mode braking from the mocap estimate (the firmware's planner starts its
   moves from rest, so we bring the drone to rest first): the wanted acceleration is
   ``-k_v v`` (at most ``accel_max``) plus an altitude hold, the thrust vector ``m (a + g)`` gives the
   collective thrust and the body z axis it needs, body rates turn the drone towards it.
+* ``LandingPilot``: brake -> hold while another drone is in the way -> the firmware's go-to and land.
 * ``Touchdown``: from the estimates, the moment a drone reaches the floor, where, and its vertical
   speed then.
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass, field
 
@@ -23,208 +19,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY
 from cfrace.flight.estimator import quat_to_rot
-
-
-@dataclass(frozen=True)
-class LandingConfig:
-    """Limits of the landing manoeuvre (m, m/s, s)."""
-
-    wall_margin_m: float = 0.5        #: spots this far inside the arena's walls
-    gate_clearance_m: float = 0.6     #: from a gate frame's footprint on the floor
-    obstacle_clearance_m: float = 0.5  #: from an obstacle's box
-    drone_separation_m: float = 0.8   #: between spots, and from other drones
-    grid_m: float = 0.1               #: spacing of the candidate spots
-    path_clearance_m: float = 0.15    #: the straight path to the spot stays this far from obstacles and gates
-    path_separation_m: float = 0.3    #: ... and this far from the other drones' paths and from drones that stay
-    max_tries: int = 100              #: nearest free spots whose path is checked; none clear: land where it stops
-    approach_height_m: float = 0.25   #: height of the go-to to the spot, before the vertical landing
-    approach_speed_mps: float = 1.0   #: mean speed of the go-to (its duration: distance / speed, >= 1 s)
-    descent_s: float = 1.5            #: duration of the final land from approach_height_m ...
-    land_height_m: float = -0.05      #: ... to this height: below the floor, so that the drone is down
-                                      #: (not a few cm up, lagging the plan) when the planner turns the motors off
-    brake_done_mps: float = 0.3       #: braking ends below this speed ...
-    brake_max_s: float = 1.5          #: ... or after this long
-
-
-def _seg_point_dist(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Distance of points p (K, 2) to the segment a-b (2,)."""
-    d = b - a
-    t = np.clip(((p - a) @ d) / max(float(d @ d), 1e-12), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * d), axis=1)
-
-
-def _segments_cross(p1, p2, q1, q2) -> bool:
-    """Do the 2D segments p1-p2 and q1-q2 intersect (touching counts)?"""
-    def orient(a, b, c):
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
-    d1, d2 = orient(q1, q2, p1), orient(q1, q2, p2)
-    d3, d4 = orient(p1, p2, q1), orient(p1, p2, q2)
-    return d1 * d2 <= 0.0 and d3 * d4 <= 0.0
-
-
-def gate_footprints(track) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each gate's frame seen from above: the segment (2,) - (2,) of its outer width."""
-    out = []
-    half = track.gate.outer / 2.0
-    for x, y, _, yaw in track.gates:
-        lateral = np.array([-math.sin(yaw), math.cos(yaw)])
-        c = np.array([x, y])
-        out.append((c - half * lateral, c + half * lateral))
-    return out
-
-
-def _obstacle_dist(track, pts: np.ndarray) -> np.ndarray:
-    """Distance of points (K, 2) to the nearest obstacle box footprint (inf without obstacles)."""
-    best = np.full(len(pts), np.inf)
-    for o in track.obstacles:
-        c, s = math.cos(o.yaw), math.sin(o.yaw)
-        rel = pts - np.asarray(o.center, np.float64)
-        local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1]], axis=1)
-        outside = np.maximum(np.abs(local) - np.array(o.size[:2]) / 2.0, 0.0)
-        best = np.minimum(best, np.linalg.norm(outside, axis=1))
-    return best
-
-
-def _to_segments(start: np.ndarray, ends: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Distance (K,) of the point p (2,) to each segment start-ends[k] (ends (K, 2))."""
-    d = ends - start
-    t = np.clip(((p - start) @ d.T) / np.maximum(np.einsum("ij,ij->i", d, d), 1e-12), 0.0, 1.0)
-    return np.linalg.norm(start + t[:, None] * d - p, axis=1)
-
-
-def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float) -> np.ndarray:
-    """(K,) bool: the straight path start-ends[k] keeps ``separation`` from every path (a, b) of
-    ``paths`` (other drones flying to their spots at the same time) and from the points ``still``,
-    or, where a drone starts nearer than that, no less than at the start (it is where it is)."""
-    ok = np.ones(len(ends), bool)
-    for q in still:
-        q = np.asarray(q, np.float64)[:2]
-        ok &= _to_segments(start, ends, q) >= min(separation, float(np.linalg.norm(start - q))) - 1e-9
-    for a, b in paths:
-        def orient(p, q, r):   # (K,) or scalar: sign of the turn p -> q -> r
-            return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-        cross = ((orient(a, b, start) * orient(a, b, ends) <= 0)
-                 & (orient(start, ends, a) * orient(start, ends, b) <= 0))
-        at_start = float(_seg_point_dist(a, b, start[None])[0])
-        near = np.minimum.reduce([_to_segments(start, ends, a), _to_segments(start, ends, b),
-                                  _seg_point_dist(a, b, ends), np.full(len(ends), at_start)])
-        ok &= ~cross & (near >= min(separation, at_start) - 1e-9)
-    return ok
-
-
-def path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> bool:
-    """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from the gate
-    footprints and the obstacles (points of the path already closer at the start do not count: the
-    drone is where it is; near a gate the path must lead away from it, not along its frame)."""
-    footprints = gate_footprints(track)
-    for a, b in footprints:
-        if _segments_cross(start, end, a, b) and _seg_point_dist(a, b, start[None])[0] > 1e-6:
-            return False
-    step = 0.05
-    n = max(2, int(np.linalg.norm(end - start) / step) + 1)
-    pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
-    gd = np.minimum.reduce([_seg_point_dist(a, b, pts) for a, b in footprints]) if footprints else np.full(n, np.inf)
-    leaving = np.diff(gd, prepend=-np.inf) >= 0.5 * float(np.linalg.norm(pts[1] - pts[0]))   # at 30 deg or more
-    if not np.all((gd >= clearance) | leaving):
-        return False
-    if not track.obstacles:
-        return True
-    d = _obstacle_dist(track, pts)
-    start_d = d[0]
-    return bool(np.all((d >= clearance) | (d >= start_d - 1e-9)))
-
-
-@functools.lru_cache(maxsize=8)
-def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
-    """(K, 2) floor points inside the arena that are clear of gates and obstacles (computed once per
-    track and config: a read-only array)."""
-    a = track.arena
-    xs = np.arange(a.x[0] + cfg.wall_margin_m, a.x[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
-    ys = np.arange(a.y[0] + cfg.wall_margin_m, a.y[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
-    pts = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
-    ok = _obstacle_dist(track, pts) >= cfg.obstacle_clearance_m
-    for g0, g1 in gate_footprints(track):
-        ok &= _seg_point_dist(g0, g1, pts) >= cfg.gate_clearance_m
-    out = pts[ok]
-    out.flags.writeable = False
-    return out
-
-
-#: candidate spots a drone's choice looks at first, the nearest to where it stops (the whole arena
-#: only when none of them will do): the choice runs in the tick, and on a large arena (the complex
-#: track: 15 k candidates) checking every candidate against every other drone's path made the tick in
-#: which eight drones start landing overrun the loop (tests/test_flight_landing.py, docs/flight.md)
-NEAR_CANDIDATES = 1500
-
-
-def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
-    """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
-    allowed ones: this runs in the tick), or None."""
-    near = order[ok[order]][:cfg.max_tries]
-    return next((cand[k] for k in near if path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
-
-
-def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
-    """Landing spots (N, 2) for drones expected to stop at ``stops`` (N, 2 or 3) m; ``others`` (M, 2 or 3):
-    drones that will not move (e.g. already down) and must be kept clear of; ``paths``: (start, spot)
-    of drones flying to their spots already, whose paths the new ones must neither cross nor come
-    within path_separation_m of. ValueError if the arena has no free spot left for some drone."""
-    stops = np.asarray(stops, np.float64).reshape(-1, np.shape(stops)[-1])[:, :2]
-    blocked = [np.asarray(o, np.float64)[:2] for o in others]
-    everything = candidate_spots(track, cfg)
-    still = list(blocked)
-    spots = np.zeros((len(stops), 2))
-    paths = [(np.asarray(a, np.float64)[:2], np.asarray(b, np.float64)[:2]) for a, b in paths]   # flown already
-    for i, stop in enumerate(stops):
-        dist = np.linalg.norm(everything - stop, axis=1)
-        near = np.argpartition(dist, NEAR_CANDIDATES)[:NEAR_CANDIDATES] if len(dist) > NEAR_CANDIDATES else None
-        pending = blocked + [stops[j] for j in range(i + 1, len(stops))]
-        @functools.cache
-        def candidates(idx: int) -> tuple:
-            """(candidates, nearest first, clear of the pending drones): the nearest ones (0) or all (1)."""
-            sel = near if idx == 0 and near is not None else slice(None)
-            cand = everything[sel]
-            ok = np.ones(len(cand), bool)
-            for b in pending:
-                ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
-            return cand, np.argsort(dist[sel]), ok
-
-        def nearest(rule) -> np.ndarray | None:
-            """The nearest allowed candidate under ``rule`` (cand -> extra mask): among the nearest
-            candidates first, then (none of them allowed) the whole arena: the same spot either way."""
-            for idx in ((0, 1) if near is not None else (1,)):
-                cand, order, clear = candidates(idx)
-                ok = clear & rule(cand)
-                found = _nearest(track, stop, cand, order, ok, cfg)
-                if found is not None or np.count_nonzero(ok) >= cfg.max_tries:
-                    return found          # the max_tries nearest allowed ones overall were all looked at
-            return None
-
-        # a spot whose path keeps clear of the other drones' paths; else straight down where the drone
-        # stops if that is clear of them; else clear of the drones that stay; else merely free
-        chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m))
-        sep = cfg.path_separation_m
-        if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \
-                and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still):
-            chosen = stop.copy()
-        for rule in (lambda cand: _apart(stop, cand, (), still, cfg.path_separation_m),
-                     lambda cand: np.ones(len(cand), bool)):
-            if chosen is None:
-                chosen = nearest(rule)
-        if chosen is None:
-            raise ValueError(f"no free landing spot in the arena for drone {i}")
-        spots[i] = chosen
-        blocked.append(chosen)
-        paths.append((stop, chosen))
-    return spots
-
-
-def swap_pays(a, spot_a, b, spot_b, margin: float = 0.05) -> bool:
-    """Drones at a and b (2,) fly straight to spot_a and spot_b: are the two paths together at least
-    ``margin`` m shorter with the spots swapped? Then the swapped paths do not cross (crossing
-    straight paths can always be uncrossed into a shorter pair)."""
-    n = np.linalg.norm
-    return bool(n(a - spot_b) + n(b - spot_a) + margin < n(a - spot_a) + n(b - spot_b))
+from cfrace.flight.spots import LandingConfig, candidate_spots
 
 
 def stopping_point(pos, vel, accel: float) -> np.ndarray:
@@ -302,7 +97,7 @@ class Touchdown:
                 "vz_mps": None if self.t is None else round(self.vz, 4)}
 
 
-BRAKE, APPROACH, DESCEND, DOWN = "brake", "approach", "descend", "down"
+BRAKE, HOLD, APPROACH, DESCEND, DOWN = "brake", "hold", "approach", "descend", "down"
 
 
 @dataclass(frozen=True)
@@ -348,9 +143,10 @@ class LandingStep:
 
 @dataclass
 class LandingPilot:
-    """One drone's landing: brake (rate setpoints from the estimate) -> go-to its spot at
-    ``approach_height_m`` and land (high-level commander; the hand-over is the go-to first, then
-    notify-stop, so the firmware's plan replaces our setpoints without a gap) -> down."""
+    """One drone's landing: brake (rate setpoints from the estimate) -> hold there while ``may_go``
+    says another drone is in the way (at most hold_max_s) -> go-to its spot at ``approach_height_m``
+    and land (high-level commander; the hand-over is the go-to first, then notify-stop, so the
+    firmware's plan replaces our setpoints without a gap) -> down."""
 
     brake: BrakeController
     spot: np.ndarray                  #: (2,) m
@@ -363,6 +159,9 @@ class LandingPilot:
     touchdown: Touchdown | None = None
     #: (pos (3,), spot (2,)) -> the spot to fly to from where the braking ended (None: the spot as chosen)
     respot: object = None
+    #: (t) -> may the go-to from where it is to its spot start now? (None: at once)
+    may_go: object = None
+    held_s: float = 0.0               #: s it held before its go-to
     pos: np.ndarray | None = None     #: (3,) m, the newest estimate it was fed
 
     def step(self, t: float, pos, vel, quat) -> LandingStep:
@@ -379,9 +178,15 @@ class LandingPilot:
                 return LandingStep(rates_dps=rates, thrust_n=thrust)
             if self.respot is not None:      # chosen from where it was expected to stop: still reachable?
                 self.spot = np.asarray(self.respot(pos, self.spot), np.float64)
+            self.phase, self.t_phase_end = HOLD, t + self.cfg.hold_max_s
+        if self.phase == HOLD:
+            if self.may_go is not None and t < self.t_phase_end and not self.may_go(t):
+                rates, thrust = self.brake.command(pos, vel, quat)      # hover where it braked
+                return LandingStep(rates_dps=rates, thrust_n=thrust)
+            self.held_s = t - (self.t_phase_end - self.cfg.hold_max_s)
             w, x, y, z = (float(v) for v in quat)
             yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-            duration = max(1.0, float(np.linalg.norm(self.spot - pos[:2])) / self.cfg.approach_speed_mps)
+            duration = self.goto_s(pos)
             self.phase, self.t_phase_end = APPROACH, t + duration
             goal = {"x": float(self.spot[0]), "y": float(self.spot[1]), "z": self.cfg.approach_height_m,
                     "yaw": yaw, "duration": duration}
@@ -394,3 +199,25 @@ class LandingPilot:
             self.phase = DOWN
             return LandingStep(done=True)
         return LandingStep(done=self.phase == DOWN)
+
+    def goto_s(self, pos) -> float:
+        """s, the duration of the go-to from pos (3,) to the spot (about approach_speed_mps, at least 1 s)."""
+        return max(1.0, float(np.linalg.norm(self.spot - np.asarray(pos)[:2])) / self.cfg.approach_speed_mps)
+
+    def left_s(self, t: float) -> float:
+        """s from loop time t to the end of the drone's move to its spot (its go-to or its descent;
+        braking or holding: the go-to as if it started at t). A drone behind its plan flies the rest
+        of its go-to no faster than planned."""
+        if self.phase == DESCEND:
+            return max(self.t_phase_end - t, 0.0)
+        if self.phase == APPROACH:
+            return max(self.t_phase_end - t, self.goto_s(self.pos))
+        return 0.0 if self.phase == DOWN else self.goto_s(self.pos)
+
+    def plan(self, t: float, taus: np.ndarray) -> np.ndarray:
+        """Where (K, 3) the drone is expected at loop times t + taus (its newest estimate at t), the
+        firmware's moves taken as straight lines at constant speed (left_s to the end)."""
+        goal = np.array([*self.spot, self.ground_z if self.phase == DESCEND else self.cfg.approach_height_m])
+        goal = self.pos if self.phase == DOWN else goal
+        f = np.clip(np.asarray(taus, np.float64) / max(self.left_s(t), 1e-3), 0.0, 1.0)[:, None]
+        return self.pos + f * (goal - self.pos)

@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfrace.errors import FlightError
-from cfrace.flight.landing import LandingConfig, Touchdown
+from cfrace.flight.landing import Touchdown
+from cfrace.flight.spots import LandingConfig
 from cfrace.track import ground_start_positions
 
 

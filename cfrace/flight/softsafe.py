@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
-from cfrace.flight import landing as ld
+from cfrace.flight import landing as ld, spots
 from cfrace.sim.gates import to_gate_frame
 
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
@@ -76,6 +76,7 @@ class SoftState:
         self.vbat_low_since: list = [None] * n
         self.pending_records: list = []           # log records made outside the tick's _records
         self.gate_at_end: dict = {}               # per drone: its target gate when the race ended
+        self.holding: set = set()                 # drones that have held for another one's path
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
         """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S, or began to be rejected
@@ -130,30 +131,31 @@ class SoftState:
         paths = [(o.landing.start, o.landing.spot) for o in drones if o.landing is not None and o.landing.start is not None]
         stop = ld.stopping_point(est.pos, est.vel, setup.brake.accel_max)
         try:
-            spot = ld.choose_landing_spots(setup.track, [stop], others, setup.cfg, paths)[0]
+            spot = spots.choose_landing_spots(setup.track, [stop], others, setup.cfg, paths)[0]
         except ValueError:
             spot = np.asarray(est.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
         brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
         d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2],
-                                    respot=functools.partial(self._respot, drones, i, setup))
+                                    respot=functools.partial(self._respot, drones, i, setup),
+                                    may_go=functools.partial(self._may_go, drones, i, setup))
         d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
         self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
                                                 "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
 
     def _respot(self, drones: list, i: int, setup: ld.LandingSetup, pos, spot) -> np.ndarray:
         """Drone i's spot once its braking is over: the one chosen if the straight path from where it
-        stopped keeps clear of the gates and obstacles (ld.path_clear), else the nearest spot that
+        stopped keeps clear of the gates and obstacles (spots.path_clear), else the nearest spot that
         does (the braking ends where it ends, not always where stopping_point expected it)."""
         d, here = drones[i], np.asarray(pos, np.float64)[:2]
         spot = self._swap_with_braking(drones, i, setup, here, np.asarray(spot, np.float64))
-        if ld.path_clear(setup.track, here, spot, setup.cfg.path_clearance_m):
+        if spots.path_clear(setup.track, here, spot, setup.cfg.path_clearance_m):
             return spot
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
         others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
         paths = [(o.landing.start, o.landing.spot) for o in drones
                  if o is not d and o.landing is not None and o.landing.start is not None]
         try:
-            new = ld.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
+            new = spots.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
         except ValueError:
             return spot
         d.landing.start = here.copy()
@@ -165,16 +167,16 @@ class SoftState:
 
     def _swap_with_braking(self, drones: list, i: int, setup: ld.LandingSetup, here, spot) -> np.ndarray:
         """Drone i, about to fly from ``here`` to ``spot``, swaps spots with a drone still braking when
-        that makes their two paths shorter together (ld.swap_pays: then they do not cross) and both
+        that makes their two paths shorter together (spots.swap_pays: then they do not cross) and both
         new paths are clear. Two drones that brake side by side otherwise may fly their go-tos across
         each other from a few centimetres apart. Returns drone i's spot."""
-        clear = functools.partial(ld.path_clear, setup.track, clearance=setup.cfg.path_clearance_m)
+        clear = functools.partial(spots.path_clear, setup.track, clearance=setup.cfg.path_clearance_m)
         for j, o in enumerate(drones):
             lp = o.landing
-            if j == i or o.stopped or lp is None or lp.phase != ld.BRAKE or lp.pos is None:
+            if j == i or o.stopped or lp is None or lp.phase not in (ld.BRAKE, ld.HOLD) or lp.pos is None:
                 continue
             there = lp.pos[:2]
-            if ld.swap_pays(here, spot, there, lp.spot) and clear(here, lp.spot) and clear(there, spot):
+            if spots.swap_pays(here, spot, there, lp.spot) and clear(here, lp.spot) and clear(there, spot):
                 spot, lp.spot = np.asarray(lp.spot, np.float64), spot
                 for k, new in ((i, spot), (j, lp.spot)):
                     drones[k].landing_result["spot"] = [round(float(v), 3) for v in new]
@@ -183,6 +185,34 @@ class SoftState:
                         "text": f"spots swapped ({drones[i].name}, {o.name}): landing at ({new[0]:.2f}, {new[1]:.2f})"}))
                 break
         return spot
+
+
+    def _may_go(self, drones: list, i: int, setup: ld.LandingSetup, t: float) -> bool:
+        """May drone i, braked, start its go-to at loop time t? Not while, flown at the same time as
+        planned (LandingPilot.plan), it would come nearer than path_separation_m (or than the two are
+        now, if nearer) to a landing drone that goes first: one flying its go-to or landing, or one
+        braking or holding at a lower height (its brake's hold height; ties: the lower index). Two
+        drones that stop close together otherwise fly their go-tos side by side, or one descends onto
+        the other; two that move apart both go."""
+        me = drones[i].landing
+        key, sep = (me.brake.hold_z or math.inf, i), setup.cfg.path_separation_m
+        for j, o in enumerate(drones):
+            lp = o.landing
+            if j == i or o.stopped or lp is None or lp.phase == ld.DOWN or lp.pos is None:
+                continue
+            if lp.phase in (ld.BRAKE, ld.HOLD) and (lp.brake.hold_z or math.inf, j) > key:
+                continue                                    # it waits for drone i
+            taus = np.linspace(0.0, max(me.left_s(t), lp.left_s(t), 0.1), 64)
+            closest = float(np.min(np.linalg.norm(me.plan(t, taus) - lp.plan(t, taus), axis=1)))
+            if closest < min(sep, float(np.linalg.norm(me.pos - lp.pos))) - 1e-6:
+                if i not in self.holding:
+                    self.holding.add(i)
+                    here = me.pos
+                    self.pending_records.append(("/event", {
+                        "kind": "landing", "drone": drones[i].name, "body": drones[i].body,
+                        "text": f"holds at ({here[0]:.2f}, {here[1]:.2f}) until {o.name} is out of its way"}))
+                return False
+        return True
 
 
 def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) -> tuple | None:
@@ -194,6 +224,8 @@ def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) ->
         out_commands.append((i, name, args))
     if step.notify_stop:
         out_commands.append((i, "notify_stop", {}))
+        if d.landing.held_s > 0.0:
+            d.landing_result["held_s"] = round(d.landing.held_s, 3)
     td = d.landing.touchdown
     if step.done or (t - d.landing_result["t_start"] > timeout_s):
         d.landing_result.update(td.as_dict() if td is not None else {})
