@@ -5,6 +5,7 @@ positions first and hold them within 0.1 m; ours still beats DS."""
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -33,13 +34,16 @@ def test_race_ends_with_every_drone_landed(tmp_path, start):
     assert sum(t.startswith("go_to") for t in texts) == 2 and sum(t == "notify_stop" for t in texts) == 2
 
 
+#: the ours file of 2026-12-02 (pipeline stage ours_lemniscate_twin), with which the race ends below were found
+OURS_STAGE5 = str(Path(__file__).parent / "data" / "ours_lemniscate_stage5.onnx")
+
 #: race ends (ego, opp, profile, the timeout s) of lockstep races at which a landing used to hit a
-#: gate frame: ds against ours on cf2x_paper braking into the gate ahead (2.83: the crash unseen, the
+#: gate frame: ds against that ours on cf2x_paper braking into the gate ahead (2.83: the crash unseen, the
 #: drone dropped less than the outlier limit; 6.79: turning into the gate from the side), or stopping
 #: just in front of it and then flying the go-to along its frame (3.34) or through it (3.01). Each
 #: crash showed as pose outliers and a speed stop, as in the real-time flight against `sim serve`
-CRASHING_ENDS = (("ds", "ours", "cf2x_paper", 2.83), ("ds", "ours", "cf2x_paper", 3.01),
-                 ("ds", "ours", "cf2x_paper", 3.34), ("ds", "ours", "cf2x_paper", 6.79))
+CRASHING_ENDS = (("ds", OURS_STAGE5, "cf2x_paper", 2.83), ("ds", OURS_STAGE5, "cf2x_paper", 3.01),
+                 ("ds", OURS_STAGE5, "cf2x_paper", 3.34), ("ds", OURS_STAGE5, "cf2x_paper", 6.79))
 
 
 @pytest.mark.parametrize("ego, opp, profile, timeout_s", CRASHING_ENDS)
@@ -59,7 +63,7 @@ def test_a_drone_flying_through_after_the_race_scores_nothing_more():
     (above); the result counts the gates and laps as the race ended, as the same race without landing."""
     results = []
     for landing in (True, False):
-        cfg = FlightConfig(track="lemniscate", ego="ds", opp="ours", profile="cf2x_paper", laps=3, quiet=True,
+        cfg = FlightConfig(track="lemniscate", ego="ds", opp=OURS_STAGE5, profile="cf2x_paper", laps=3, quiet=True,
                            timeout_s=2.83, landing=landing)
         results.append(dry_run(cfg, lockstep=True).to_json())
     tally = [[(d["name"], d["gates_passed"], d["laps"], d["lap_times"]) for d in r["drones"]] for r in results]
