@@ -281,8 +281,9 @@ def test_a_path_along_a_gate_frame_is_not_clear():
 
 
 def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
-    """SoftState.land_after_race: the drone of RACE_END_STATE keeps racing until its target is the next
-    gate (it is through) or 1 s has passed; a drone that can stop clear of its gate lands at once."""
+    """SoftState.land_after_race: the drone of RACE_END_STATE keeps racing until braking would take it
+    into no gate ahead (it is through) or 1 s has passed; a drone that can stop clear of its gate lands
+    at once; one through a gate but too close to the next flies on."""
     from types import SimpleNamespace
 
     from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState
@@ -305,6 +306,11 @@ def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
     assert through.landing is not None and through.landing_result["reason"] == "race_end" and late.landing is None
     soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], setup)
     assert late.landing is not None                                       # not through in time: lands anyway
+    # ours on cf21bl, a race ended at 1.0 s: through gate 1 at 1.14 s at 6 m/s, 2.5 m before gate 2 it
+    # braked into gate 2's top bar (the rule looked only at the gate ahead at the end); it flies on
+    nxt = drone("d")
+    soft.land_after_race([nxt], [est((-0.12, 5.51, 1.39), (-4.5, 4.3, 0.2))], 1.14, 1.0, [2], setup)
+    assert nxt.landing is None
 
 
 def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_other():

@@ -65,8 +65,8 @@ def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
 
 
 class SoftState:
-    """Per drone: when its pose glitched, since when its battery is low, the gate ahead of it at the
-    race's end; log records to flush."""
+    """Per drone: when its pose glitched, since when its battery is low, whether it held for another
+    drone's landing; log records to flush."""
 
     def __init__(self, n: int):
         self.glitches = [[] for _ in range(n)]   # times of pose dropouts / outliers
@@ -75,7 +75,6 @@ class SoftState:
         self.rejecting = [False] * n              # the last tick rejected an outlier (an episode runs)
         self.vbat_low_since: list = [None] * n
         self.pending_records: list = []           # log records made outside the tick's _records
-        self.gate_at_end: dict = {}               # per drone: its target gate when the race ended
         self.holding: set = set()                 # drones that have held for another one's path
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
@@ -110,15 +109,15 @@ class SoftState:
 
     def land_after_race(self, drones: list, ests: list, t: float, t_end: float, targets, setup: ld.LandingSetup) -> None:
         """After the race's end (at t_end) every drone still racing lands, but one whose braking would
-        take it into the gate ahead of it at the end (brakes_into_gate) flies on through that gate on
-        its policy first, for at most FLY_THROUGH_MAX_S: it lands once it is through (its target is
-        the next gate) or that time is up."""
+        take it into the gate ahead of it (brakes_into_gate) flies on through that gate on its policy
+        first, for at most FLY_THROUGH_MAX_S after the end: it lands once braking would take it into
+        no gate ahead (through one gate, it may be too close to the next) or that time is up."""
         for i, d in enumerate(drones):
             if d.stopped or d.landing is not None:
                 continue
-            gate, e = self.gate_at_end.setdefault(i, int(targets[i])), ests[i]
-            if int(targets[i]) == gate and t - t_end < FLY_THROUGH_MAX_S and e.valid and \
-                    brakes_into_gate(e.pos, e.vel, setup.gates[gate], setup):
+            e = ests[i]
+            if t - t_end < FLY_THROUGH_MAX_S and e.valid and \
+                    brakes_into_gate(e.pos, e.vel, setup.gates[int(targets[i])], setup):
                 continue
             self.start_landing(drones, i, e, t, "race_end", setup)
 
