@@ -185,7 +185,6 @@ class SoftState:
                 break
         return spot
 
-
     def _may_go(self, drones: list, i: int, setup: ld.LandingSetup, t: float) -> bool:
         """May drone i, braked, start its go-to at loop time t? Not while, flown at the same time as
         planned (LandingPilot.plan), it would come nearer than path_separation_m (or than the two are
