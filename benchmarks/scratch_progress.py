@@ -1,14 +1,16 @@
 """How far do the sparse schemes get from scratch? Every kept checkpoint of a run, flown.
 
     .venv/bin/python benchmarks/scratch_progress.py RUN [RUN ...] [--runs 50] [--seed 1] [--every-min 10]
-                                                    [--track lemniscate] [--json F] [--plot F.png]
+                                                    [--track lemniscate] [--agent ego|adversary]
+                                                    [--json F] [--plot F.png]
 
 For each run (``cfrace train --keep-checkpoints``, no --init-from: no dense reward in its history)
 and each kept checkpoint about ``--every-min`` minutes of wall clock apart: the training's own
 figures at that iteration (gates per second, the share of episodes that complete a lap and the
 action std the rollouts sampled with, from RUN/metrics.csv, mean of the 5 logged iterations up to
-it) and the exported actor flown alone (``--runs`` runs of 3 laps, gate starts: success, laps
-completed per run, time per lap) and, for a multi-agent run, against the shipped DS (``--runs``
+it) and the exported actor (of a multi-agent run: ``--agent``, ego = agent 0 by default, or
+adversary = agent 1) flown alone (``--runs`` runs of 3 laps, gate starts: success, laps completed
+per run, time per lap) and, for a multi-agent run, against the shipped DS (``--runs``
 races of 3 laps: win rate). One seed for every row: nothing is chosen here. Prints a markdown
 table; ``--plot`` draws the training figures over env steps and over wall-clock minutes, and the
 flown figures at the checkpoints.
@@ -33,9 +35,11 @@ def training_figures(run: Path) -> list[dict]:
     out = []
     for r in rows:
         try:
-            out.append({k: float(r[v]) for k, v in keys.items()})
+            row = {k: float(r[v]) for k, v in keys.items()}
+            row["std1"] = float(r.get("std_agent1") or row["std"])   # agent 1's (a single-agent run: agent 0's)
         except (KeyError, ValueError):
             continue
+        out.append(row)
     return out
 
 
@@ -57,7 +61,7 @@ def spaced(ckpts: list[Path], rows: list[dict], every_s: float) -> list[Path]:
     return out
 
 
-def progress(run: Path, track: str, runs: int, seed: int, every_min: float) -> list[dict]:
+def progress(run: Path, track: str, runs: int, seed: int, every_min: float, agent: str = "ego") -> list[dict]:
     from cfrace.evaluate.select import kept_checkpoints, score_checkpoint
     from cfrace.rl.checkpoint import load_checkpoint
 
@@ -66,14 +70,15 @@ def progress(run: Path, track: str, runs: int, seed: int, every_min: float) -> l
     multi = load_checkpoint(ckpts[0]).get("meta", {}).get("method") in ("ours", "dm")
     out = []
     for ckpt in spaced(ckpts, rows, every_min * 60.0):
-        alone = score_checkpoint(ckpt, track, False, None, runs, 3, seed, "ego" if multi else "best")
+        who = agent if multi else "best"
+        alone = score_checkpoint(ckpt, track, False, None, runs, 3, seed, who)
         it = alone["iteration"]
         row = {"run": run.name, "iteration": it, "env_steps": alone["env_steps"], "wall_min": alone["wall_min"],
                "gates_per_s": round(near(rows, it, "gates_per_s"), 3), "lap_share": round(near(rows, it, "lap_share"), 3),
-               "std": round(near(rows, it, "std"), 3), "success": alone["success"],
+               "std": round(near(rows, it, "std1" if who == "adversary" else "std"), 3), "success": alone["success"],
                "laps_per_run": alone["laps_per_run"], "lap_time_s": alone["lap_time_s"]}
         if multi:
-            row["win_rate_vs_ds"] = score_checkpoint(ckpt, track, False, "ds", runs, 3, seed, "ego")["win_rate"]
+            row["win_rate_vs_ds"] = score_checkpoint(ckpt, track, False, "ds", runs, 3, seed, who)["win_rate"]
         out.append(row)
         vs = f" | {row['win_rate_vs_ds']:.0%}" if multi else " | –"
         ttc = "–" if row["lap_time_s"] is None else f"{row['lap_time_s']:.2f}"
@@ -124,6 +129,8 @@ def main() -> None:
     ap.add_argument("--runs", dest="n", type=int, default=50)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--every-min", type=float, default=10.0)
+    ap.add_argument("--agent", default="ego", choices=("ego", "adversary"),
+                    help="which agent of a multi-agent run is flown")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--plot", type=Path, default=None)
     args = ap.parse_args()
@@ -131,7 +138,7 @@ def main() -> None:
     print("| run | wall min | env steps (M) | action std | gates/s (training) | episodes with a lap | success alone | "
           "laps per run alone | s per lap | win rate vs DS |")
     print("|---|---|---|---|---|---|---|---|---|---|")
-    table = [row for run in args.runs for row in progress(run, args.track, args.n, args.seed, args.every_min)]
+    table = [row for run in args.runs for row in progress(run, args.track, args.n, args.seed, args.every_min, args.agent)]
     if args.json is not None:
         args.json.write_text(json.dumps({"seed": args.seed, "runs_per_point": args.n, "rows": table}, indent=1))
     if args.plot is not None:
