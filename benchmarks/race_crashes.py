@@ -1,0 +1,70 @@
+"""Where a policy crashes in head-to-head races: the crash reason, when, and where its opponent was.
+
+    .venv/bin/python benchmarks/race_crashes.py EGO [--opp ds] [--track complex] [--obstacles]
+                                                [--races 50] [--seed 0] [--near 1.5] [--list]
+
+The races of `cfrace race --track T --ego EGO --opp OPP --races N --seed S` (the same starts: gate
+starts, the sides swapped every other race, 3 laps; ``--opp none``: the opponent's motors off from the
+start, so it drops beside EGO's start). For every race EGO crashes in: the crash
+reason (cfrace.sim.simulator.REASONS), the time, the distance to the opponent and EGO's lead over
+it along the race line at that step. Prints the counts by reason, how many crashes had the live
+opponent within ``--near`` m, and (``--list``) one line per crash.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+
+import numpy as np
+import torch
+
+
+def race_crashes(ego: str, opp: str, track_name: str, obstacles: bool, races: int, seed: int) -> list[dict]:
+    from cfrace.evaluate.entrants import common_profile, load_entrants, load_race_track
+    from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, rollout, start_poses
+    from cfrace.sim.simulator import REASONS
+
+    track = load_race_track(track_name, obstacles)
+    ents = load_entrants([ego] if opp == "none" else [ego, opp], track, obstacles)
+    prof = common_profile(ents)
+    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True, start="gate")
+    assign = np.tile([[0, -1 if opp == "none" else 1]], (races, 1))
+    rec = rollout(track, prof, obstacles, ents, assign, starts, 3, 3 * LAP_TIME_LIMIT_S, tuple(range(races)), seed, 1)
+    out = []
+    for w in range(races):
+        steps = np.nonzero(rec.crashed_now[:, w, 0] & rec.active[:, w, 0])[0]
+        if len(steps):
+            k = steps[0]
+            out.append({"race": w, "t_s": float(rec.t[k]), "reason": REASONS[int(rec.reason[k, w, 0])],
+                        "opp_dist_m": float(np.linalg.norm(rec.pos[k, w, 0] - rec.pos[k, w, 1])),
+                        "lead_m": float(rec.track_pos[k, w, 0] - rec.track_pos[k, w, 1]),
+                        "opp_racing": bool(rec.active[k, w, 1]), "track_pos_m": float(rec.track_pos[k, w, 0])})
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("ego")
+    ap.add_argument("--opp", default="ds")
+    ap.add_argument("--track", default="complex")
+    ap.add_argument("--obstacles", action="store_true")
+    ap.add_argument("--races", type=int, default=50)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--near", type=float, default=1.5)
+    ap.add_argument("--list", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = race_crashes(args.ego, args.opp, args.track, args.obstacles, args.races, args.seed)
+    near = [r for r in rows if r["opp_racing"] and r["opp_dist_m"] < args.near]
+    print(f"{args.ego} vs {args.opp}: crashes in {len(rows)} of {args.races} races; by reason "
+          f"{dict(Counter(r['reason'] for r in rows))}; with the live opponent within {args.near} m: {len(near)}")
+    if rows:
+        print("crash time s p10/50/90:", np.percentile([r["t_s"] for r in rows], [10, 50, 90]).round(2).tolist())
+    for r in rows if args.list else ():
+        print("race {race:3d}  t {t_s:5.2f} s  {reason:12s}  opponent {opp_dist_m:5.2f} m away, lead {lead_m:6.2f} m"
+              "  at {track_pos_m:6.1f} m of the race line{}".format("" if r["opp_racing"] else " (opponent down)", **r))
+
+
+if __name__ == "__main__":
+    main()
