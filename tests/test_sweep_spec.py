@@ -107,6 +107,16 @@ def test_argv_is_accepted_by_the_train_command(tmp_path):
     assert seen["out"] == Path("R/a") and seen["envs"] == 8 and seen["flight_obs"]
 
 
+def test_reward_weights_become_reward_flags(tmp_path):
+    sw = spec("""
+    runs:
+      - {name: a, method: ss, reward: {crash: 20, contact: 1}, set: {lr: 2.0e-5}}
+    """, tmp_path)
+    argv = sw.run("a").train_argv("R")
+    assert [argv[i + 1] for i, a in enumerate(argv) if a == "--reward"] == ["crash=20", "contact=1"]
+    assert [argv[i + 1] for i, a in enumerate(argv) if a == "--set"] == ["lr=2e-05"]
+
+
 @pytest.mark.parametrize("body, message", [
     ("runs: [{name: a, method: ds, colour: red}]", "runs[0].colour: unknown key"),
     ("runs: [{name: a, method: ds}, {name: a, method: ss}]", "duplicate run name 'a'"),
@@ -120,6 +130,8 @@ def test_argv_is_accepted_by_the_train_command(tmp_path):
     ("runs: [{name: a, method: ds, seed: x}]", "runs[0].seed: expected an integer"),
     ("runs: [{name: a, method: ds, random_phase: 1}]", "runs[0].random_phase: expected true or false"),
     ("runs: [{name: a, method: ds, set: {lrr: 1}}]", "--set 'lrr=1'"),
+    ("runs: [{name: a, method: ss, reward: {crashh: 20}}]", "runs[0].reward: --reward crashh: unknown reward weight"),
+    ("runs: [{name: a, method: ss, reward: 20}]", "runs[0].reward: expected a mapping of --reward items"),
     ("runs: [{name: a, method: ds, out: x}]", "runs[0].out: set by the sweep"),
     ("runs: [{name: a, method: ds, export: {file: a.pt}}]", "export.file: expected an .onnx path"),
     ("runs: [{name: a, method: ds, export: {file: a.onnx, agent: me}}]", "export.agent"),

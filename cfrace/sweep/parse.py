@@ -15,13 +15,17 @@ from cfrace.yamlcfg import load_yaml
 
 
 def _check_value(where: str, opt: TrainOption, value: Any) -> Any:
-    if opt.kind == "set":
+    if opt.kind == "set":   # --set (preset fields) or --reward (reward weights): KEY=VALUE items
+        example = "{gate: 10}" if opt.key == "reward" else "{lr: 3.0e-4}"
         if not isinstance(value, dict) or not value:
-            raise ConfigError(f"{where}: expected a mapping of preset fields, e.g. {{lr: 3.0e-4}}")
-        from cfrace.rl.config import parse_overrides
+            raise ConfigError(f"{where}: expected a mapping of {opt.flag} items, e.g. {example}")
+        if opt.key == "reward":
+            from cfrace.env.rewards import parse_reward_overrides as parse
+        else:
+            from cfrace.rl.config import parse_overrides as parse
 
         try:  # one definition of what is valid: the train command's own parser
-            parse_overrides([f"{k}={fmt_value(v)}" for k, v in value.items()])
+            parse([f"{k}={fmt_value(v)}" for k, v in value.items()])
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from None
         return dict(value)

@@ -127,7 +127,7 @@ class Run:
                 value = str(reference_checkpoint(Path(out_root) / self.refs[key]))
             if opt.kind == "set":
                 for k, v in value.items():
-                    argv += ["--set", f"{k}={fmt_value(v)}"]
+                    argv += [opt.flag, f"{k}={fmt_value(v)}"]
             elif opt.kind == "flag":
                 if value:
                     argv.append(opt.flag)
