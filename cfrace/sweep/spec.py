@@ -42,7 +42,7 @@ class TrainOption:
 
     key: str      #: spec key (the parameter name, e.g. init_from)
     flag: str     #: --init-from
-    kind: str     #: value | flag (--x when true) | toggle (--x / --no-x) | set (--set K=V ...)
+    kind: str     #: value | flag (--x when true) | toggle (--x / --no-x) | set (--set or --reward K=V ...)
     type: type    #: int | float | str (paths are str)
 
 
