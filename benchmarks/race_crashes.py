@@ -4,8 +4,8 @@
                                                 [--races 50] [--seed 0] [--near 1.5] [--list]
 
 The races of `cfrace race --track T --ego EGO --opp OPP --races N --seed S` (the same starts: gate
-starts, the sides swapped every other race, 3 laps; ``--opp none``: the opponent's motors off from the
-start, so it drops beside EGO's start). For every race EGO crashes in: the crash
+starts, the sides swapped every other race, 3 laps: cfrace.evaluate.race.race). For every race EGO
+crashes in: the crash
 reason (cfrace.sim.simulator.REASONS), the time, the distance to the opponent and EGO's lead over
 it along the race line at that step. Prints the counts by reason, how many crashes had the live
 opponent within ``--near`` m, and (``--list``) one line per crash.
@@ -21,16 +21,10 @@ import torch
 
 
 def race_crashes(ego: str, opp: str, track_name: str, obstacles: bool, races: int, seed: int) -> list[dict]:
-    from cfrace.evaluate.entrants import common_profile, load_entrants, load_race_track
-    from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, rollout, start_poses
+    from cfrace.evaluate.race import race
     from cfrace.sim.simulator import REASONS
 
-    track = load_race_track(track_name, obstacles)
-    ents = load_entrants([ego] if opp == "none" else [ego, opp], track, obstacles)
-    prof = common_profile(ents)
-    starts = start_poses(track, prof, races, 2, obstacles, seed, swap_pairs=True, start="gate")
-    assign = np.tile([[0, -1 if opp == "none" else 1]], (races, 1))
-    rec = rollout(track, prof, obstacles, ents, assign, starts, 3, 3 * LAP_TIME_LIMIT_S, tuple(range(races)), seed, 1)
+    rec = race(track_name, ego, opp, obstacles, races, 3, seed, threads=1, record_all=True).recording
     out = []
     for w in range(races):
         steps = np.nonzero(rec.crashed_now[:, w, 0] & rec.active[:, w, 0])[0]

@@ -75,9 +75,11 @@ def _drone_stats(summary: RunSummary, worlds: slice, drone: int) -> dict:
 
 def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: int = 50, laps: int = 3,
          seed: int = 0, time_limit_s: float | None = None, profile: str | None = None,
-         plot_dir: Path | None = None, threads: int | None = None, start: str = "gate") -> RaceResult:
+         plot_dir: Path | None = None, threads: int | None = None, start: str = "gate",
+         record_all: bool = False) -> RaceResult:
     """``races`` head-to-head races of ``ego`` (drone 0) against ``opp`` (drone 1); ``start`` as in
-    start_poses ("gate": in the air before a random gate; "ground": side by side on the floor)."""
+    start_poses ("gate": in the air before a random gate; "ground": side by side on the floor).
+    ``record_all``: the recording keeps positions of every race (else only of the plotted ones)."""
     t0 = time.perf_counter()
     if races < 1 or laps < 1:
         raise ConfigError("races and laps must be >= 1")
@@ -91,7 +93,7 @@ def race(track_name: str, ego: str, opp: str, obstacles: bool = False, races: in
         assign = np.concatenate([assign, np.tile([[0, -1]], (extra, 1))])
         all_starts = Starts(*(torch.cat([a, a[:extra]]) for a in (all_starts.pos, all_starts.quat, all_starts.target)))
     record = (tuple(range(min(races, PLOT_RACES))) + tuple(range(races, races + min(extra, PLOT_RACES)))
-              if plot_dir is not None else ())
+              if plot_dir is not None else tuple(range(races)) if record_all else ())
     limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s
     rec = rollout(track, prof, obstacles, entrants, assign, all_starts, laps, limit, record, seed, threads)
     s = rec.summary()
