@@ -10,6 +10,7 @@ import torch
 from typer.testing import CliRunner
 
 import cfrace.rl.train as train_mod
+from cfrace.rl.train import load_checkpoint
 from cfrace.cli.main import app
 from cfrace.policy import OnnxPolicy
 
@@ -28,19 +29,24 @@ def test_train_resume_export_cli(tmp_path):
     cli = CliRunner()
     out = tmp_path / "run"
     r = cli.invoke(app, ["train", "--method", "ours", "--track", "complex", "--envs", "16", "--steps", "512",
-                         "--out", str(out), "--device", "cpu", "--seed", "3"])
+                         "--out", str(out), "--device", "cpu", "--seed", "3", "--checkpoint-min", "0.5"])
     assert r.exit_code == 0, r.output
     assert "done: 2 iterations" in r.output and "ego" in r.output and "adversary" in r.output
     assert (out / "training_curve.png").exists()
     r = cli.invoke(app, ["train", "--resume", str(out), "--steps", "768"])
     assert r.exit_code == 0, r.output
     assert "done: 3 iterations" in r.output
+    # a resumed run keeps its own checkpoint interval unless --checkpoint-min is given again
+    assert load_checkpoint(out / "checkpoint.pt")["train_config"]["checkpoint_every_s"] == 30.0
+    r = cli.invoke(app, ["train", "--resume", str(out), "--steps", "1024", "--checkpoint-min", "2"])
+    assert r.exit_code == 0, r.output
+    assert load_checkpoint(out / "checkpoint.pt")["train_config"]["checkpoint_every_s"] == 120.0
     onnx_path = tmp_path / "p.onnx"
     r = cli.invoke(app, ["export", str(out / "checkpoint.pt"), "-o", str(onnx_path), "--agent", "adversary"])
     assert r.exit_code == 0, r.output
     assert "parity" in r.output
     pol = OnnxPolicy(onnx_path)
-    assert pol.meta["agent"] == "adversary" and pol.meta["train_steps"] == 768 and pol.meta["seed"] == 3
+    assert pol.meta["agent"] == "adversary" and pol.meta["train_steps"] == 1024 and pol.meta["seed"] == 3
 
 
 def test_bench_train_cli_json(tmp_path):

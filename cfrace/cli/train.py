@@ -91,7 +91,8 @@ def train_cmd(
     device: Optional[str] = typer.Option(None, "--device", help="cpu | cuda (default: cuda when available)"),
     profile: Optional[str] = typer.Option(None, "--profile", help="drone profile (default cf2x_paper)"),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
-    checkpoint_min: float = typer.Option(5.0, "--checkpoint-min", min=0.0, help="minutes between checkpoints"),
+    checkpoint_min: Optional[float] = typer.Option(None, "--checkpoint-min", min=0.0,
+                                                   help="minutes between checkpoints (default 5; a resumed run: its own)"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     reward: Optional[list[str]] = typer.Option(None, "--reward", help="override a reward weight, e.g. --reward gate=10 "
                                                "(cfrace.env.rewards.RewardScales; recorded in the policy)"),
@@ -154,7 +155,8 @@ def train_cmd(
             raise ConfigError("--set and --reward cannot change a resumed run")
         cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
                             seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
-                            out=str(out) if out else None, checkpoint_every_s=checkpoint_min * 60.0,
+                            out=str(out) if out else None,
+                            checkpoint_every_s=None if checkpoint_min is None else checkpoint_min * 60.0,
                             precision=precision, keep_checkpoints=keep_checkpoints, update_workers=update_workers,
                             compile=compile_)
     else:
@@ -162,7 +164,7 @@ def train_cmd(
         name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
         cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
                           profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
-                          checkpoint_min * 60.0, threads=threads, overrides=overrides,
+                          (5.0 if checkpoint_min is None else checkpoint_min) * 60.0, threads=threads, overrides=overrides,
                           init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup,
                           critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
                           init_critic=init_critic, random_phase=random_phase,
