@@ -232,6 +232,22 @@ def test_fixed_opponent_flies_the_second_slot_in_part_of_the_worlds(tmp_path):
         _fixed_opponent(Runner(ds_env, ds_cfg.ippo(), seed=0), ds_cfg, ds_meta["obs_layout"])
 
 
+def test_resume_with_a_fixed_opponent_is_exact(tmp_path):
+    """Loading the frozen opponent draws from torch's RNG: on --resume it happens before the saved RNG
+    states are put back, so 3 + 2 iterations give the numbers of 5 uninterrupted ones."""
+    src = train(_cfg(tmp_path, method="ds", steps=16 * 24, out=str(tmp_path / "src")), env_factory=toy_factory)
+    kw = dict(fixed_opponent=f"{src.checkpoint},{src.checkpoint}", fixed_opponent_frac=1.0)
+    train(_cfg(tmp_path, steps=16 * 16 * 5, out=str(tmp_path / "full"), **kw), env_factory=toy_factory)
+    train(_cfg(tmp_path, steps=16 * 16 * 3, **kw), env_factory=toy_factory)
+    res = train(resume_config(tmp_path / "run", steps=16 * 16 * 5, device="cpu", threads=1), resume=tmp_path / "run",
+                env_factory=toy_factory)
+    assert res.exact_resume is True and res.iterations == 5
+    a, b = _rows(tmp_path / "full" / "metrics.csv"), _rows(tmp_path / "run" / "metrics.csv")
+    assert [ra["reward_agent0"] for ra in a] == [rb["reward_agent0"] for rb in b]
+    wa = load_checkpoint(tmp_path / "full")["runner"]["agents"]
+    wb = load_checkpoint(tmp_path / "run")["runner"]["agents"]
+    assert all(torch.equal(sa[k], sb[k]) for sa, sb in zip(wa, wb) for k in sa)
+
 def test_fixed_opponent_flies_the_last_drones_of_a_field_with_a_shared_learner(tmp_path):
     """--fixed-opponent-drones 2 in 4-drone worlds: in the fixed worlds the last two drones fly the
     frozen actor's mean action and are out of the (shared) learner's samples; the first two learn in
