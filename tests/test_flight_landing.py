@@ -390,3 +390,23 @@ def test_a_braked_drone_holds_while_a_lower_one_lands_along_its_path():
     assert stuck.phase == HOLD
     stuck.step(setup.cfg.hold_max_s + 0.01, high, [0.0, 0.0, 0.0], hover)
     assert stuck.phase == APPROACH
+
+
+def test_paths_checked_together_are_judged_as_each_alone():
+    """spots.paths_clear samples paths of different lengths in one padded batch: each path's verdict is
+    the one it gets alone, near gates and obstacles and far from them (both tracks, with obstacles)."""
+    from cfrace.flight.spots import paths_clear
+    rng, seen = np.random.default_rng(3), set()
+    for name in ("lemniscate", "complex"):
+        track = load_track(name)
+        assert track.obstacles
+        a, clear = track.arena, LandingConfig().path_clearance_m
+        for _ in range(30):
+            start = np.array([rng.uniform(*a.x), rng.uniform(*a.y)])
+            ends = np.concatenate([np.column_stack([rng.uniform(*a.x, 12), rng.uniform(*a.y, 12)]),
+                                   start + rng.normal(0.0, 0.3, (6, 2)), start[None]])
+            batch = paths_clear(track, start, ends, clear)
+            alone = [bool(paths_clear(track, start, e[None], clear)[0]) for e in ends]
+            assert batch.tolist() == alone
+            seen |= set(alone)
+    assert seen == {True, False}

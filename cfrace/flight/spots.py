@@ -41,13 +41,15 @@ def _seg_point_dist(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p - (a + t[:, None] * d), axis=1)
 
 
-def _segments_cross(p1, p2, q1, q2) -> bool:
-    """Do the 2D segments p1-p2 and q1-q2 intersect (touching counts)?"""
+def _segments_cross(p1, p2, q1, q2):
+    """Do the 2D segments p1-p2 and q1-q2 intersect (touching counts)? Points (2,), or (K, 2) for
+    K segments at once (then (K,) bool)."""
     def orient(a, b, c):
-        return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+        return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
+    p1, p2, q1, q2 = (np.asarray(v, np.float64) for v in (p1, p2, q1, q2))
     d1, d2 = orient(q1, q2, p1), orient(q1, q2, p2)
     d3, d4 = orient(p1, p2, q1), orient(p1, p2, q2)
-    return d1 * d2 <= 0.0 and d3 * d4 <= 0.0
+    return (d1 * d2 <= 0.0) & (d3 * d4 <= 0.0)
 
 
 def segment_gap(p1, p2, q1, q2) -> float:
@@ -97,10 +99,7 @@ def _apart(start: np.ndarray, ends: np.ndarray, paths, still, separation: float)
         q = np.asarray(q, np.float64)[:2]
         ok &= _to_segments(start, ends, q) >= min(separation, float(np.linalg.norm(start - q))) - 1e-9
     for a, b in paths:
-        def orient(p, q, r):   # (K,) or scalar: sign of the turn p -> q -> r
-            return (q[..., 0] - p[..., 0]) * (r[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (r[..., 0] - p[..., 0])
-        cross = ((orient(a, b, start) * orient(a, b, ends) <= 0)
-                 & (orient(start, ends, a) * orient(start, ends, b) <= 0))
+        cross = _segments_cross(start, ends, a, b)
         at_start = float(_seg_point_dist(a, b, start[None])[0])
         near = np.minimum.reduce([_to_segments(start, ends, a), _to_segments(start, ends, b),
                                   _seg_point_dist(a, b, ends), np.full(len(ends), at_start)])
@@ -112,22 +111,32 @@ def path_clear(track, start: np.ndarray, end: np.ndarray, clearance: float) -> b
     """The straight path start-end (2,) crosses no gate footprint and keeps ``clearance`` from the gate
     footprints and the obstacles (points of the path already closer at the start do not count: the
     drone is where it is; near a gate the path must lead away from it, not along its frame)."""
+    return bool(paths_clear(track, start, np.asarray(end, np.float64)[None, :2], clearance)[0])
+
+
+def paths_clear(track, start: np.ndarray, ends: np.ndarray, clearance: float) -> np.ndarray:
+    """(K,) bool: path_clear for each path start-ends[k] (ends (K, 2)), all at once: each path is
+    sampled every 5 cm (its own count of points; the shorter ones padded and the padding ignored)."""
+    start, ends = np.asarray(start, np.float64)[:2], np.asarray(ends, np.float64).reshape(-1, 2)
+    ok = np.ones(len(ends), bool)
     footprints = gate_footprints(track)
     for a, b in footprints:
-        if _segments_cross(start, end, a, b) and _seg_point_dist(a, b, start[None])[0] > 1e-6:
-            return False
-    step = 0.05
-    n = max(2, int(np.linalg.norm(end - start) / step) + 1)
-    pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
-    gd = np.minimum.reduce([_seg_point_dist(a, b, pts) for a, b in footprints]) if footprints else np.full(n, np.inf)
-    leaving = np.diff(gd, prepend=-np.inf) >= 0.5 * float(np.linalg.norm(pts[1] - pts[0]))   # at 30 deg or more
-    if not np.all((gd >= clearance) | leaving):
-        return False
-    if not track.obstacles:
-        return True
-    d = _obstacle_dist(track, pts)
-    start_d = d[0]
-    return bool(np.all((d >= clearance) | (d >= start_d - 1e-9)))
+        if _seg_point_dist(a, b, start[None])[0] > 1e-6:
+            ok &= ~_segments_cross(start, ends, a, b)
+    n = np.maximum(2, (np.linalg.norm(ends - start, axis=1) / 0.05).astype(int) + 1)       # (K,) points per path
+    j = np.arange(n.max())
+    valid = j < n[:, None]                                                                  # (K, N)
+    pts = start + (np.minimum(j, n[:, None] - 1) / (n[:, None] - 1))[..., None] * (ends - start)[:, None]
+    flat = pts.reshape(-1, 2)
+    if footprints:
+        gd = np.minimum.reduce([_seg_point_dist(a, b, flat) for a, b in footprints]).reshape(valid.shape)
+        rise = np.diff(gd, axis=1, prepend=-np.inf)
+        leaving = rise >= 0.5 * np.linalg.norm(pts[:, 1] - pts[:, 0], axis=1)[:, None]     # at 30 deg or more
+        ok &= np.all((gd >= clearance) | leaving | ~valid, axis=1)
+    if track.obstacles:
+        d = _obstacle_dist(track, flat).reshape(valid.shape)
+        ok &= np.all((d >= clearance) | (d >= d[:, :1] - 1e-9) | ~valid, axis=1)
+    return ok
 
 
 @functools.lru_cache(maxsize=8)
@@ -151,13 +160,19 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
 #: track: 15 k candidates) checking every candidate against every other drone's path made the tick in
 #: which eight drones start landing overrun the loop (tests/test_flight_landing.py, docs/flight.md)
 NEAR_CANDIDATES = 1500
+#: of the max_tries nearest allowed spots, how many _nearest checks first (the rest in one batch)
+NEAR_FIRST = 8
 
 
 def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
     """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
     allowed ones: this runs in the tick), or None."""
     near = order[ok[order]][:cfg.max_tries]
-    return next((cand[k] for k in near if path_clear(track, stop, cand[k], cfg.path_clearance_m)), None)
+    for chunk in (near[:NEAR_FIRST], near[NEAR_FIRST:]):   # the nearest few first: mostly one of them will do
+        clear = paths_clear(track, stop, cand[chunk], cfg.path_clearance_m) if len(chunk) else chunk.astype(bool)
+        if clear.any():
+            return cand[chunk[int(np.argmax(clear))]]
+    return None
 
 
 def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
