@@ -162,17 +162,27 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
 NEAR_CANDIDATES = 1500
 #: of the max_tries nearest allowed spots, how many _nearest checks first (the rest in one batch)
 NEAR_FIRST = 8
+#: candidates per step of _nearest's walk outwards (the rule on other drones' paths is applied to these)
+RULE_CHUNK = 128
 
 
-def _nearest(track, stop, cand, order, ok, cfg: LandingConfig):
-    """The nearest allowed candidate reachable in a straight line (among the max_tries nearest
-    allowed ones: this runs in the tick), or None."""
-    near = order[ok[order]][:cfg.max_tries]
-    for chunk in (near[:NEAR_FIRST], near[NEAR_FIRST:]):   # the nearest few first: mostly one of them will do
-        clear = paths_clear(track, stop, cand[chunk], cfg.path_clearance_m) if len(chunk) else chunk.astype(bool)
-        if clear.any():
-            return cand[chunk[int(np.argmax(clear))]]
-    return None
+def _nearest(track, stop, cand, order, clear, rule, cfg: LandingConfig):
+    """The nearest candidate allowed by ``clear`` (K,) and ``rule`` (cand (k, 2) -> (k,) bool) and
+    reachable in a straight line, among the max_tries nearest allowed ones (this runs in the tick):
+    (that spot or None, whether max_tries allowed ones were there to look at). The rule is applied in
+    distance order a chunk at a time, only as far as the search goes."""
+    order, seen = order[clear[order]], 0
+    for lo in range(0, len(order), RULE_CHUNK):
+        idx = order[lo:lo + RULE_CHUNK]
+        idx = idx[rule(cand[idx])][:cfg.max_tries - seen]
+        for chunk in (idx[:NEAR_FIRST], idx[NEAR_FIRST:]):   # the nearest few first: mostly one of them will do
+            ok = paths_clear(track, stop, cand[chunk], cfg.path_clearance_m) if len(chunk) else chunk.astype(bool)
+            if ok.any():
+                return cand[chunk[int(np.argmax(ok))]], True
+        seen += len(idx)
+        if seen >= cfg.max_tries:
+            return None, True
+    return None, False
 
 
 def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
@@ -204,10 +214,8 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
             """The nearest allowed candidate under ``rule`` (cand -> extra mask): among the nearest
             candidates first, then (none of them allowed) the whole arena: the same spot either way."""
             for idx in ((0, 1) if near is not None else (1,)):
-                cand, order, clear = candidates(idx)
-                ok = clear & rule(cand)
-                found = _nearest(track, stop, cand, order, ok, cfg)
-                if found is not None or np.count_nonzero(ok) >= cfg.max_tries:
+                found, enough = _nearest(track, stop, *candidates(idx), rule, cfg)
+                if found is not None or enough:
                     return found          # the max_tries nearest allowed ones overall were all looked at
             return None
 

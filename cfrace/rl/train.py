@@ -277,21 +277,17 @@ def _start_run(cfg: TrainConfig, resume: str | Path | None, env_factory: Callabl
     runner.precision = resolve_precision(cfg.precision, runner)
     runner.update_workers = cfg.update_workers
     runner.use_compile(cfg.compile)
-    exact = None
-    wall_before = 0.0
+    exact, wall_before = None, 0.0
+    if saved is not None and cfg.fixed_opponent:  # first: building the frozen actors draws from torch's RNG
+        meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
     if saved is not None:
-        if cfg.fixed_opponent:  # first: building the frozen actors draws from torch's RNG, restored next
-            meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
-        exact = runner.load_state_dict(saved["runner"])
-        wall_before = float(saved.get("wall_s", 0.0))
+        exact, wall_before = runner.load_state_dict(saved["runner"]), float(saved.get("wall_s", 0.0))
         meta.update({k: v for k, v in saved.get("meta", {}).items() if k.startswith("init_")})
-    else:
-        if cfg.init_from:
-            from cfrace.rl.warmstart import warm_start
-
-            meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout"), critic=cfg.init_critic))
-        if cfg.fixed_opponent:
-            meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
+    elif cfg.init_from:
+        from cfrace.rl.warmstart import warm_start
+        meta.update(warm_start(runner, cfg.init_from, meta.get("obs_layout"), critic=cfg.init_critic))
+    if saved is None and cfg.fixed_opponent:
+        meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
     # After a warm start the actors keep the observation statistics they were trained with: updating
     # them from the new task's rollouts shifts every input of a frozen or slowly moving actor (measured:
     # a warm ours run with lr 1e-12 went from 100 % to 58 % single-agent success in 100 iterations).
