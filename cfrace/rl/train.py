@@ -278,7 +278,7 @@ def _start_run(cfg: TrainConfig, resume: str | Path | None, env_factory: Callabl
     runner.update_workers = cfg.update_workers
     runner.use_compile(cfg.compile)
     exact, wall_before = None, 0.0
-    if saved is not None and cfg.fixed_opponent:  # first: building the frozen actors draws from torch's RNG
+    if saved is not None and cfg.fixed_opponent:  # before the restore: building the frozen actors draws random numbers
         meta.update(_fixed_opponent(runner, cfg, meta.get("obs_layout")))
     if saved is not None:
         exact, wall_before = runner.load_state_dict(saved["runner"]), float(saved.get("wall_s", 0.0))
