@@ -9,7 +9,8 @@ OLD and NEW are checkout roots or git revisions of this repository (a revision's
 and PYTHONPATH=SRC), so that both see the same machine load and neither always runs second. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
 Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread, 200 steps, best of 5), bench train (the cpu preset,
-ours on complex, one thread), bench loop (10 s, or --loop-s, the paper-size actors and the shipped policies; the jitter p99 of a 10-s
+ours on complex, one thread), bench loop (10 s, or --loop-s, the paper-size actors and the shipped policies, and 8 drones
+on the complex track, all landing at its end: also the longest tick and the skipped ticks; the jitter p99 of a 10-s
 loop is its 10th-largest period error and moves with a handful of the VM's stalls: longer loops measure it better).
 """
 
@@ -31,6 +32,8 @@ BENCHES: dict[str, list[str]] = {
     "train": ["bench", "train", "--threads", "1", "--iterations", "2"],
     "loop_paper": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "paper"],
     "loop_shipped": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "shipped"],
+    # 8 drones on the complex track: all of them start landing in the race's last tick
+    "loop_swarm8": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--drones", "8", "--track", "complex"],
 }
 
 
@@ -45,6 +48,9 @@ def figures(name: str, doc: dict) -> dict[str, tuple[float, bool]]:
            f"{name} compute p99 ms": (loop["compute_ms"]["p99"], False),
            f"{name} inference p99 ms": (loop["inference_p99_ms"], False),
            f"{name} jitter p99 ms": (loop["period_jitter_ms"]["p99"], False)}
+    if name == "loop_swarm8":
+        out[f"{name} compute max ms"] = (loop["compute_ms"]["max"], False)
+        out[f"{name} skipped ticks"] = (loop["skipped"], False)
     return out
 
 
@@ -77,7 +83,7 @@ def pool(paths: list[str]) -> int:
     for fig, v in runs.items():
         old, new = statistics.median(v["old"]), statistics.median(v["new"])
         higher = fig.endswith("/s")                       # rates: higher is better; latencies: lower
-        speed = new / old if higher else old / new
+        speed = new / old if higher else old / new if new else float("inf")
         worse = sum((b < a) if higher else (b > a) for a, b in zip(v["old"], v["new"]))
         print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x  "
               f"new worse in {worse} of {len(v['old'])} rounds")
@@ -89,7 +95,7 @@ def main() -> int:
     ap.add_argument("old", nargs="?")
     ap.add_argument("new", nargs="?")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--benches", default=",".join(BENCHES))
+    ap.add_argument("--benches", default="sim,train,loop_paper,loop_shipped", help=f"of {', '.join(BENCHES)}")
     ap.add_argument("--loop-s", type=float, default=10.0, help="seconds of each bench loop run")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--pool", default=None, help="comma-separated --json files of earlier runs")
@@ -118,7 +124,7 @@ def main() -> int:
     rows = []
     for fig, v in values.items():
         old, new = statistics.median(v["old"]), statistics.median(v["new"])
-        speed = (new / old) if better[fig] else (old / new)
+        speed = (new / old) if better[fig] else (old / new) if new else float("inf")
         rows.append({"figure": fig, "old": old, "new": new, "speed_new_over_old": speed, "runs": v})
         print(f"{fig:32s} old {old:12.4g}  new {new:12.4g}  speed new/old {speed:.3f}x")
     print(f"load average during the runs: {min(loads):.2f}-{max(loads):.2f} on {os.cpu_count()} CPUs")

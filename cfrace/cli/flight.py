@@ -71,7 +71,8 @@ def print_result(result: dict, con: Console = out) -> None:
                + (f", after holding {land['held_s']:.2f} s for another drone" if land.get("held_s") else "")
                if land.get("down") and land.get("t") is not None
                else f"not down ({land.get('cut') or 'landing timeout'})")
-        con.print(f"landing {name} ({land['reason']}): spot ({land['spot'][0]:.2f}, {land['spot'][1]:.2f}), {how}")
+        spot = f"spot ({land['spot'][0]:.2f}, {land['spot'][1]:.2f})" if land.get("spot") else "no spot chosen yet"
+        con.print(f"landing {name} ({land['reason']}): {spot}, {how}")
     for d in result.get("drones_final") or []:
         con.print(f"  {final_state(d)}", highlight=False)
     if result.get("profile_rule"):

@@ -149,7 +149,7 @@ class LandingPilot:
     firmware's plan replaces our setpoints without a gap) -> down."""
 
     brake: BrakeController
-    spot: np.ndarray                  #: (2,) m
+    spot: np.ndarray | None           #: (2,) m; None: not chosen yet (it brakes on until it is)
     ground_z: float                   #: m, the body's height resting on the floor
     cfg: LandingConfig = LandingConfig()
     start: np.ndarray | None = None   #: (2,) m, where it was expected to stop: its path to the spot starts there
@@ -173,7 +173,7 @@ class LandingPilot:
         self.touchdown.update(t - self.t_start, pos, vel)
         if self.phase == BRAKE:
             speed = float(np.linalg.norm(vel))
-            if speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s:
+            if self.spot is None or (speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s):
                 rates, thrust = self.brake.command(pos, vel, quat)
                 return LandingStep(rates_dps=rates, thrust_n=thrust)
             if self.respot is not None:      # chosen from where it was expected to stop: still reachable?

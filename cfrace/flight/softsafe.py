@@ -18,6 +18,9 @@ BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown 
 FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
+#: landing spots chosen per tick at most (2-4 ms each on a 2-core VM, docs/flight.md "The loop at N drones"):
+#: when 8 drones start landing in one tick the choice spreads over 8 ticks instead of making one 25-60 ms long
+SPOTS_PER_TICK = 1
 
 
 def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) -> str:
@@ -76,6 +79,7 @@ class SoftState:
         self.vbat_low_since: list = [None] * n
         self.pending_records: list = []           # log records made outside the tick's _records
         self.holding: set = set()                 # drones that have held for another one's path
+        self.spot_queue: list = []                # drones landing without a spot yet, first come first
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
         """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S, or began to be rejected
@@ -122,24 +126,39 @@ class SoftState:
             self.start_landing(drones, i, e, t, "race_end", setup)
 
     def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
-        """Drone i stops racing and lands (brake, then the firmware's high-level commander) on a spot
-        clear of the drones already down and of the other landing drones' spots."""
+        """Drone i stops racing and lands: it brakes at once; its spot (clear of the drones already down
+        and of the other landing drones' spots) comes from choose_spots, in the order the drones began
+        to land, from where it is expected to stop."""
         d = drones[i]
-        others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
-        others += [o.landing.spot for o in drones if o.landing is not None]
-        paths = [(o.landing.start, o.landing.spot) for o in drones if o.landing is not None and o.landing.start is not None]
         stop = ld.stopping_point(est.pos, est.vel, setup.brake.accel_max)
-        try:
-            spot = spots.choose_landing_spots(setup.track, [stop], others, setup.cfg, paths)[0]
-        except ValueError:
-            spot = np.asarray(est.pos, np.float64)[:2].copy()   # no free spot: straight down where it stops
         brake = ld.BrakeController(**{**setup.brake.__dict__, "hold_z": None})
-        d.landing = ld.LandingPilot(brake, spot, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2],
+        d.landing = ld.LandingPilot(brake, None, setup.ground_z, setup.cfg, start=np.asarray(stop, np.float64)[:2],
                                     respot=functools.partial(self._respot, drones, i, setup),
                                     may_go=functools.partial(self._may_go, drones, i, setup))
-        d.landing_result = {"reason": reason, "t_start": round(t, 4), "spot": [round(float(v), 3) for v in spot]}
-        self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body,
-                                                "text": f"{reason}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
+        d.landing_result = {"reason": reason, "t_start": round(t, 4)}
+        self.spot_queue.append(i)
+
+    def choose_spots(self, drones: list, setup: ld.LandingSetup, budget: int = SPOTS_PER_TICK) -> None:
+        """Landing spots for at most ``budget`` drones of the queue (a drone waiting for its spot
+        brakes on, ld.LandingPilot.step). No free spot: straight down where it stops."""
+        while self.spot_queue and budget > 0:
+            d = drones[self.spot_queue.pop(0)]
+            if d.stopped or d.landing is None:
+                continue
+            budget -= 1
+            others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
+            others += [o.landing.spot for o in drones if o.landing is not None and o.landing.spot is not None]
+            paths = [(o.landing.start, o.landing.spot) for o in drones
+                     if o.landing is not None and o.landing.start is not None and o.landing.spot is not None]
+            try:
+                spot = spots.choose_landing_spots(setup.track, [d.landing.start], others, setup.cfg, paths)[0]
+            except ValueError:
+                spot = d.landing.start.copy()
+            d.landing.spot = spot
+            d.landing_result["spot"] = [round(float(v), 3) for v in spot]
+            self.pending_records.append(("/event", {
+                "kind": "landing", "drone": d.name, "body": d.body,
+                "text": f"{d.landing_result['reason']}: landing at ({spot[0]:.2f}, {spot[1]:.2f})"}))
 
     def _respot(self, drones: list, i: int, setup: ld.LandingSetup, pos, spot) -> np.ndarray:
         """Drone i's spot once its braking is over: the one chosen if the straight path from where it
@@ -150,9 +169,9 @@ class SoftState:
         if spots.path_clear(setup.track, here, spot, setup.cfg.path_clearance_m):
             return spot
         others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
-        others += [o.landing.spot for o in drones if o is not d and o.landing is not None]
-        paths = [(o.landing.start, o.landing.spot) for o in drones
-                 if o is not d and o.landing is not None and o.landing.start is not None]
+        others += [o.landing.spot for o in drones if o is not d and o.landing is not None and o.landing.spot is not None]
+        paths = [(o.landing.start, o.landing.spot) for o in drones if o is not d and o.landing is not None
+                 and o.landing.start is not None and o.landing.spot is not None]
         try:
             new = spots.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
         except ValueError:
@@ -172,7 +191,8 @@ class SoftState:
         clear = functools.partial(spots.path_clear, setup.track, clearance=setup.cfg.path_clearance_m)
         for j, o in enumerate(drones):
             lp = o.landing
-            if j == i or o.stopped or lp is None or lp.phase not in (ld.BRAKE, ld.HOLD) or lp.pos is None:
+            if j == i or o.stopped or lp is None or lp.phase not in (ld.BRAKE, ld.HOLD) or lp.pos is None \
+                    or lp.spot is None:
                 continue
             there = lp.pos[:2]
             if spots.swap_pays(here, spot, there, lp.spot) and clear(here, lp.spot) and clear(there, spot):
@@ -200,6 +220,8 @@ class SoftState:
                 continue
             if lp.phase in (ld.BRAKE, ld.HOLD) and (lp.brake.hold_z or math.inf, j) > key:
                 continue                                    # it waits for drone i
+            if lp.spot is None:
+                return False                                # its way is not known yet (choose_spots)
             taus = np.linspace(0.0, max(me.left_s(t), lp.left_s(t), 0.1), 64)
             closest = float(np.min(np.linalg.norm(me.plan(t, taus) - lp.plan(t, taus), axis=1)))
             if closest < min(sep, float(np.linalg.norm(me.pos - lp.pos))) - 1e-6:

@@ -19,8 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
-from cfrace.flight import landing as ld
-from cfrace.flight import safety as sf
+from cfrace.flight import landing as ld, safety as sf
 from cfrace.flight.consistency import ConsistencyMonitor
 from cfrace.flight.softsafe import SoftState, blocked_by, land_step
 from cfrace.flight.swarm import OpponentPicker, batched_step, due_groups
@@ -221,6 +220,7 @@ class TickCore:
                     kind = next(v.kind for v in decision.violations if v.action in (sf.LAND_DRONE, sf.LAND_ALL)
                                 and v.drone in (i, None))
                     self.soft.start_landing(self.drones, i, ests[i], t, kind, self.landing)
+            self.soft.choose_spots(self.drones, self.landing)   # this tick's and earlier ones' landings
         commands: list = []
         setpoints, stops = self._setpoints(decision, ests, t, k, commands)
         end, winner = self._end(decision, ests, t)
