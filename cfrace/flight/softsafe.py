@@ -18,9 +18,18 @@ BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown 
 FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
-#: landing spots chosen per tick at most (2-4 ms each on a 2-core VM, docs/flight.md "The loop at N drones"):
-#: when 8 drones start landing in one tick the choice spreads over 8 ticks instead of making one 25-60 ms long
+#: landing spots chosen per tick at most (2-8 ms each on a 2-core VM, docs/flight.md "The loop at N drones"):
+#: when 8 drones start landing in one tick the choice spreads over 8 ticks instead of making one 21-34 ms long
 SPOTS_PER_TICK = 1
+
+
+def kept_clear_of(drones: list, skip=None) -> tuple[list, list]:
+    """What a new landing spot keeps clear of (spots.choose_landing_spots' ``others`` and ``paths``):
+    the drones down where they lie and the spots of the landing drones (but ``skip``) that have one,
+    and those drones' paths to their spots."""
+    landing = [o.landing for o in drones if o is not skip and o.landing is not None and o.landing.spot is not None]
+    others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None] + [lp.spot for lp in landing]
+    return others, [(lp.start, lp.spot) for lp in landing if lp.start is not None]
 
 
 def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) -> str:
@@ -146,10 +155,7 @@ class SoftState:
             if d.stopped or d.landing is None:
                 continue
             budget -= 1
-            others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
-            others += [o.landing.spot for o in drones if o.landing is not None and o.landing.spot is not None]
-            paths = [(o.landing.start, o.landing.spot) for o in drones
-                     if o.landing is not None and o.landing.start is not None and o.landing.spot is not None]
+            others, paths = kept_clear_of(drones)
             try:
                 spot = spots.choose_landing_spots(setup.track, [d.landing.start], others, setup.cfg, paths)[0]
             except ValueError:
@@ -168,10 +174,7 @@ class SoftState:
         spot = self._swap_with_braking(drones, i, setup, here, np.asarray(spot, np.float64))
         if spots.path_clear(setup.track, here, spot, setup.cfg.path_clearance_m):
             return spot
-        others = [o.frozen_pos for o in drones if o.stopped and o.frozen_pos is not None]
-        others += [o.landing.spot for o in drones if o is not d and o.landing is not None and o.landing.spot is not None]
-        paths = [(o.landing.start, o.landing.spot) for o in drones if o is not d and o.landing is not None
-                 and o.landing.start is not None and o.landing.spot is not None]
+        others, paths = kept_clear_of(drones, skip=d)
         try:
             new = spots.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
         except ValueError:
