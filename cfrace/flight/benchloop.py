@@ -13,20 +13,28 @@ Goals on this machine: compute p99 <= 1 ms, period jitter p99 <= 0.5 ms, inferen
 from __future__ import annotations
 
 import os
+import random
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
-from cfrace.errors import CfraceError, LinkError
+import numpy as np
+
+from cfrace.errors import CfraceError, LinkError, PolicyError
+from cfrace.flight import realtime
+from cfrace.flight.clock import RealClock
 from cfrace.flight.config import FlightConfig
+from cfrace.flight.loopfigures import ms_stats, periods
 from cfrace.flight.realtime import other_cpus, resolve_loop_cpu
 from cfrace.flight.runner import run_race
 from cfrace.flight.setup import real_io, resolve_race, training_profile
 from cfrace.paths import POLICIES_DIR
+from cfrace.track import load_track
 
 GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_ms": 0.2}
 
@@ -34,8 +42,6 @@ GOALS_MS = {"compute_p99_ms": 1.0, "period_jitter_p99_ms": 0.5, "inference_p99_m
 def _free_base_port(drones: int = 2) -> int:
     """A base port with base-1 .. base+drones-1 free (pose port, the drones), below the kernel's
     ephemeral range so that other programs' automatically assigned ports cannot take them."""
-    import random
-
     rng = random.Random()
     for _ in range(100):
         base = rng.randrange(20001, 30000)
@@ -61,7 +67,6 @@ def bench_policies(track: str, workdir: Path, which: str = "paper") -> tuple[str
     if which == "shipped":
         ours, ds = POLICIES_DIR / f"ours_{track}.onnx", POLICIES_DIR / f"ds_{track}.onnx"
         if not (ours.exists() and ds.exists()):
-            from cfrace.errors import PolicyError
             raise PolicyError(f"no shipped policies {ours.name} and {ds.name} in {POLICIES_DIR}")
         return str(ours), str(ds), "shipped ours vs ds"
     from cfrace.flight.holdpolicy import make_sized_hold_policy
@@ -78,12 +83,6 @@ def bare_loop(seconds: float, *, rt_priority="auto", loop_cpu="auto", prewarm_s:
     warm-up). Its tick lateness and period jitter are what any Python loop gets
     here; `cfrace bench loop` prints the flight loop's beside them. Returns late_ms and
     period_jitter_ms (as timing_summary) plus loop_cpu and rt_fifo."""
-    import numpy as np
-
-    from cfrace.flight import realtime
-    from cfrace.flight.clock import RealClock
-    from cfrace.flight.loopfigures import ms_stats, periods
-
     cpu = realtime.resolve_loop_cpu(loop_cpu)
     pinned = realtime.pin_loop_thread(cpu)
     fifo = realtime.set_fifo(realtime.resolve_rt_priority(rt_priority))
@@ -123,7 +122,6 @@ def bench_loop(duration_s: float = 10.0, *, track: str = "lemniscate", profile: 
         work = Path(tmp)
         ego, opp, kind = bench_policies(track, work, policies)
         if profile is None:
-            from cfrace.track import load_track
             profile = training_profile(load_track(track), ego, False) if policies == "shipped" else "cf21bl"
         base = _free_base_port(drones)
         cmd = [sys.executable, "-c", "from cfrace.cli.main import main; main()", "sim", "serve", "--track", track,
@@ -179,7 +177,6 @@ def compare_pose_stream(duration_s: float = 10.0, rounds: int = 1, **options) ->
     alternating, ``rounds`` times each, in one run: the figures of every run and, per condition, the
     median over its runs of compute p50/p99 (ms) and of the packets per second the flight process
     hands the links (setpoints, and poses when streaming)."""
-    import numpy as np
     runs = {False: [], True: []}
     for _ in range(rounds):
         for stream in (False, True):
@@ -215,8 +212,6 @@ def compare_foxglove(duration_s: float, rounds: int, on_run=None, **options) -> 
     """The loop with the log of JSON records alone, with the Foxglove scene in it and with the scene
     served live too, alternating ``rounds`` times; per figure the medians (ms) and their ratios to
     the plain log. ``on_run(round, name, result)`` after each run."""
-    import statistics
-
     runs: dict[str, list] = {name: [] for name, _, _ in FOXGLOVE_CONFIGS}
     for i in range(rounds):
         for name, scene, live in FOXGLOVE_CONFIGS:

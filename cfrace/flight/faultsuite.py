@@ -31,7 +31,18 @@ from pathlib import Path
 
 import numpy as np
 
+from cfrace.contract import decode_meta, encode_meta
 from cfrace.drone import GRAVITY
+from cfrace.flight.benchloop import _free_base_port
+from cfrace.flight.config import FlightConfig, SafetyConfig
+from cfrace.flight.dryrun import dry_run
+from cfrace.flight.faults import KINDS, UdpCutRelay
+from cfrace.flight.flightlog import read_log
+from cfrace.flight.mocap import open_mocap
+from cfrace.flight.runner import EXIT_CODES, result_exit_code
+from cfrace.flight.setup import training_profile
+from cfrace.paths import POLICIES_DIR
+from cfrace.track import load_track
 
 FAULT_T = 2.0            #: s of race time at which a dry-run fault is injected
 RACE_S = 6.0             #: s, each dry-run race
@@ -93,13 +104,6 @@ def ballistic_bound(pos, vel) -> float:
 def dry_run_row(kind: str, track: str, workdir: Path, drones: int = 2) -> Row:
     """One fault in a lockstep dry-run of ours vs ds (``drones`` > 2: ours, ds, ours, ds, ...; the
     fault hits d1, or d2 for nan_policy)."""
-    from cfrace.flight.config import FlightConfig, SafetyConfig
-    from cfrace.flight.dryrun import dry_run
-    from cfrace.flight.flightlog import read_log
-    from cfrace.flight.runner import EXIT_CODES, result_exit_code
-    from cfrace.flight.setup import training_profile
-    from cfrace.track import load_track
-
     names = ("ego", "opp") if drones == 2 else ("d1", "d2")
     drone = names[1] if kind == "nan_policy" else names[0]
     log = workdir / f"{kind}-{drones}.mcap"
@@ -155,7 +159,6 @@ class _PoseRecorder:
     """Subscribes to a `cfrace sim serve` pose stream and keeps (time.monotonic, {body: pos})."""
 
     def __init__(self, port: int, bodies: list[str]):
-        from cfrace.flight.mocap import open_mocap
 
         self.source = open_mocap(f"sim://127.0.0.1:{port}", bodies=bodies)
         self.samples: list[tuple[float, dict]] = []
@@ -228,11 +231,6 @@ def _after(rec: _PoseRecorder, body: str, t_from: float) -> tuple[float, float, 
 def process_rows(track: str, workdir: Path) -> list[Row]:
     """kill -9 of `cfrace fly` mid-race, and a link loss (without and with the emergency-stop
     watchdog fed), with `cfrace sim serve` in its own process."""
-    from cfrace.flight.benchloop import _free_base_port
-    from cfrace.flight.faults import UdpCutRelay
-    from cfrace.flight.setup import training_profile
-    from cfrace.track import load_track
-
     profile = training_profile(load_track(track), "ours", False)
     rows = []
     for scenario, extra in (("kill -9 of fly", ()), ("link loss", ()), ("link loss", ("--estop-watchdog",))):
@@ -305,8 +303,6 @@ def _kill9(fly: subprocess.Popen, rec: _PoseRecorder, log: Path) -> Row:
 
 
 def _link_loss(fly: subprocess.Popen, rec: _PoseRecorder, relay, log: Path, watchdog: bool = False) -> Row:
-    from cfrace.flight.flightlog import read_log
-    from cfrace.flight.runner import EXIT_CODES
 
     t_cut = time.monotonic()
     relay.cut()
@@ -342,8 +338,6 @@ def bad_input_rows(workdir: Path) -> list[Row]:
     nowhere would only be opened after these checks)."""
     import onnx
 
-    from cfrace.contract import decode_meta, encode_meta
-    from cfrace.paths import POLICIES_DIR
 
     src = POLICIES_DIR / "ours_lemniscate.onnx"
     model = onnx.load(str(src))
@@ -383,8 +377,6 @@ def bad_input_rows(workdir: Path) -> list[Row]:
 def run_suite(track: str = "lemniscate", processes: bool = True, workdir: Path | None = None,
               drones: tuple[int, ...] = (2,)) -> list[Row]:
     """Every row of the table (module doc); the dry-run faults once per drone count."""
-    from cfrace.flight.faults import KINDS
-
     with tempfile.TemporaryDirectory(prefix="cfrace-faults-") as tmp:
         work = Path(workdir or tmp)
         rows = [dry_run_row(kind, track, work, n) for n in drones for kind in KINDS]
