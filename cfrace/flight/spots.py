@@ -160,9 +160,11 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
 #: track: 15 k candidates) checking every candidate against every other drone's path made the tick in
 #: which eight drones start landing overrun the loop (tests/test_flight_landing.py, docs/flight.md)
 NEAR_CANDIDATES = 1500
-#: of the max_tries nearest allowed spots, how many _nearest checks first (the rest in one batch)
+#: of the max_tries nearest allowed spots, how many _nearest checks first (then twice as many, and so on)
 NEAR_FIRST = 8
-#: candidates per step of _nearest's walk outwards (the rule on other drones' paths is applied to these)
+#: candidates in the first step of _nearest's walk outwards (the rule on other drones' paths is applied
+#: to these); each step takes twice as many as the one before, so that a walk over the whole arena (a
+#: rule that rejects almost every spot) takes a dozen steps, not a hundred
 RULE_CHUNK = 128
 
 
@@ -170,10 +172,11 @@ def _nearest(track, stop, cand, order, clear, rule, cfg: LandingConfig):
     """The nearest candidate allowed by ``clear`` (K,) and ``rule`` (cand (k, 2) -> (k,) bool) and
     reachable in a straight line, among the max_tries nearest allowed ones (this runs in the tick):
     (that spot or None, whether max_tries allowed ones were there to look at). The rule is applied in
-    distance order a chunk at a time, only as far as the search goes."""
-    order, seen = order[clear[order]], 0
-    for lo in range(0, len(order), RULE_CHUNK):
-        idx = order[lo:lo + RULE_CHUNK]
+    distance order a chunk at a time (doubling), only as far as the search goes."""
+    order, seen, lo, size = order[clear[order]], 0, 0, RULE_CHUNK
+    while lo < len(order):
+        idx = order[lo:lo + size]
+        lo, size = lo + size, 2 * size
         idx = idx[rule(cand[idx])][:cfg.max_tries - seen]
         for chunk in (idx[:NEAR_FIRST], idx[NEAR_FIRST:]):   # the nearest few first: mostly one of them will do
             ok = paths_clear(track, stop, cand[chunk], cfg.path_clearance_m) if len(chunk) else chunk.astype(bool)
@@ -210,18 +213,21 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
                 ok &= np.linalg.norm(cand - b, axis=1) >= cfg.drone_separation_m
             return cand, np.argsort(dist[sel]), ok
 
-        def nearest(rule) -> np.ndarray | None:
+        def nearest(rule, far: bool = True) -> np.ndarray | None:
             """The nearest allowed candidate under ``rule`` (cand -> extra mask): among the nearest
-            candidates first, then (none of them allowed) the whole arena: the same spot either way."""
-            for idx in ((0, 1) if near is not None else (1,)):
+            candidates first, then (none of them allowed, and ``far``) the whole arena: the same spot
+            either way."""
+            for idx in (((0, 1) if far else (0,)) if near is not None else (1,)):
                 found, enough = _nearest(track, stop, *candidates(idx), rule, cfg)
                 if found is not None or enough:
                     return found          # the max_tries nearest allowed ones overall were all looked at
             return None
 
-        # a spot whose path keeps clear of the other drones' paths; else straight down where the drone
-        # stops if that is clear of them; else clear of the drones that stay; else merely free
-        chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m))
+        # a spot whose path keeps clear of the other drones' paths, among the NEAR_CANDIDATES nearest
+        # (a drone hemmed in by other paths would make this rule walk the whole arena: 25-100 ms of CPU
+        # in the tick); else straight down where the drone stops if that is clear of them; else clear of
+        # the drones that stay; else merely free (its go-to then waits for the others: softsafe._may_go)
+        chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m), far=False)
         sep = cfg.path_separation_m
         if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \
                 and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still):
