@@ -3,6 +3,8 @@ every moment of a window, each ending with both drones landing from wherever the
 
     .venv/bin/python benchmarks/race_end_landings.py [--ego ds] [--opp ours] [--profile cf2x_paper]
         [--from 1.0] [--to 9.0] [--step 0.03] [--json FILE]
+    .venv/bin/python benchmarks/race_end_landings.py --policies ours,ds,ours,ds,ours,ds,ours,ds --track complex ...
+        (a swarm: drones that crashed racing are not landings; each race end's slowest tick in CPU ms)
 
 Per race end: whether a simulated drone crashed (the simulator's crash flag at the end: a gate frame,
 an obstacle, a floor impact), the safety events that acted and the pose outliers (a crash in the
@@ -23,12 +25,15 @@ from cfrace.flight.config import FlightConfig
 from cfrace.flight.dryrun import dry_run
 
 
-def race_end(ego: str, opp: str, profile: str, t_end: float) -> dict:
-    cfg = FlightConfig(track="lemniscate", ego=ego, opp=opp, profile=profile, laps=3, quiet=True, timeout_s=t_end)
+def race_end(ego: str, opp: str, profile: str, t_end: float, track: str = "lemniscate", policies: tuple = ()) -> dict:
+    cfg = FlightConfig(track=track, ego=ego, opp=opp, policies=policies, profile=profile, laps=3, quiet=True,
+                       timeout_s=t_end)
     r = dry_run(cfg, lockstep=True).to_json()
-    return {"t_end": t_end, "end": r["end"],
-            "crashed": [f["body"] for f in r["drones_final"] if f["crashed"]],
-            "acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"],
+    landing = {d["body"] for d in r["drones"] if d["landing"] is not None}   # others crashed racing (a swarm)
+    return {"t_end": t_end, "end": r["end"], "max_tick_cpu_ms": r["loop"]["compute_cpu_ms"]["max"],
+            "crashed": [f["body"] for f in r["drones_final"] if f["crashed"] and (not policies or f["body"] in landing)],
+            "acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"
+                      and (not policies or e["t"] >= t_end)],
             "outliers": sum(e["kind"] == "pose_outlier" for e in r["safety_events"]),
             "landings": {d["name"]: (d["stop_kind"], (d["landing"] or {}).get("t_start")) for d in r["drones"]}}
 
@@ -38,6 +43,8 @@ def main() -> None:
     ap.add_argument("--ego", default="ds")
     ap.add_argument("--opp", default="ours")
     ap.add_argument("--profile", default="cf2x_paper")
+    ap.add_argument("--track", default="lemniscate")
+    ap.add_argument("--policies", default="", help="P1,...,PN: an N-drone field instead of --ego/--opp")
     ap.add_argument("--from", dest="t0", type=float, default=1.0)
     ap.add_argument("--to", dest="t1", type=float, default=9.0)
     ap.add_argument("--step", type=float, default=0.03)
@@ -45,16 +52,19 @@ def main() -> None:
     a = ap.parse_args()
     rows = []
     for t_end in np.round(np.arange(a.t0, a.t1 + 1e-9, a.step), 3):
-        row = race_end(a.ego, a.opp, a.profile, float(t_end))
+        row = race_end(a.ego, a.opp, a.profile, float(t_end), a.track, tuple(p for p in a.policies.split(",") if p))
         rows.append(row)
         if row["crashed"] or row["acted"] or row["outliers"]:
             print(f"{row['t_end']:.2f} s: crashed {row['crashed']}, acted {row['acted']}, outliers {row['outliers']}",
                   flush=True)
     bad = [r for r in rows if r["crashed"] or r["acted"]]
-    print(f"{a.ego} vs {a.opp} on {a.profile}: {len(bad)} of {len(rows)} race ends ({a.t0:g}-{a.t1:g} s every "
-          f"{a.step:g} s) crashed a drone or stopped one")
+    who = a.policies or f"{a.ego} vs {a.opp}"
+    ticks = [r["max_tick_cpu_ms"] for r in rows]
+    print(f"{who} on {a.track}, {a.profile}: {len(bad)} of {len(rows)} race ends ({a.t0:g}-{a.t1:g} s every "
+          f"{a.step:g} s) crashed a drone or stopped one; slowest tick {np.median(ticks):.1f} ms CPU median, "
+          f"{max(ticks):.1f} ms worst")
     if a.json:
-        doc = {"ego": a.ego, "opp": a.opp, "profile": a.profile, "from": a.t0, "to": a.t1, "step": a.step,
+        doc = {"ego": a.ego, "opp": a.opp, "policies": a.policies, "track": a.track, "profile": a.profile, "from": a.t0, "to": a.t1, "step": a.step,
                "bad": len(bad), "runs": len(rows), "rows": rows}
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1)

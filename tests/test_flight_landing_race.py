@@ -115,3 +115,12 @@ def test_real_time_race_lands_through_the_link_keeper(tmp_path):
     assert result["end"] == "timeout"
     assert check_landings(result) == {"ego": "race_end", "opp": "race_end"}
     assert result["loop"]["poses_sent"] > 300
+
+
+def test_the_race_end_scan_takes_a_field(bench_script):
+    """benchmarks/race_end_landings.py with --policies: four drones on the lemniscate, the race ended at
+    2 s (a clean end of the scan in docs/flight.md, "Race ends in a field"): every drone lands."""
+    scan = bench_script("race_end_landings")
+    row = scan.race_end("ours", "ds", "cf2x_paper", 2.0, "lemniscate", ("ours", "ds", "ours", "ds"))
+    assert row["end"] == "timeout" and not row["crashed"] and not row["acted"], row
+    assert [kind for kind, _ in row["landings"].values()] == ["landed"] * 4 and row["max_tick_cpu_ms"] > 0.0
