@@ -77,8 +77,8 @@ def test_a_drone_without_its_spot_brakes_on_and_those_behind_it_wait():
 def test_a_drone_hemmed_in_by_other_paths_gets_its_spot_without_walking_the_arena():
     """An 8-drone lockstep race on the complex track ended by the time-out at 1.5 s: a drone stopping
     0.1-0.15 m from two other landing drones' paths. No spot within reach keeps clear of those paths,
-    and the search for one walked all 15 k candidates of the arena: 93 ms of CPU in one tick (the loop
-    stops every drone at 100 ms). The path rule now looks at the nearest candidates only; the spot is
+    and the search for one walked all 15 k candidates of the arena: about 100 ms of CPU in one tick (the
+    loop stops every drone at 100 ms; the old code fails the bound below). The path rule now looks at the nearest candidates only; the spot is
     the one the whole arena gave (the nearest clear of the drones that stay)."""
     track, cfg = load_track("complex"), LandingConfig()
     stops = [[-2.803, 1.636]]

@@ -160,11 +160,11 @@ def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
 #: track: 15 k candidates) checking every candidate against every other drone's path made the tick in
 #: which eight drones start landing overrun the loop (tests/test_flight_landing.py, docs/flight.md)
 NEAR_CANDIDATES = 1500
-#: of the max_tries nearest allowed spots, how many _nearest checks first (then twice as many, and so on)
+#: of the max_tries nearest allowed spots, how many _nearest checks first (the rest in one batch)
 NEAR_FIRST = 8
 #: candidates in the first step of _nearest's walk outwards (the rule on other drones' paths is applied
-#: to these); each step takes twice as many as the one before, so that a walk over the whole arena (a
-#: rule that rejects almost every spot) takes a dozen steps, not a hundred
+#: to these); each step takes twice as many as the one before, so that a rule that rejects most spots
+#: is done in a few steps, not a dozen
 RULE_CHUNK = 128
 
 
