@@ -10,6 +10,9 @@ Per race end: whether a simulated drone crashed (the simulator's crash flag at t
 an obstacle, a floor impact), the safety events that acted and the pose outliers (a crash in the
 air drops the simulated drone to the floor in one step, which the flight loop sees as outliers).
 Prints the race ends with a crash or an event and a summary line; the JSON holds every race end.
+A race end whose events all happen, at the same time, in the same race not ended in the window (the
+reference race) is marked "as in the race": drones flying on through the gate ahead on their
+policies (softsafe.FLY_THROUGH_MAX_S) crashed as they did racing, not in their landings.
 A race end is a landing from one place and speed: the window samples the places of a lap and more
 (the races run 3 laps; the timeout ends them before).
 """
@@ -34,8 +37,15 @@ def race_end(ego: str, opp: str, profile: str, t_end: float, track: str = "lemni
             "crashed": [f["body"] for f in r["drones_final"] if f["crashed"] and (not policies or f["body"] in landing)],
             "acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"
                       and (not policies or e["t"] >= t_end)],
+            "all_acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"],
             "outliers": sum(e["kind"] == "pose_outlier" for e in r["safety_events"]),
             "landings": {d["name"]: (d["stop_kind"], (d["landing"] or {}).get("t_start")) for d in r["drones"]}}
+
+
+def as_in_race(row: dict, reference: dict) -> bool:
+    """Do all of row's events (and none but them) happen in the reference race at the same tick?"""
+    ref = {(round(t, 2), kind, drone) for t, kind, drone in reference["all_acted"]}
+    return bool(row["acted"]) and all((round(t, 2), kind, drone) in ref for t, kind, drone in row["acted"])
 
 
 def main() -> None:
@@ -50,22 +60,26 @@ def main() -> None:
     ap.add_argument("--step", type=float, default=0.03)
     ap.add_argument("--json", default="")
     a = ap.parse_args()
+    policies = tuple(p for p in a.policies.split(",") if p)
+    reference = race_end(a.ego, a.opp, a.profile, a.t1 + 2.0, a.track, policies)
     rows = []
     for t_end in np.round(np.arange(a.t0, a.t1 + 1e-9, a.step), 3):
-        row = race_end(a.ego, a.opp, a.profile, float(t_end), a.track, tuple(p for p in a.policies.split(",") if p))
+        row = race_end(a.ego, a.opp, a.profile, float(t_end), a.track, policies)
+        row["as_in_race"] = as_in_race(row, reference)
         rows.append(row)
         if row["crashed"] or row["acted"] or row["outliers"]:
-            print(f"{row['t_end']:.2f} s: crashed {row['crashed']}, acted {row['acted']}, outliers {row['outliers']}",
-                  flush=True)
+            print(f"{row['t_end']:.2f} s: crashed {row['crashed']}, acted {row['acted']}, outliers {row['outliers']}"
+                  + (" (as in the race)" if row["as_in_race"] else ""), flush=True)
     bad = [r for r in rows if r["crashed"] or r["acted"]]
+    racing = sum(r["as_in_race"] for r in bad)
     who = a.policies or f"{a.ego} vs {a.opp}"
     ticks = [r["max_tick_cpu_ms"] for r in rows]
     print(f"{who} on {a.track}, {a.profile}: {len(bad)} of {len(rows)} race ends ({a.t0:g}-{a.t1:g} s every "
-          f"{a.step:g} s) crashed a drone or stopped one; slowest tick {np.median(ticks):.1f} ms CPU median, "
+          f"{a.step:g} s) crashed a drone or stopped one, {racing} of them as in the race; slowest tick {np.median(ticks):.1f} ms CPU median, "
           f"{max(ticks):.1f} ms worst")
     if a.json:
         doc = {"ego": a.ego, "opp": a.opp, "policies": a.policies, "track": a.track, "profile": a.profile, "from": a.t0, "to": a.t1, "step": a.step,
-               "bad": len(bad), "runs": len(rows), "rows": rows}
+               "bad": len(bad), "as_in_race": racing, "runs": len(rows), "rows": rows}
         with open(a.json, "w") as f:
             json.dump(doc, f, indent=1)
 

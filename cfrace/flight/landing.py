@@ -3,8 +3,11 @@ to its spot, and what its touchdown was. Where it lands: cfrace.flight.spots.
 
 * ``BrakeController``: rate-mode braking from the mocap estimate (the firmware's planner starts its
   moves from rest, so we bring the drone to rest first): the wanted acceleration is
-  ``-k_v v`` (at most ``accel_max``) plus an altitude hold, the thrust vector ``m (a + g)`` gives the
-  collective thrust and the body z axis it needs, body rates turn the drone towards it.
+  ``-k_v v`` (at most ``accel_max``) plus an altitude hold, plus a push away from the other flying
+  drones within ``sep_m`` (``separation_accel``: drones that raced side by side, or one braking
+  ahead of one still flying, otherwise stay in contact while they brake); the thrust vector
+  ``m (a + g)`` gives the collective thrust and the body z axis it needs, body rates turn the drone
+  towards it.
 * ``LandingPilot``: brake -> hold while another drone is in the way -> the firmware's go-to and land.
 * ``Touchdown``: from the estimates, the moment a drone reaches the floor, where, and its vertical
   speed then.
@@ -28,6 +31,23 @@ def stopping_point(pos, vel, accel: float) -> np.ndarray:
     return pos + vel * (float(np.linalg.norm(vel)) / (2.0 * accel))
 
 
+def separation_accel(pos, vel, near, sep_m: float, k_sep: float, k_damp: float, a_max: float) -> np.ndarray:
+    """m/s^2 (3,), the push of a drone at pos, vel (3,) away from the drones ``near`` ((pos, vel) each)
+    closer than ``sep_m``: a spring ``k_sep (sep_m - d)`` plus a damper ``k_damp`` on the speed at which
+    they close in, along the line between them, summed and at most ``a_max``."""
+    a = np.zeros(3)
+    for p, v in near:
+        d = pos - np.asarray(p, np.float64)
+        dist = float(np.linalg.norm(d))
+        if dist >= sep_m:
+            continue
+        n = d / dist if dist > 1e-6 else np.array([1.0, 0.0, 0.0])
+        closing = -float((vel - np.asarray(v, np.float64)) @ n)          # > 0: they come nearer
+        a += n * (k_sep * (sep_m - dist) + k_damp * max(closing, 0.0))
+    size = float(np.linalg.norm(a))
+    return a * (a_max / size) if size > a_max else a
+
+
 @dataclass
 class BrakeController:
     """Rate-mode braking: (estimate) -> (body rates deg/s (3,), collective thrust N)."""
@@ -41,15 +61,22 @@ class BrakeController:
     k_att: float = 15.0                #: 1/s, body rate per rad of tilt error
     rate_max_dps: tuple = (100.0, 100.0, 200.0)   #: deg/s per axis: the profile's (the safety check's limits)
     min_height: float = 0.4            #: m, the altitude held is at least this
+    sep_m: float = 0.5                 #: m, other flying drones nearer than this push the drone away ...
+    k_sep: float = 40.0                #: 1/s^2, ... by this much per m nearer ...
+    k_sep_damp: float = 6.0            #: 1/s, ... plus this much per m/s at which they close in ...
+    sep_accel_max: float = 8.0         #: m/s^2, ... at most this (the sum stays within accel_max sideways)
     hold_z: float | None = field(default=None, repr=False)
 
-    def command(self, pos, vel, quat) -> tuple[np.ndarray, float]:
-        """pos, vel (3,) world, quat (4,) wxyz world-from-body -> (p, q, r deg/s, thrust N)."""
+    def command(self, pos, vel, quat, near=()) -> tuple[np.ndarray, float]:
+        """pos, vel (3,) world, quat (4,) wxyz world-from-body, near: (pos, vel) of other flying drones
+        -> (p, q, r deg/s, thrust N)."""
         pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
         if self.hold_z is None:
             self.hold_z = max(float(pos[2]), self.min_height)
         a = -self.k_vel * vel
         a[2] = self.k_z * (self.hold_z - pos[2]) - self.k_vz * vel[2]
+        if near:
+            a += separation_accel(pos, vel, near, self.sep_m, self.k_sep, self.k_sep_damp, self.sep_accel_max)
         horiz = float(np.linalg.norm(a[:2]))
         if horiz > self.accel_max:
             a[:2] *= self.accel_max / horiz
@@ -164,8 +191,9 @@ class LandingPilot:
     held_s: float = 0.0               #: s it held before its go-to
     pos: np.ndarray | None = None     #: (3,) m, the newest estimate it was fed
 
-    def step(self, t: float, pos, vel, quat) -> LandingStep:
-        """The drone's estimate at loop time t -> what to do now."""
+    def step(self, t: float, pos, vel, quat, near=()) -> LandingStep:
+        """The drone's estimate at loop time t (near: (pos, vel) of the other flying drones close to it,
+        BrakeController.command) -> what to do now."""
         if self.t_start is None:
             self.t_start = t
             self.touchdown = Touchdown(self.ground_z)
@@ -174,14 +202,14 @@ class LandingPilot:
         if self.phase == BRAKE:
             speed = float(np.linalg.norm(vel))
             if self.spot is None or (speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s):
-                rates, thrust = self.brake.command(pos, vel, quat)
+                rates, thrust = self.brake.command(pos, vel, quat, near)
                 return LandingStep(rates_dps=rates, thrust_n=thrust)
             if self.respot is not None:      # chosen from where it was expected to stop: still reachable?
                 self.spot = np.asarray(self.respot(pos, self.spot), np.float64)
             self.phase, self.t_phase_end = HOLD, t + self.cfg.hold_max_s
         if self.phase == HOLD:
             if self.may_go is not None and t < self.t_phase_end and not self.may_go(t):
-                rates, thrust = self.brake.command(pos, vel, quat)      # hover where it braked
+                rates, thrust = self.brake.command(pos, vel, quat, near)      # hover where it braked
                 return LandingStep(rates_dps=rates, thrust_n=thrust)
             self.held_s = t - (self.t_phase_end - self.cfg.hold_max_s)
             w, x, y, z = (float(v) for v in quat)

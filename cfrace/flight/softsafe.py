@@ -16,6 +16,9 @@ from cfrace.sim.gates import to_gate_frame
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
 BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown on at speed meanwhile)
 FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
+#: m, a drone this near the line of one that flies on (and ahead of it, within its brake's sep_m) flies
+#: on with it (fly_on_together): two radii and a drift; 0.42 m off it, braking lets it pass
+FLY_ON_LANE_M = 0.25
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
 #: landing spots chosen per tick at most (2-8 ms each on a 2-core VM, docs/flight.md "The loop at N drones"):
@@ -76,6 +79,29 @@ def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
     return float(np.linalg.norm(local)) < reach
 
 
+def fly_on_together(racing: list, fly: set, ests: list, reach: float, lane: float = FLY_ON_LANE_M) -> set:
+    """The drones of ``racing`` that fly on after the race's end: those of ``fly`` and, in a chain,
+    every one with a valid estimate in the way of one that flies on: less than ``reach`` m ahead of
+    it along its velocity and less than ``lane`` m off that line. Braking there, it would be run into
+    from behind; a drone behind, beside or off the line of one that flies on brakes (it falls back,
+    and braking keeps it off the others, ld.separation_accel)."""
+    fly, grown = set(fly), True
+    while grown:
+        grown = False
+        for i in racing:
+            if i in fly or not ests[i].valid:
+                continue
+            for j in fly:
+                gap, v = ests[i].pos - ests[j].pos, ests[j].vel
+                speed = float(np.linalg.norm(v))
+                along = float(gap @ v) / speed if speed > 1e-6 else -1.0
+                if 0.0 < along < reach and float(np.linalg.norm(gap - along * v / speed)) < lane:
+                    fly.add(i)
+                    grown = True
+                    break
+    return fly
+
+
 class SoftState:
     """Per drone: when its pose glitched, since when its battery is low, whether it held for another
     drone's landing; log records to flush."""
@@ -124,15 +150,20 @@ class SoftState:
         """After the race's end (at t_end) every drone still racing lands, but one whose braking would
         take it into the gate ahead of it (brakes_into_gate) flies on through that gate on its policy
         first, for at most FLY_THROUGH_MAX_S after the end: it lands once braking would take it into
-        no gate ahead (through one gate, it may be too close to the next) or that time is up."""
-        for i, d in enumerate(drones):
-            if d.stopped or d.landing is not None:
-                continue
-            e = ests[i]
-            if t - t_end < FLY_THROUGH_MAX_S and e.valid and \
-                    brakes_into_gate(e.pos, e.vel, setup.gates[int(targets[i])], setup):
-                continue
-            self.start_landing(drones, i, e, t, "race_end", setup)
+        no gate ahead (through one gate, it may be too close to the next) or that time is up. A drone
+        just ahead of one that flies on, in its way, flies on with it (fly_on_together): braking there,
+        it would be run into from behind."""
+        racing = [i for i, d in enumerate(drones) if not d.stopped and d.landing is None]
+        if not racing:
+            return
+        fly = set()
+        if t - t_end < FLY_THROUGH_MAX_S:
+            fly = {i for i in racing if ests[i].valid and brakes_into_gate(ests[i].pos, ests[i].vel,
+                                                                          setup.gates[int(targets[i])], setup)}
+            fly = fly_on_together(racing, fly, ests, setup.brake.sep_m)
+        for i in racing:
+            if i not in fly:
+                self.start_landing(drones, i, ests[i], t, "race_end", setup)
 
     def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
         """Drone i stops racing and lands: it brakes at once; its spot (clear of the drones already down
@@ -238,11 +269,20 @@ class SoftState:
         return True
 
 
-def land_step(i: int, d, est, t: float, out_commands: list, timeout_s: float) -> tuple | None:
-    """One tick of landing drone d (index i): its rate setpoint while braking, else None; its
+def flying_near(i: int, drones: list, ests: list) -> list:
+    """(pos, vel) of the drones still flying (racing or landing, with a valid estimate) within drone
+    i's brake's sep_m: what its braking keeps away from (ld.separation_accel)."""
+    me, reach = ests[i].pos, drones[i].landing.brake.sep_m
+    return [(e.pos, e.vel) for j, (o, e) in enumerate(zip(drones, ests))
+            if j != i and not o.stopped and e.valid and float(np.linalg.norm(e.pos - me)) < reach]
+
+
+def land_step(i: int, drones: list, ests: list, t: float, out_commands: list, timeout_s: float) -> tuple | None:
+    """One tick of landing drone i of drones: its rate setpoint while braking, else None; its
     high-level commands appended to out_commands; when it is down (or its landing timed out) the
-    touchdown goes into d.landing_result with "down"."""
-    step = d.landing.step(t, est.pos, est.vel, est.quat)
+    touchdown goes into its landing_result with "down"."""
+    d, est = drones[i], ests[i]
+    step = d.landing.step(t, est.pos, est.vel, est.quat, flying_near(i, drones, ests))
     for name, args in step.high_level:
         out_commands.append((i, name, args))
     if step.notify_stop:

@@ -248,7 +248,7 @@ class TickCore:
         setpoints, stops = [None] * len(self.drones), []
         for i, d in enumerate(self.drones):
             if d.landing is not None and not d.stopped and not decision.stop[i]:
-                setpoints[i] = land_step(i, d, ests[i], t, commands, self.landing.timeout_s)
+                setpoints[i] = land_step(i, self.drones, ests, t, commands, self.landing.timeout_s)
                 if d.landing_result is not None and "down" in d.landing_result:
                     d.frozen_pos = ests[i].pos.copy()
                     d.stop_k = k
