@@ -133,3 +133,17 @@ def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     assert all(d["stop_kind"] == "landed" and d["landing"]["down"] for d in landing), r["landings"]
     assert not [f for f in r["drones_final"] if f["crashed"]] and not r["separation_at_stop"]
     assert not [e for e in r["safety_events"] if e["t"] >= 2.0 and (e["action"] != "none" or e["kind"] == "pose_outlier")]
+
+
+def test_eight_shipped_drones_race_from_a_hover_start():
+    """From the ground, the last row of the 8-drone grid (2.1 m before gate 0) never lifts off (the
+    race end above: d7, d8 stopped by the floor rule at 1 s); with --start hover the firmware takes
+    every drone to its slot first, and all eight race through gates."""
+    from cfrace.flight.config import FlightConfig
+    from cfrace.flight.dryrun import dry_run
+    cfg = FlightConfig(track="complex", ego="ours", opp="ds", policies=("ours", "ds") * 4, profile="cf2x_paper",
+                       laps=3, quiet=True, timeout_s=1.6, start="hover")
+    r = dry_run(cfg, lockstep=True).to_json()
+    assert max(r["hover_start"]["hold_error_m"]) <= 0.1
+    assert all(d["gates_passed"] >= 1 for d in r["drones"]), [(d["name"], d["gates_passed"]) for d in r["drones"]]
+    assert not [e for e in r["safety_events"] if e["kind"] == "floor"]
