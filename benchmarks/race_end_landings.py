@@ -10,9 +10,10 @@ Per race end: whether a simulated drone crashed (the simulator's crash flag at t
 an obstacle, a floor impact), the safety events that acted and the pose outliers (a crash in the
 air drops the simulated drone to the floor in one step, which the flight loop sees as outliers).
 Prints the race ends with a crash or an event and a summary line; the JSON holds every race end.
-A race end whose events all happen, at the same time, in the same race not ended in the window (the
-reference race) is marked "as in the race": drones flying on through the gate ahead on their
-policies (softsafe.FLY_THROUGH_MAX_S) crashed as they did racing, not in their landings.
+A race end whose safety events all happen, at the same ticks, in the same race not ended in the window
+(the reference race), and whose crashed drones all crash in that race too, is marked "as in the
+race": drones flying on through the gate ahead on their policies (softsafe.FLY_THROUGH_MAX_S)
+crashed at the tick at which they crash racing.
 A race end is a landing from one place and speed: the window samples the places of a lap and more
 (the races run 3 laps; the timeout ends them before).
 """
@@ -38,14 +39,17 @@ def race_end(ego: str, opp: str, profile: str, t_end: float, track: str = "lemni
             "acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"
                       and (not policies or e["t"] >= t_end)],
             "all_acted": [(e["t"], e["kind"], e["drone"]) for e in r["safety_events"] if e["action"] != "none"],
+            "all_crashed": [f["body"] for f in r["drones_final"] if f["crashed"]],
             "outliers": sum(e["kind"] == "pose_outlier" for e in r["safety_events"]),
             "landings": {d["name"]: (d["stop_kind"], (d["landing"] or {}).get("t_start")) for d in r["drones"]}}
 
 
 def as_in_race(row: dict, reference: dict) -> bool:
-    """Do all of row's events (and none but them) happen in the reference race at the same tick?"""
+    """Do all of row's safety events happen in the reference race at the same ticks, and do its
+    crashed drones crash there too?"""
     ref = {(round(t, 2), kind, drone) for t, kind, drone in reference["all_acted"]}
-    return bool(row["acted"]) and all((round(t, 2), kind, drone) in ref for t, kind, drone in row["acted"])
+    return bool(row["acted"]) and all((round(t, 2), kind, drone) in ref for t, kind, drone in row["acted"]) \
+        and set(row["crashed"]) <= set(reference["all_crashed"])
 
 
 def main() -> None:

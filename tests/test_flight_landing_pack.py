@@ -10,7 +10,7 @@ import pytest
 
 from cfrace.drone import load_profile
 from cfrace.flight.landing import LandingSetup, separation_accel
-from cfrace.flight.softsafe import SoftState, fly_on_together
+from cfrace.flight.softsafe import SoftState, fly_on_together, flying_others
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
 from test_flight_landing import rate_setpoint
@@ -30,6 +30,38 @@ def test_separation_pushes_apart_along_the_line_between_drones_and_is_bounded():
     # one drone on each side: the pushes cancel
     both = separation_accel(me, still, [(other, still), (np.array([-0.13, 0.0, 1.0]), still)], 0.5, 40.0, 6.0, 8.0)
     assert np.allclose(both, 0.0)
+
+
+def test_the_push_is_not_swallowed_by_the_braking_at_speed():
+    """At 6 m/s the braking alone asks for 36 m/s^2, capped at 12: the push comes first, so a drone
+    closing in from behind makes the one ahead brake less, and one beside tilts it sideways."""
+    setup = LandingSetup.for_race(load_track("complex"), load_profile("cf2x_paper"))
+    pos, vel, level = np.array([0.0, 0.0, 1.0]), np.array([6.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0, 0.0])
+
+    def command(near):
+        brake = type(setup.brake)(**{**setup.brake.__dict__, "hold_z": 1.0})
+        return brake.command(pos, vel, level, near)
+
+    alone = command(())
+    behind = command([(pos - [0.2, 0.0, 0.0], vel + [2.0, 0.0, 0.0])])
+    beside = command([(pos + [0.0, 0.2, 0.0], vel)])
+    far = command([(pos + [0.0, 0.6, 0.0], vel)])
+    assert far[0].tolist() == alone[0].tolist() and far[1] == alone[1]
+    assert behind[0][1] > alone[0][1]           # pitches forward, not back: away from the one closing in behind
+    assert beside[0][0] > alone[0][0] + 1.0     # rolls away from the one on its left (+y)
+
+
+def test_the_push_comes_from_the_other_flying_drones_only():
+    def drone(stopped=False):
+        return SimpleNamespace(stopped=stopped)
+
+    def est(x, valid=True):
+        return SimpleNamespace(pos=np.array([x, 0.0, 1.0]), vel=np.zeros(3), valid=valid)
+
+    drones, ests = [drone(), drone(), drone(stopped=True), drone()], [est(0.0), est(0.1), est(0.2), est(5.0, False)]
+    others = flying_others(0, drones, ests)
+    assert len(others) == 1 and others[0][0][0] == 0.1            # not itself, the stopped, the invalid
+    assert flying_others(0, drones, [est(0.0, False)] + ests[1:]) == []   # its own pose held: no push
 
 
 def _brake_side_by_side(profile: str, keep_apart: bool) -> dict:
@@ -69,6 +101,7 @@ def _brake_side_by_side(profile: str, keep_apart: bool) -> dict:
             "speed": max(float(np.linalg.norm(s["vel"])) for s in states)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_drones_braking_in_contact_part_before_the_contact_crashes_them(profile):
     """The 8-drone race end at 2.0 s on the complex track (docs/flight.md, "Race ends in a field"):
@@ -91,6 +124,8 @@ def test_a_drone_just_ahead_of_one_that_flies_through_flies_on_with_it():
     assert fly_on_together([0, 1], {0}, [est(0.0), off(0.0, 0.2)], 0.5) == {0}         # beside it
     assert fly_on_together([0, 1], {0}, [est(0.0), off(0.3, 0.3)], 0.5) == {0}         # ahead, off its line
     assert fly_on_together([0, 1], {0}, [est(0.0), off(0.3, 0.2)], 0.5) == {0, 1}      # in its way
+    towards = SimpleNamespace(pos=np.array([0.3, 0.0, 1.0]), vel=np.array([-5.0, 0.0, 0.0]), valid=True)
+    assert fly_on_together([0, 1], {0}, [est(0.0), towards], 0.5) == {0}              # head-on: it brakes
 
 
 def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_in_front_of_it():
@@ -118,6 +153,7 @@ def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_i
     assert drones[0].landing is not None and drones[1].landing is not None
 
 
+@pytest.mark.slow
 def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     """The 8-drone race of docs/flight.md, "Race ends in a field", ended at 2.0 s through the whole
     flight stack (lockstep): six drones race in a column, 0.13 m apart (in contact) when the race
@@ -135,6 +171,7 @@ def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     assert not [e for e in r["safety_events"] if e["t"] >= 2.0 and (e["action"] != "none" or e["kind"] == "pose_outlier")]
 
 
+@pytest.mark.slow
 def test_eight_shipped_drones_race_from_a_hover_start():
     """From the ground, the last row of the 8-drone grid (2.1 m before gate 0) never lifts off (the
     race end above: d7, d8 stopped by the floor rule at 1 s); with --start hover the firmware takes

@@ -3,11 +3,11 @@ to its spot, and what its touchdown was. Where it lands: cfrace.flight.spots.
 
 * ``BrakeController``: rate-mode braking from the mocap estimate (the firmware's planner starts its
   moves from rest, so we bring the drone to rest first): the wanted acceleration is
-  ``-k_v v`` (at most ``accel_max``) plus an altitude hold, plus a push away from the other flying
-  drones within ``sep_m`` (``separation_accel``: drones that raced side by side, or one braking
-  ahead of one still flying, otherwise stay in contact while they brake); the thrust vector
-  ``m (a + g)`` gives the collective thrust and the body z axis it needs, body rates turn the drone
-  towards it.
+  ``-k_v v`` plus an altitude hold, plus a push away from the other flying drones within ``sep_m``
+  (``separation_accel``: drones that raced side by side, or one braking ahead of one still flying,
+  otherwise stay in contact while they brake); the push comes first, the braking gets what is left
+  of ``accel_max`` sideways; the thrust vector ``m (a + g)`` gives the collective thrust and the
+  body z axis it needs, body rates turn the drone towards it.
 * ``LandingPilot``: brake -> hold while another drone is in the way -> the firmware's go-to and land.
 * ``Touchdown``: from the estimates, the moment a drone reaches the floor, where, and its vertical
   speed then.
@@ -64,7 +64,7 @@ class BrakeController:
     sep_m: float = 0.5                 #: m, other flying drones nearer than this push the drone away ...
     k_sep: float = 40.0                #: 1/s^2, ... by this much per m nearer ...
     k_sep_damp: float = 6.0            #: 1/s, ... plus this much per m/s at which they close in ...
-    sep_accel_max: float = 8.0         #: m/s^2, ... at most this (the sum stays within accel_max sideways)
+    sep_accel_max: float = 8.0         #: m/s^2, ... at most this (the braking gets the rest of accel_max sideways)
     hold_z: float | None = field(default=None, repr=False)
 
     def command(self, pos, vel, quat, near=()) -> tuple[np.ndarray, float]:
@@ -73,13 +73,14 @@ class BrakeController:
         pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
         if self.hold_z is None:
             self.hold_z = max(float(pos[2]), self.min_height)
+        push = separation_accel(pos, vel, near, self.sep_m, self.k_sep, self.k_sep_damp, self.sep_accel_max) \
+            if near else np.zeros(3)
         a = -self.k_vel * vel
         a[2] = self.k_z * (self.hold_z - pos[2]) - self.k_vz * vel[2]
-        if near:
-            a += separation_accel(pos, vel, near, self.sep_m, self.k_sep, self.k_sep_damp, self.sep_accel_max)
-        horiz = float(np.linalg.norm(a[:2]))
-        if horiz > self.accel_max:
-            a[:2] *= self.accel_max / horiz
+        horiz, room = float(np.linalg.norm(a[:2])), self.accel_max - float(np.linalg.norm(push[:2]))
+        if horiz > room:                       # the push first: at speed the braking alone is at accel_max
+            a[:2] *= max(room, 0.0) / horiz
+        a += push
         f = self.mass * (a + np.array([0.0, 0.0, GRAVITY]))
         f[2] = max(f[2], 0.3 * self.mass * GRAVITY)          # never point the thrust down
         rot = quat_to_rot(quat)

@@ -82,9 +82,10 @@ def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
 def fly_on_together(racing: list, fly: set, ests: list, reach: float, lane: float = FLY_ON_LANE_M) -> set:
     """The drones of ``racing`` that fly on after the race's end: those of ``fly`` and, in a chain,
     every one with a valid estimate in the way of one that flies on: less than ``reach`` m ahead of
-    it along its velocity and less than ``lane`` m off that line. Braking there, it would be run into
-    from behind; a drone behind, beside or off the line of one that flies on brakes (it falls back,
-    and braking keeps it off the others, ld.separation_accel)."""
+    it along its velocity and less than ``lane`` m off that line, flying the same way. Braking there,
+    it would be run into from behind; a drone behind, beside or off the line of one that flies on, or
+    coming towards it, brakes (it falls back, and braking keeps it off the others,
+    ld.separation_accel)."""
     fly, grown = set(fly), True
     while grown:
         grown = False
@@ -95,7 +96,8 @@ def fly_on_together(racing: list, fly: set, ests: list, reach: float, lane: floa
                 gap, v = ests[i].pos - ests[j].pos, ests[j].vel
                 speed = float(np.linalg.norm(v))
                 along = float(gap @ v) / speed if speed > 1e-6 else -1.0
-                if 0.0 < along < reach and float(np.linalg.norm(gap - along * v / speed)) < lane:
+                if 0.0 < along < reach and float(np.linalg.norm(gap - along * v / speed)) < lane \
+                        and float(ests[i].vel @ v) > 0.0:
                     fly.add(i)
                     grown = True
                     break
@@ -269,12 +271,13 @@ class SoftState:
         return True
 
 
-def flying_near(i: int, drones: list, ests: list) -> list:
-    """(pos, vel) of the drones still flying (racing or landing, with a valid estimate) within drone
-    i's brake's sep_m: what its braking keeps away from (ld.separation_accel)."""
-    me, reach = ests[i].pos, drones[i].landing.brake.sep_m
-    return [(e.pos, e.vel) for j, (o, e) in enumerate(zip(drones, ests))
-            if j != i and not o.stopped and e.valid and float(np.linalg.norm(e.pos - me)) < reach]
+def flying_others(i: int, drones: list, ests: list) -> list:
+    """(pos, vel) of the drones but i still flying (racing or landing, with a valid estimate): what
+    drone i's braking keeps away from (ld.separation_accel looks at those within its reach); none
+    while drone i's own estimate is not valid (held, not measured)."""
+    if not ests[i].valid:
+        return []
+    return [(e.pos, e.vel) for j, (o, e) in enumerate(zip(drones, ests)) if j != i and not o.stopped and e.valid]
 
 
 def land_step(i: int, drones: list, ests: list, t: float, out_commands: list, timeout_s: float) -> tuple | None:
@@ -282,7 +285,7 @@ def land_step(i: int, drones: list, ests: list, t: float, out_commands: list, ti
     high-level commands appended to out_commands; when it is down (or its landing timed out) the
     touchdown goes into its landing_result with "down"."""
     d, est = drones[i], ests[i]
-    step = d.landing.step(t, est.pos, est.vel, est.quat, flying_near(i, drones, ests))
+    step = d.landing.step(t, est.pos, est.vel, est.quat, flying_others(i, drones, ests))
     for name, args in step.high_level:
         out_commands.append((i, name, args))
     if step.notify_stop:
