@@ -3,7 +3,7 @@
     python benchmarks/dryrun_identical.py run OUT_DIR [--pythonpath SRC]   # run the cases, JSON + MCAP
     python benchmarks/dryrun_identical.py compare DIR_A DIR_B [--json F --label L]   # bit-identical or not
 
-`run` runs every case of CASES with the interpreter running this script, the code of SRC (a
+`run` runs every case of CASES (two-drone races on the lemniscate, a fault case, 4- and 8-drone fields) with the interpreter running this script, the code of SRC (a
 checkout's root, e.g. `git archive COMMIT | tar -x -C SRC`) or of the installed cfrace. `compare`
 compares each case's JSON result and every message of its flight log (setpoints, actions,
 observations, estimates, poses, events, race progress) for exact equality, leaving out only what
@@ -30,6 +30,9 @@ CASES: dict[str, list[str]] = {
     "dm_ss": ["--ego", "dm", "--opp", "ss"],
     "ours_ds_faults": ["--ego", "ours", "--opp", "ds", "--mocap-noise-m", "0.002", "--mocap-latency-ms", "20",
                        "--seed", "3", "--faults", "mocap_dropout_short@2:ego,pose_outlier@4:opp,nan_policy@9:opp"],
+    # fields: twins in contact, landings among racing drones, one inference call per policy
+    "field4": ["--policies", "ours,ours,ds,ds", "--seed", "1"],
+    "field8_complex": ["--track", "complex", "--policies", "ours,ds,ours,ds,ours,ds,ours,ds", "--start", "hover"],
 }
 LOOP_KEEP = ("rate_hz", "ticks", "skipped")              #: loop figures that do not depend on the clock
 META_DROP = ("start_time", "start_time_unix_s", "pid", "command", "cfrace_version")
@@ -42,7 +45,8 @@ def run(out: Path, pythonpath: str | None) -> None:
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
     for name, args in CASES.items():
-        argv = ["cfrace", "sim", "dry-run", "--track", "lemniscate", "--lockstep", *args,
+        track = [] if "--track" in args else ["--track", "lemniscate"]
+        argv = ["cfrace", "sim", "dry-run", *track, "--lockstep", *args,
                 "--json", str(out / f"{name}.json"), "--log", str(out / f"{name}.mcap")]
         code = f"import sys; sys.argv = {argv!r}; from cfrace.cli.main import main; main()"
         proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)

@@ -186,3 +186,31 @@ def replace_uris(cfg, uris):
     from dataclasses import replace
 
     return replace(cfg, uris=uris)
+
+
+@pytest.mark.parametrize("layout_name", ["race42", "race45_obstacles", "solo36", "solo39_obstacles"])
+def test_the_drones_of_one_policy_are_observed_in_one_call_bit_for_bit(layout_name):
+    """ObservationBuilder.many (the tick's one call per policy) gives each drone the observation the
+    one-drone form gives it, bit for bit, for every layout."""
+    import types
+
+    from scipy.spatial.transform import Rotation
+
+    from cfrace.env.observations import LAYOUTS
+    from cfrace.flight.loopstate import ObservationBuilder
+    from cfrace.track import load_track
+
+    corners = load_track("complex").gate_corners()
+    builder, layout, rng = ObservationBuilder(corners), LAYOUTS[layout_name], np.random.default_rng(3)
+
+    def est():
+        return types.SimpleNamespace(pos=rng.normal(0.0, 3.0, 3), vel=rng.normal(0.0, 5.0, 3),
+                                     rot=Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix())
+
+    for m in (1, 2, 4, 8):
+        ests, opps = [est() for _ in range(m)], [est() for _ in range(m)]
+        targets = [int(t) for t in rng.integers(0, len(corners), m)]
+        many = builder.many(layout, ests, targets, opps)
+        assert many.shape == (m, layout.dim) and many.dtype == np.float32
+        for j in range(m):
+            assert np.array_equal(many[j], builder(layout, ests[j], targets[j], opps[j]))

@@ -43,59 +43,85 @@ STILL_S = 0.3            #: s the poses are watched before take-off
 STILL_M = 0.05           #: m a body may move in that time (mocap noise) while its drone is told nothing
 
 
-def _rotvec(r_from: np.ndarray, r_to: np.ndarray) -> np.ndarray:
-    """Body-frame rotation vector (rad) that turns attitude r_from into r_to (world-from-body)."""
-    rel = r_from.T @ r_to
-    c = max(-1.0, min(1.0, (float(np.trace(rel)) - 1.0) / 2.0))
-    angle = math.acos(c)
-    axis = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+def _rotvec(a: tuple, b: tuple) -> tuple[float, float, float]:
+    """Body-frame rotation vector (rad) that turns attitude a into b (world-from-body, row-major 9-tuples)."""
+    tr = sum(x * y for x, y in zip(a, b))                       # trace of a^T b
+    ax = a[2] * b[1] - a[1] * b[2] + a[5] * b[4] - a[4] * b[5] + a[8] * b[7] - a[7] * b[8]
+    ay = a[0] * b[2] - a[2] * b[0] + a[3] * b[5] - a[5] * b[3] + a[6] * b[8] - a[8] * b[6]
+    az = a[1] * b[0] - a[0] * b[1] + a[4] * b[3] - a[3] * b[4] + a[7] * b[6] - a[6] * b[7]
+    angle = math.acos(max(-1.0, min(1.0, (tr - 1.0) / 2.0)))
     s = 2.0 * math.sin(angle)
-    return axis * (angle / s) if s > 1e-9 else axis * 0.5
+    k = angle / s if s > 1e-9 else 0.5
+    return ax * k, ay * k, az * k
+
+
+class _Window:
+    """One drone's recent poses and commands on plain floats, with the window's sums kept up to date
+    as ticks come and go: a few microseconds a drone whatever the window (numpy's per-call cost on
+    3-vectors would be most of the tick's)."""
+
+    def __init__(self, w: int, lag: int):
+        self.w, self.lag = w, lag
+        #: oldest first: (z m, velocity m/s, attitude row-major, commanded body rates rad/s, thrust / m m/s^2)
+        self.entries: deque = deque(maxlen=w + lag + 1)
+        #: per step of the window: body z axis times the thrust commanded lag ticks before, that thrust,
+        #: and the body rates commanded lag ticks before (7 floats), and their sums
+        self.steps: deque = deque(maxlen=w)
+        self.sums = [0.0] * 7
+
+    def clear(self) -> None:
+        self.entries.clear()
+        self.steps.clear()
+        self.sums = [0.0] * 7
+
+    def add(self, z: float, vel: tuple, rot: tuple, rates: tuple, accel: float) -> None:
+        self.entries.append((z, vel, rot, rates, accel))
+        if len(self.entries) <= self.lag:
+            return
+        _, _, _, (rx, ry, rz), a = self.entries[-1 - self.lag]
+        step = (rot[2] * a, rot[5] * a, rot[8] * a, a, rx, ry, rz)
+        if len(self.steps) == self.w:
+            sums = [s - o + x for s, o, x in zip(self.sums, self.steps[0], step)]
+        else:
+            sums = [s + x for s, x in zip(self.sums, step)]
+        self.steps.append(step)
+        if not math.isfinite(sum(sums)):     # a NaN or inf that has left the window leaves no trace
+            sums = [sum(col) for col in zip(*self.steps)]
+        self.sums = sums
+
+    def residuals(self, dt: float) -> tuple[float, float, float] | None:
+        """(rate residual deg/s, velocity-change residual m/s, its limit m/s), or None (too short)."""
+        h, w = self.entries, self.w
+        if len(h) < h.maxlen:
+            return None
+        airborne = min(e[0] for e in h) >= AIRBORNE_Z_M
+        (_, v1, r1, _, _), (_, v0, r0, _, _) = h[-1], h[-1 - w]
+        ex, ey, ez, acc, cx, cy, cz = self.sums
+        rate_res = 0.0
+        if airborne:
+            ox, oy, oz = _rotvec(r0, r1)
+            k = w * dt
+            rate_res = math.degrees(math.sqrt((ox / k - cx / w) ** 2 + (oy / k - cy / w) ** 2 + (oz / k - cz / w) ** 2))
+        dx, dy, dz = v1[0] - v0[0] - ex * dt, v1[1] - v0[1] - ey * dt, v1[2] - v0[2] - (ez - GRAVITY * w) * dt
+        dv_res = math.sqrt(dx * dx + dy * dy + dz * dz) if airborne else max(0.0, -dz)
+        return rate_res, dv_res, DV_LIMIT_MPS + DV_LIMIT_REL * acc * dt
 
 
 class ConsistencyMonitor:
-    """Per drone: the recent poses and commands, the residuals, and whether they disagree. The flight
-    loop runs it for every drone on every tick: the sums over the window run on plain floats (a few
-    microseconds a drone; numpy's per-call cost on 3-vectors would be most of the tick's)."""
+    """Per drone (a _Window each): the recent poses and commands, the residuals, and whether they disagree."""
 
     def __init__(self, n: int, dt: float, mass: float):
         self.dt, self.mass = float(dt), float(mass)
         self.window = max(2, int(round(WINDOW_S / self.dt)))
         self.lag = int(round(LAG_S / self.dt))
-        size = self.window + self.lag + 1
-        #: per drone, oldest first: (z m, velocity m/s, attitude world-from-body, its body z axis,
-        #: commanded body rates rad/s, commanded thrust N)
-        self.hist = [deque(maxlen=size) for _ in range(n)]
+        self.hist = [_Window(self.window, self.lag) for _ in range(n)]
         self.over = [0] * n
         self.worst = [[0.0, 0.0] for _ in range(n)]   #: per drone: largest rate residual, dv residual / limit
 
     def residuals(self, i: int) -> tuple[float, float, float] | None:
         """(rate residual deg/s, velocity-change residual m/s, its limit m/s) of drone i, or None
         (not enough history)."""
-        h = self.hist[i]
-        if len(h) < h.maxlen:
-            return None
-        w, lag, dt, m = self.window, self.lag, self.dt, self.mass
-        airborne = min(e[0] for e in h) >= AIRBORNE_Z_M
-        last, first = h[-1], h[-1 - w]
-        rate_res = 0.0
-        if airborne:
-            ox, oy, oz = (_rotvec(first[2], last[2]) / (w * dt)).tolist()
-            cx = cy = cz = 0.0
-            for j in range(w):
-                rx, ry, rz = h[-1 - lag - j][4]
-                cx, cy, cz = cx + rx, cy + ry, cz + rz
-            rate_res = math.degrees(math.sqrt((ox - cx / w) ** 2 + (oy - cy / w) ** 2 + (oz - cz / w) ** 2))
-        (v1x, v1y, v1z), (v0x, v0y, v0z) = last[1], first[1]
-        ex = ey = ez = impulse = 0.0
-        for j in range(w):           # the thrust commanded lag ticks before each step, along its attitude
-            bx, by, bz = h[-1 - j][3]
-            a = h[-1 - j - lag][5] / m
-            ex, ey, ez = ex + bx * a * dt, ey + by * a * dt, ez + (bz * a - GRAVITY) * dt
-            impulse += a * dt
-        dx, dy, dz = v1x - v0x - ex, v1y - v0y - ey, v1z - v0z - ez
-        dv_res = math.sqrt(dx * dx + dy * dy + dz * dz) if airborne else max(0.0, -dz)
-        return rate_res, dv_res, DV_LIMIT_MPS + DV_LIMIT_REL * impulse
+        return self.hist[i].residuals(self.dt)
 
     def update_all(self, drones, ests) -> list[str | None]:
         """update() for every drone of the tick (cfrace.flight.loopstate.Drone): judged while it flies
@@ -111,10 +137,10 @@ class ConsistencyMonitor:
             self.hist[i].clear()
             self.over[i] = 0
             return None
-        rot = np.asarray(est.rot, np.float64)
         r = math.pi / 180.0
-        self.hist[i].append((float(est.pos[2]), tuple(float(v) for v in est.vel), rot, tuple(rot[:, 2].tolist()),
-                             tuple(float(v) * r for v in rates_dps), float(thrust_n)))
+        self.hist[i].add(float(est.pos[2]), est.vel.tolist(), np.asarray(est.rot).ravel().tolist(),
+                         (float(rates_dps[0]) * r, float(rates_dps[1]) * r, float(rates_dps[2]) * r),
+                         float(thrust_n) / self.mass)
         res = self.residuals(i)
         if res is None:
             self.over[i] = 0
@@ -122,10 +148,7 @@ class ConsistencyMonitor:
         rate_res, dv_res, dv_limit = res
         worst = self.worst[i]
         worst[0], worst[1] = max(worst[0], rate_res), max(worst[1], dv_res / dv_limit)
-        if rate_res > RATE_LIMIT_DPS or dv_res > dv_limit:
-            self.over[i] += 1
-        else:
-            self.over[i] = 0
+        self.over[i] = self.over[i] + 1 if rate_res > RATE_LIMIT_DPS or dv_res > dv_limit else 0
         if self.over[i] >= MISMATCH_TICKS:
             return (f"the poses do not move with the commands: body rates off by {rate_res:.0f} deg/s "
                     f"(limit {RATE_LIMIT_DPS:g}), velocity change off by {dv_res:.2f} m/s (limit {dv_limit:.2f}) "

@@ -75,11 +75,23 @@ class ObservationBuilder:
         self._no_opp = np.zeros(6)
 
     def __call__(self, layout: ObsLayout, est, target: int, opp=None) -> np.ndarray:
-        o = (opp.pos, opp.vel) if layout.opponent else (self._no_opp,)
-        st = np.concatenate([est.pos, est.vel, np.ravel(est.rot), *o]).astype(np.float32)
+        st = self._state(layout, est, opp)
         pos, vel, rot = st[0:3], st[3:6], st[6:15].reshape(3, 3)
         opp_pos, opp_vel = (st[15:18], st[18:21]) if layout.opponent else (None, None)
         return build_observation(pos, vel, rot, int(target), self.corners, layout, opp_pos, opp_vel)
+
+    def many(self, layout: ObsLayout, ests: list, targets: list[int], opps: list) -> np.ndarray:
+        """(M, D): row m is ``self(layout, ests[m], targets[m], opps[m])``, bit for bit, in one
+        build_observation call (the drones of one policy in a field: a third of the cost of M calls)."""
+        st = np.stack([self._state(layout, e, o) for e, o in zip(ests, opps)])
+        pos, vel, rot = st[:, 0:3], st[:, 3:6], st[:, 6:15].reshape(-1, 3, 3)
+        opp_pos, opp_vel = (st[:, 15:18], st[:, 18:21]) if layout.opponent else (None, None)
+        return build_observation(pos, vel, rot, np.asarray(targets, np.int64), self.corners, layout, opp_pos, opp_vel)
+
+    def _state(self, layout: ObsLayout, est, opp) -> np.ndarray:
+        """The float32 state an observation is built from: pos, vel, rot (row-major), [opponent pos, vel]."""
+        o = (opp.pos, opp.vel) if layout.opponent else (self._no_opp,)
+        return np.concatenate([est.pos, est.vel, np.ravel(est.rot), *o]).astype(np.float32)
 
 
 @dataclass

@@ -38,14 +38,15 @@ def kept_clear_of(drones: list, skip=None) -> tuple[list, list]:
 def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) -> str:
     """A stopped drone within ``clearance`` of drone i's straight path from ``pos`` to ``gate`` (3,),
     at least OPPONENT_AHEAD_M along it ("" if none)."""
+    down = [o for j, o in enumerate(drones) if j != i and o.stopped and o.frozen_pos is not None]
+    if not down:     # (asked every tick for every racing drone: while nothing is down, no work)
+        return ""
     pos = np.asarray(pos, np.float64)
     if not np.all(np.isfinite(pos)):
         return ""
-    seg = gate - pos
+    seg = np.asarray(gate, np.float64) - pos
     length = max(float(np.linalg.norm(seg)), 1e-9)
-    for j, o in enumerate(drones):
-        if j == i or not o.stopped or o.frozen_pos is None:
-            continue
+    for o in down:
         p = np.asarray(o.frozen_pos, np.float64)
         u = min(1.0, max(0.0, float((p - pos) @ seg) / (length * length)))
         # in the way = near the path AHEAD (not beside the drone: at a ground start both stand there)

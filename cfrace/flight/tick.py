@@ -12,7 +12,6 @@ records of the tick. The runner (cfrace.flight.loop.FlightLoop) owns clock, moca
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -33,7 +32,6 @@ from cfrace.flight.mocap import frame_to_msg
 #: policies use it (full rates at zero thrust in sharp turns). 1000 counts is 2-4 % of the weight.
 FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
-perf = time.perf_counter
 
 
 class LinkInputs(NamedTuple):
@@ -116,28 +114,25 @@ class TickCore:
         """Drone d infers on tick k (its policy rate, staggered by its phase); not while it lands."""
         return not d.stopped and d.landing is None and k % d.decimation == d.phase % d.decimation
 
-    def observation(self, i: int, ests: list) -> np.ndarray:
-        d = self.drones[i]
-        opp = None
+    def _opponent(self, i: int, ests: list):
+        """The estimate drone i observes as its opponent (None: its layout has none)."""
         if len(ests) == 2:
-            opp = ests[1 - i]
-        elif d.layout.opponent:
-            opp = ests[self.opponents.index(i, ests)]
-        return self.obs_builder(d.layout, ests[i], int(self.progress.target[i]), opp)
+            return ests[1 - i]
+        return ests[self.opponents.index(i, ests)] if self.drones[i].layout.opponent else None
 
-    def _observe(self, i: int, ests: list) -> np.ndarray:
-        obs = self.observation(i, ests)
-        return self.filters.filter_obs(self.drones[i], obs) if self.filters is not None else obs
+    def group_observations(self, group: list[int], ests: list) -> np.ndarray:
+        """(M, D): the observations of the drones of ``group`` (drones of one policy, so one layout),
+        built in one call (ObservationBuilder.many)."""
+        return self.obs_builder.many(self.drones[group[0]].layout, [ests[i] for i in group],
+                                     [int(self.progress.target[i]) for i in group],
+                                     [self._opponent(i, ests) for i in group])
 
-    def policy_step(self, i: int, ests: list) -> tuple[float, float]:
-        """Observation + inference + action map for drone i; returns (observation s, ONNX s)."""
-        t0 = perf()
-        obs = self._observe(i, ests)
-        t1 = perf()
-        act = np.asarray(self.drones[i].policy(obs[None]), dtype=np.float32).reshape(4)
-        t2 = perf()
-        self._act(i, obs, act)
-        return t1 - t0, t2 - t1
+    def observe_group(self, group: list[int], ests: list) -> np.ndarray:
+        """group_observations() through the fault hooks' filter (TickCore.filters), if any."""
+        obs = self.group_observations(group, ests)
+        if self.filters is not None:
+            obs = np.stack([self.filters.filter_obs(self.drones[i], o) for i, o in zip(group, obs)])
+        return obs
 
     def _act(self, i: int, obs: np.ndarray, act: np.ndarray) -> None:
         """Drone i's action (filtered) through its action map into its next setpoint."""
@@ -165,8 +160,8 @@ class TickCore:
         d = self.drones[i]
         if d.stopped or d.landing is not None or self.landing is None:
             return ""
-        gate = np.asarray(self.landing.gates[int(self.progress.target[i])][:3], np.float64)
-        return blocked_by(i, self.drones, ests[i].pos, gate, self.safety_cfg.opponent_clearance_m)
+        return blocked_by(i, self.drones, ests[i].pos, self.landing.gates[int(self.progress.target[i])][:3],
+                          self.safety_cfg.opponent_clearance_m)
 
     def safety_inputs(self, t: float, late_s: float, ests: list, computed: list, hit, links, kill,
                       land: str | None = None) -> sf.SafetyInputs:
@@ -199,14 +194,9 @@ class TickCore:
         n = len(self.drones)
         infer, obs_t, computed = [np.nan] * n, [np.nan] * n, [False] * n
         for group in due_groups(self.drones, [self.due(d, k) for d in self.drones]):
-            for i in group:
-                computed[i] = True
-            if len(group) == 1:
-                obs_t[group[0]], infer[group[0]] = self.policy_step(group[0], ests)
-            else:
-                times, call_s = batched_step(self, group, ests)
-                for i, o in zip(group, times):
-                    obs_t[i], infer[i] = o, call_s
+            times, call_s = batched_step(self, group, ests)
+            for i, o in zip(group, times):
+                computed[i], obs_t[i], infer[i] = True, o, call_s
         if self.consistency is not None:
             self.mismatch = self.consistency.update_all(self.drones, ests)
         if self.landing is not None:
@@ -295,7 +285,8 @@ class TickCore:
                     "pose_outlier", i, sf.NONE, f"mocap pose of {d.body} rejected as an outlier ({c} so far)")))
             e = out.ests[i]
             if not d.stopped and d.landing is None and e.valid:   # racing: the speeds of the race alone
-                s = float(np.linalg.norm(e.vel))
+                vx, vy, vz = e.vel.tolist()
+                s = math.sqrt(vx * vx + vy * vy + vz * vz)
                 d.speed_max = max(d.speed_max, s)
                 d.speed_sum += s
                 d.speed_n += 1
@@ -353,11 +344,12 @@ class TickCore:
             est_map = self.estimator.peek(self.last_frame, now)
             ests = [est_map[d.body] for d in self.drones]
             self.progress.peek(self.positions(ests))
-        for i, d in enumerate(self.drones):
-            if not self.due(d, k):
-                continue
-            obs = self.observation(i, ests) if ests is not None else np.zeros(d.layout.dim, np.float32)
-            d.setpoint_map(np.asarray(d.policy(obs[None]), dtype=np.float32).reshape(4))
+        for group in due_groups(self.drones, [self.due(d, k) for d in self.drones]):   # as step() runs them
+            lead = self.drones[group[0]]
+            obs = self.group_observations(group, ests) if ests is not None else \
+                np.zeros((len(group), lead.layout.dim), np.float32)
+            for i, a in zip(group, np.asarray(lead.policy(obs), dtype=np.float32).reshape(len(group), 4)):
+                self.drones[i].setpoint_map(a)
         if ests is not None:
             n = len(ests)
             sf.check(self.safety_inputs(self.t, 0.0, ests, [True] * n, [False] * n, links, None),
