@@ -68,11 +68,13 @@ class _Window:
         #: and the body rates commanded lag ticks before (7 floats), and their sums
         self.steps: deque = deque(maxlen=w)
         self.sums = [0.0] * 7
+        self.added = 0                     #: steps added since the last clear
 
     def clear(self) -> None:
         self.entries.clear()
         self.steps.clear()
         self.sums = [0.0] * 7
+        self.added = 0
 
     def add(self, z: float, vel: tuple, rot: tuple, rates: tuple, accel: float) -> None:
         self.entries.append((z, vel, rot, rates, accel))
@@ -85,7 +87,10 @@ class _Window:
         else:
             sums = [s + x for s, x in zip(self.sums, step)]
         self.steps.append(step)
-        if not math.isfinite(sum(sums)):     # a NaN or inf that has left the window leaves no trace
+        self.added += 1
+        # summed afresh every window and after a NaN or inf: nothing that has left the window (an
+        # enormous value, rounding) stays in the sums
+        if self.added % self.w == 0 or not math.isfinite(sum(sums)):
             sums = [sum(col) for col in zip(*self.steps)]
         self.sums = sums
 

@@ -147,6 +147,7 @@ class LandingSetup:
         brake = BrakeController(profile.mass, 0.9 * float(profile.thrust_curve.newtons[-1]),
                                 rate_max_dps=LANDING_RATE_FACTOR * np.asarray(profile.max_rates_deg, np.float64))
         candidate_spots(track, cfg)                 # computed now, not in the tick of the first landing
+        candidate_spots(track, cfg, True)
         return cls(track, np.asarray(track.gates, np.float64), brake, profile.collision_box[2] / 2.0, cfg,
                    gate_half=track.gate.outer / 2.0, radius=profile.collision_radius)
 

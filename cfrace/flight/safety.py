@@ -37,6 +37,8 @@ Soft failsafes land the drone instead (the firmware's high-level commander, cfra
 | low_battery    | one drone | pm.vbat below low_battery_v for low_battery_s                    |
 | operator_land  | all       | the operator's "land now" (SIGUSR1)                              |
 
+low_battery and operator_land may start the landing up to 1 s later, where braking at once would
+take the drone out of the fence or into a gate (cfrace.flight.softsafe.may_start_landing).
 A landing drone is exempt from the racing rules (floor, gate_crash, the soft rules) and from the
 profile's command limits (the landing controller bounds its own commands); every hard rule still
 cuts its motors.

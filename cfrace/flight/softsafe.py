@@ -15,10 +15,16 @@ from cfrace.sim.gates import to_gate_frame
 
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
 BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown on at speed meanwhile)
-FLY_THROUGH_MAX_S = 1.0  #: s after the race's end a drone may fly on through its target gate before it lands
+#: s a drone may fly on on its policy before it lands where braking is not safe: after the race's end
+#: (through its target gate), and after a DEFERRABLE soft failsafe (may_start_landing)
+FLY_THROUGH_MAX_S = 1.0
 #: m, a drone this near the line of one that flies on (and ahead of it, within its brake's sep_m) flies
 #: on with it (fly_on_together): two radii and a drift; 0.42 m off it, braking lets it pass
 FLY_ON_LANE_M = 0.25
+#: soft landings that may wait (at most FLY_THROUGH_MAX_S) for a place where braking is safe: the drone
+#: flies on on its policy meanwhile. Not those whose cause lies ahead of the drone (a downed drone, the
+#: fence) or in its poses.
+DEFERRABLE = ("low_battery", "operator_land")
 GLITCH_DROPOUT_S = 0.05  #: s, a pose dropout this long counts as a mocap glitch (shorter ones: frame jitter)
 GLITCH_WINDOW_S = 2.0    #: s, glitches this recent count
 #: landing spots chosen per tick at most (2-8 ms each on a 2-core VM, docs/flight.md "The loop at N drones"):
@@ -53,6 +59,19 @@ def blocked_by(i: int, drones: list, pos, gate: np.ndarray, clearance: float) ->
         if u * length >= OPPONENT_AHEAD_M and float(np.linalg.norm(pos + u * seg - p)) < clearance:
             return f"{o.name} down at ({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
     return ""
+
+
+def brakes_out_of_fence(pos, vel, fence, setup: ld.LandingSetup) -> bool:
+    """Would braking in a straight line from here (braking_distance) end outside ``fence`` (seen from
+    above, the drone's radius inside it)? A racing drone heading for a wall turns before it; one that
+    brakes instead may fly through the fence."""
+    pos, vel = np.asarray(pos, np.float64), np.asarray(vel, np.float64)
+    speed = float(np.linalg.norm(vel[:2]))
+    if not (math.isfinite(speed) and np.all(np.isfinite(pos))) or speed < 1e-6:
+        return False
+    stop = pos[:2] + vel[:2] / speed * braking_distance(float(np.linalg.norm(vel)), setup.brake)
+    r = setup.radius
+    return not all(fence.lo[k] + r <= stop[k] <= fence.hi[k] - r for k in (0, 1))
 
 
 def braking_distance(speed: float, brake: ld.BrakeController) -> float:
@@ -118,6 +137,8 @@ class SoftState:
         self.pending_records: list = []           # log records made outside the tick's _records
         self.holding: set = set()                 # drones that have held for another one's path
         self.spot_queue: list = []                # drones landing without a spot yet, first come first
+        self.land_asked: dict = {}                # drone -> t it was first told to land (may_start_landing)
+        self.race_on = True                       # until land_after_race: landing spots keep off the race line
 
     def count_glitches(self, drones: list, ests: list, t: float, counters: dict) -> None:
         """Remember when each drone's pose dropped out for GLITCH_DROPOUT_S, or began to be rejected
@@ -156,6 +177,7 @@ class SoftState:
         no gate ahead (through one gate, it may be too close to the next) or that time is up. A drone
         just ahead of one that flies on, in its way, flies on with it (fly_on_together): braking there,
         it would be run into from behind."""
+        self.race_on = False
         racing = [i for i, d in enumerate(drones) if not d.stopped and d.landing is None]
         if not racing:
             return
@@ -167,6 +189,35 @@ class SoftState:
         for i in racing:
             if i not in fly:
                 self.start_landing(drones, i, ests[i], t, "race_end", setup)
+
+    def off_line(self, drones: list) -> bool:
+        """Must a landing spot keep off the race line? While the race goes on and another drone races
+        (flying, not landing) on it."""
+        return self.race_on and any(not o.stopped and o.landing is None for o in drones)
+
+    def may_start_landing(self, drones: list, i: int, est, t: float, kinds: list, gate, fence,
+                          setup: ld.LandingSetup) -> bool:
+        """May drone i, told to land for ``kinds`` at t, start braking now? A landing of the DEFERRABLE
+        kinds alone waits while braking would take the drone out of the fence (brakes_out_of_fence) or
+        into the frame of ``gate``, its target (brakes_into_gate), for at most FLY_THROUGH_MAX_S from the
+        first tick it was told: the drone races on meanwhile (a low battery is no reason to brake into
+        a wall; its gates still count). An /event says when it flies on and when it brakes anyway."""
+        if not all(k in DEFERRABLE for k in kinds) or not est.valid:
+            return self.asked_done(i)
+        first = self.land_asked.setdefault(i, t)
+        if not (brakes_out_of_fence(est.pos, est.vel, fence, setup) or brakes_into_gate(est.pos, est.vel, gate, setup)):
+            return self.asked_done(i)
+        d = drones[i]
+        if t - first >= FLY_THROUGH_MAX_S or t == first:
+            text = (f"{', '.join(kinds)}: flew on for {t - first:.1f} s, brakes anyway" if t > first else
+                    f"{', '.join(kinds)}: flies on (braking here would take it out of the fence or into a gate)")
+            self.pending_records.append(("/event", {"kind": "landing", "drone": d.name, "body": d.body, "text": text}))
+        return self.asked_done(i) if t - first >= FLY_THROUGH_MAX_S else False
+
+    def asked_done(self, i: int) -> bool:
+        """Drone i is no longer waiting to land (it lands now, or nothing asks it to): True."""
+        self.land_asked.pop(i, None)
+        return True
 
     def start_landing(self, drones: list, i: int, est, t: float, reason: str, setup: ld.LandingSetup) -> None:
         """Drone i stops racing and lands: it brakes at once; its spot (clear of the drones already down
@@ -191,7 +242,8 @@ class SoftState:
             budget -= 1
             others, paths = kept_clear_of(drones)
             try:
-                spot = spots.choose_landing_spots(setup.track, [d.landing.start], others, setup.cfg, paths)[0]
+                spot = spots.choose_landing_spots(setup.track, [d.landing.start], others, setup.cfg, paths,
+                                                  off_line=self.off_line(drones))[0]
             except ValueError:
                 spot = d.landing.start.copy()
             d.landing.spot = spot
@@ -210,7 +262,7 @@ class SoftState:
             return spot
         others, paths = kept_clear_of(drones, skip=d)
         try:
-            new = spots.choose_landing_spots(setup.track, [here], others, setup.cfg, paths)[0]
+            new = spots.choose_landing_spots(setup.track, [here], others, setup.cfg, paths, off_line=self.off_line(drones))[0]
         except ValueError:
             return spot
         d.landing.start = here.copy()

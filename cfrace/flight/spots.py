@@ -32,6 +32,12 @@ class LandingConfig:
     brake_done_mps: float = 0.3       #: braking ends below this speed ...
     brake_max_s: float = 1.5          #: ... or after this long
     hold_max_s: float = 2.5           #: a braked drone waits at most this long for another one's path to clear
+    #: while other drones race: spots this far from the race line seen from above (the straight lines from
+    #: gate to gate), where a downed drone would lie in a racing drone's way (the opponent_down rule)
+    race_line_clearance_m: float = 1.0
+    #: ... and at most this far from where the drone stops, on its own side of the race line (its go-to,
+    #: at racing height at first, crosses no gate-to-gate line); else any spot
+    race_line_detour_m: float = 2.0
 
 
 def _seg_point_dist(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -139,10 +145,37 @@ def paths_clear(track, start: np.ndarray, ends: np.ndarray, clearance: float) ->
     return ok
 
 
+def race_line(track) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The race line seen from above: the straight lines (2,) - (2,) from each gate's centre to the
+    next one's, round the lap."""
+    centres = np.asarray(track.gates, np.float64)[:, :2]
+    return list(zip(centres, np.roll(centres, -1, 0)))
+
+
+def race_line_dist(track, pts: np.ndarray) -> np.ndarray:
+    """Distance (K,) of points (K, 2) to the race line (race_line)."""
+    return np.minimum.reduce([_seg_point_dist(a, b, pts) for a, b in race_line(track)])
+
+
+def _beside_line(track, start: np.ndarray, ends: np.ndarray, cfg: LandingConfig) -> np.ndarray:
+    """(K,) bool: the go-to start-ends[k] is at most race_line_detour_m long and crosses no line of
+    the race line (the off-line spots' extra rule while others race)."""
+    ok = np.linalg.norm(ends - start, axis=1) <= cfg.race_line_detour_m
+    for a, b in race_line(track):
+        ok &= ~_segments_cross(start, ends, a, b)
+    return ok
+
+
 @functools.lru_cache(maxsize=8)
-def candidate_spots(track, cfg: LandingConfig = LandingConfig()) -> np.ndarray:
-    """(K, 2) floor points inside the arena that are clear of gates and obstacles (computed once per
-    track and config: a read-only array)."""
+def candidate_spots(track, cfg: LandingConfig = LandingConfig(), off_line: bool = False) -> np.ndarray:
+    """(K, 2) floor points inside the arena that are clear of gates and obstacles, and with
+    ``off_line`` of the race line (race_line_clearance_m) as well (computed once per track, config and
+    kind: a read-only array)."""
+    if off_line:
+        pts = candidate_spots(track, cfg)
+        out = pts[race_line_dist(track, pts) >= cfg.race_line_clearance_m]
+        out.flags.writeable = False
+        return out
     a = track.arena
     xs = np.arange(a.x[0] + cfg.wall_margin_m, a.x[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
     ys = np.arange(a.y[0] + cfg.wall_margin_m, a.y[1] - cfg.wall_margin_m + 1e-9, cfg.grid_m)
@@ -188,14 +221,30 @@ def _nearest(track, stop, cand, order, clear, rule, cfg: LandingConfig):
     return None, False
 
 
-def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=()) -> np.ndarray:
+def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingConfig(), paths=(),
+                         off_line: bool = False) -> np.ndarray:
     """Landing spots (N, 2) for drones expected to stop at ``stops`` (N, 2 or 3) m; ``others`` (M, 2 or 3):
     drones that will not move (e.g. already down) and must be kept clear of; ``paths``: (start, spot)
     of drones flying to their spots already, whose paths the new ones must neither cross nor come
-    within path_separation_m of. ValueError if the arena has no free spot left for some drone."""
+    within path_separation_m of; ``off_line`` (other drones still race): spots off the race line
+    (candidate_spots), any spot only if none of those is free. ValueError if the arena has no free spot
+    left for some drone."""
+    if off_line:
+        try:
+            return _choose(track, stops, others, cfg, paths, candidate_spots(track, cfg, True), True)
+        except ValueError:
+            pass
+    return _choose(track, stops, others, cfg, paths, candidate_spots(track, cfg), False)
+
+
+def _choose(track, stops, others, cfg: LandingConfig, paths, everything: np.ndarray, off_line: bool) -> np.ndarray:
+    """choose_landing_spots among the candidate spots ``everything``; ``off_line``: every rule also asks
+    for a go-to beside the race line (_beside_line), and a drone does not land where it stops if that
+    lies near the line."""
     stops = np.asarray(stops, np.float64).reshape(-1, np.shape(stops)[-1])[:, :2]
     blocked = [np.asarray(o, np.float64)[:2] for o in others]
-    everything = candidate_spots(track, cfg)
+    if not len(everything):
+        raise ValueError("no candidate landing spot in the arena")
     still = list(blocked)
     spots = np.zeros((len(stops), 2))
     paths = [(np.asarray(a, np.float64)[:2], np.asarray(b, np.float64)[:2]) for a, b in paths]   # flown already
@@ -217,8 +266,9 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
             """The nearest allowed candidate under ``rule`` (cand -> extra mask): among the nearest
             candidates first, then (none of them allowed, and ``far``) the whole arena: the same spot
             either way."""
+            allowed = (lambda cand: rule(cand) & _beside_line(track, stop, cand, cfg)) if off_line else rule
             for idx in (((0, 1) if far else (0,)) if near is not None else (1,)):
-                found, enough = _nearest(track, stop, *candidates(idx), rule, cfg)
+                found, enough = _nearest(track, stop, *candidates(idx), allowed, cfg)
                 if found is not None or enough:
                     return found          # the max_tries nearest allowed ones overall were all looked at
             return None
@@ -230,7 +280,8 @@ def choose_landing_spots(track, stops, others=(), cfg: LandingConfig = LandingCo
         chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m), far=False)
         sep = cfg.path_separation_m
         if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \
-                and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still):
+                and all(np.linalg.norm(stop - np.asarray(q)[:2]) >= sep for q in still) \
+                and not (off_line and race_line_dist(track, stop[None])[0] < cfg.race_line_clearance_m):
             chosen = stop.copy()
         for rule in (lambda cand: _apart(stop, cand, (), still, cfg.path_separation_m),
                      lambda cand: np.ones(len(cand), bool)):

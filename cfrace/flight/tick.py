@@ -206,10 +206,14 @@ class TickCore:
                             self.fence, self.safety_cfg, self.limits)
         if self.landing is not None and not decision.stop_all:
             for i, d in enumerate(self.drones):
-                if decision.land[i] and not d.stopped and d.landing is None:
-                    kind = next(v.kind for v in decision.violations if v.action in (sf.LAND_DRONE, sf.LAND_ALL)
-                                and v.drone in (i, None))
-                    self.soft.start_landing(self.drones, i, ests[i], t, kind, self.landing)
+                if not (decision.land[i] and not d.stopped and d.landing is None):
+                    self.soft.asked_done(i)       # (a drone that flew on, then was no longer told to land)
+                    continue
+                kinds = [v.kind for v in decision.violations if v.action in (sf.LAND_DRONE, sf.LAND_ALL)
+                         and v.drone in (i, None)]
+                gate = self.landing.gates[int(self.progress.target[i])]
+                if self.soft.may_start_landing(self.drones, i, ests[i], t, kinds, gate, self.fence, self.landing):
+                    self.soft.start_landing(self.drones, i, ests[i], t, kinds[0], self.landing)
             self.soft.choose_spots(self.drones, self.landing)   # this tick's and earlier ones' landings
         commands: list = []
         setpoints, stops = self._setpoints(decision, ests, t, k, commands)
