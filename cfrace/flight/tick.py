@@ -33,7 +33,6 @@ from cfrace.flight.mocap import frame_to_msg
 FLYING_MIN_COUNTS = FIRMWARE_MIN_THRUST_COUNTS
 
 
-
 class LinkInputs(NamedTuple):
     """What the tick needs of one drone's link (its figures, read by the runner)."""
 
