@@ -97,5 +97,5 @@ def resolve_policy(name_or_path: str | Path, track_name: str, obstacles: bool) -
         return path
     path = Path(text)
     if not path.exists():
-        raise PolicyError(f"{path}: no such policy file")
+        raise PolicyError(f"{path}: no such policy file (short names: {', '.join(METHODS)}; else a path to an .onnx)")
     return path

@@ -348,6 +348,30 @@ def test_log_info_json_and_documented_exit_codes(tmp_path, capsys):
     assert "Exit codes" in text and "truncated" in text
 
 
+def test_output_paths_that_cannot_be_written_get_one_line(tmp_path, capsys):
+    """--png, log plot -o and any other output given where nothing can be written: one line naming
+    the option or the path and why, exit 2, no traceback (and no picture written elsewhere)."""
+    from tests.test_flight_log import make_log
+
+    log = make_log(tmp_path / "f.mcap")
+    a_file = tmp_path / "afile"
+    a_file.write_text("x")
+    (tmp_path / "plots").mkdir()
+    cases = [(["tracks", "show", "lemniscate", "--png", str(tmp_path / "lem")], "give a name ending in .png"),
+             (["tracks", "show", "lemniscate", "--png", str(tmp_path / "plots")], "give a name ending in .png"),
+             (["tracks", "show", "lemniscate", "--png", "/proc/x.png"], "--png /proc/x.png: cannot write there"),
+             (["log", "plot", str(log), "-o", str(a_file)], "not a folder"),
+             (["log", "plot", str(log), "-o", "/proc/plots"], "-o /proc/plots: cannot make that folder"),
+             (["race", "--track", "lemniscate", "--ego", "ours", "--opp", "ds", "--races", "2", "--plot", "/proc/xx"],
+              "--plot /proc/xx: cannot make that folder"),
+             (["log", "info", str(tmp_path / "plots")], "error: "),
+             (["eval", "ds", "--track", "lemniscate", "--runs", "1", "--md", "/proc/t.md"], "--md /proc/t.md: cannot write")]
+    for args, says in cases:
+        code, _, err = run(args, capsys)
+        assert code == 2 and says in err and "Traceback" not in err and err.count("\n") == 1, (args, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "f.mcap", "plots"]
+
+
 # 8 -- words that fit ------------------------------------------------------------------------------
 
 def test_ctrl_c_result_says_stopped_by_the_operator(capsys):

@@ -576,6 +576,18 @@ def test_live_view_renders_every_drone(track):
     text = buf.getvalue()
     assert "test race" in text and "ego" in text and "opp" in text and "0/3" in text
     assert "STOPPED (timeout)" in text and "t =   0.2 s" in text    # the race as it ended
+    # once the race is decided the view shows it as it ended (the result's tally), not the gates a
+    # drone passes while it flies on before it lands, and a landing drone as landing
+    core = loop.core
+    for d in core.drones:
+        d.stopped, d.landing = False, object()
+    core.race_over = ("finished", "ego", 0.1, [(6, 1, [3.7]), (5, 0, [])])
+    core.progress.laps[:] = 3
+    con.print(loop.view.render(loop, 0.3, core.last_ests))
+    frame = buf.getvalue()[len(text):]
+    rows = {line.split()[1]: line for line in frame.splitlines() if line.split()[1:2] in (["ego"], ["opp"])}
+    assert "1/3" in rows["ego"] and "0/3" in rows["opp"] and "3/3" not in frame
+    assert all("landing" in r and r.split("│")[3].strip() == "-" for r in rows.values()), frame
 
 
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])

@@ -83,6 +83,18 @@ def test_replay_reproduces_the_observations_exactly(lockstep_run):
     assert r["identical"] and r["observations"] == 151 + 150
 
 
+def test_replay_of_a_cut_log_ends_at_its_last_tick(lockstep_run, tmp_path):
+    """A log cut mid-flight (a killed process): the race's timeout in /meta lies beyond its last tick,
+    and the replay, which lands drones as the flight did, still ends there and matches what was logged."""
+    _, log = lockstep_run
+    cut = tmp_path / "cut.mcap"
+    data = log.read_bytes()
+    cut.write_bytes(data[:len(data) // 2])
+    assert read_log(cut).meta["timeout_s"] > 1.0 and read_log(cut).meta["landing"]
+    r = replay_log(cut)
+    assert r["identical"] and 0 < r["observations"] < 151 + 150 and r["not_replayed"] == 0
+
+
 def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
     """The check can fail: replaying with frames of another flight does not match."""
     import shutil

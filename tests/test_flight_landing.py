@@ -5,7 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from cfrace.flight.config import SafetyConfig
 from cfrace.flight.landing import BrakeController, LandingSetup, Touchdown, stopping_point
+from cfrace.flight.safety import Fence
 from cfrace.flight.spots import (LandingConfig, candidate_spots, choose_landing_spots, gate_footprints, _obstacle_dist,
                                  _seg_point_dist)
 from cfrace.flight.link import packet_values
@@ -283,13 +285,15 @@ def test_a_path_along_a_gate_frame_is_not_clear():
 
 def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
     """SoftState.land_after_race: the drone of RACE_END_STATE keeps racing until braking would take it
-    into no gate ahead (it is through) or 1 s has passed; a drone that can stop clear of its gate lands
-    at once; one through a gate but too close to the next flies on."""
+    into no gate ahead (it is through) and not out of the fence, or 1 s has passed; a drone that can
+    stop clear of its gate and the fence lands at once; one through a gate but too close to the next
+    flies on, and so does one heading for the wall."""
     from types import SimpleNamespace
 
     from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState
     from cfrace.drone import load_profile
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf2x_paper"))
+    fence = Fence.from_track(setup.track, SafetyConfig().geofence_margin_m)
 
     def drone(name):
         return SimpleNamespace(stopped=False, landing=None, frozen_pos=None, name=name, body=name, landing_result=None)
@@ -299,19 +303,27 @@ def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
 
     through, late, away = drone("a"), drone("b"), drone("c")
     drones = [through, late, away]
-    ests = [est(RACE_END_STATE["pos"], RACE_END_STATE["vel"])] * 2 + [est((-2.0, 3.0, 0.75), (0.0, -4.0, 0.0))]
+    ests = [est(RACE_END_STATE["pos"], RACE_END_STATE["vel"])] * 2 + [est((0.0, 6.5, 1.0), (0.0, 4.0, 0.0))]
     soft = SoftState(3)
-    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 5, 0], setup)
+    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 5, 0], fence, setup)
     assert through.landing is None and late.landing is None and away.landing is not None
-    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 5, 0], setup)      # a is through gate 5
+    ests[0] = est((-2.3, 3.2, 0.8), (1.0, -2.0, 0.0))                      # a is through gate 5, turning
+    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 5, 0], fence, setup)
     assert through.landing is not None and through.landing_result["reason"] == "race_end" and late.landing is None
-    soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], setup)
+    soft.land_after_race(drones, ests, 3.71 + FLY_THROUGH_MAX_S, 3.71, [0, 5, 0], fence, setup)
     assert late.landing is not None                                       # not through in time: lands anyway
     # ours on cf21bl, a race ended at 1.0 s: through gate 1 at 1.14 s at 6 m/s, 2.5 m before gate 2 it
     # braked into gate 2's top bar (the rule looked only at the gate ahead at the end); it flies on
     nxt = drone("d")
-    soft.land_after_race([nxt], [est((-0.12, 5.51, 1.39), (-4.5, 4.3, 0.2))], 1.14, 1.0, [2], setup)
+    soft.land_after_race([nxt], [est((-0.12, 5.51, 1.39), (-4.5, 4.3, 0.2))], 1.14, 1.0, [2], fence, setup)
     assert nxt.landing is None
+    # heading for the wall, no gate ahead of it: braking would take it out of the fence (brakes_unsafe,
+    # the rule of a deferred mid-race landing too); it flies on until it has turned, then lands
+    wall = drone("e")
+    soft.land_after_race([wall], [est((1.2, 5.0, 1.0), (5.0, 0.0, 0.0))], 1.0, 1.0, [1], fence, setup)
+    assert wall.landing is None
+    soft.land_after_race([wall], [est((1.6, 5.2, 1.0), (1.0, 4.9, 0.0))], 1.1, 1.0, [1], fence, setup)
+    assert wall.landing is not None and wall.landing_result["reason"] == "race_end"
 
 
 def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_other():

@@ -34,6 +34,42 @@ def test_braking_towards_a_near_wall_would_leave_the_fence(setup):
     assert not brakes_out_of_fence([0.0, 5.0, 1.0], [np.nan, 0.0, 0.0], FENCE, setup)
 
 
+@pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
+def test_the_braking_distance_bounds_the_simulated_brake_from_a_racing_attitude(profile):
+    """softsafe.braking_distance, the one estimate behind brakes_out_of_fence and brakes_into_gate,
+    against the brake flown on the simulated firmware from race speed, the drone pitched 45 deg
+    forward (accelerating, the worst attitude to brake from): it never stops farther than estimated,
+    and the estimate is no more than twice the distance (a wider one would make drones fly on
+    where braking is safe)."""
+    import math
+
+    from cfrace.flight.link import packet_values
+    from cfrace.flight.softsafe import braking_distance
+    from cfrace.simcf.firmware import SimFleet
+    track = load_track("lemniscate")
+    for speed in (3.0, 5.0, 7.0):
+        fleet = SimFleet(track, profile, 1, arming_required=True, decks=(), obstacles=False)
+        fleet.arm(0, True)
+        for name in ("flightmode.stabModeRoll", "flightmode.stabModePitch"):
+            fleet.set_param(0, name, 0)
+        fleet.handle_setpoint(0, 0, 0, 0, 0)                                   # unlock
+        half = math.radians(45.0) / 2                                          # nose down towards +x
+        fleet.teleport(0, (-2.0, 4.5, 2.6), (speed, 0.0, 0.0), (math.cos(half), 0.0, math.sin(half), 0.0))
+        brake = LandingSetup.for_race(track, fleet.profile).brake
+        farthest = -2.0
+        for _ in range(300):
+            s = fleet.state(0)
+            fleet.external_position(0, s["pos"])
+            rates, thrust = brake.command(s["pos"], s["vel"], s["quat"])
+            fleet.handle_setpoint(0, *packet_values(*rates), int(np.clip(fleet.profile.thrust_curve.to_counts(thrust),
+                                                                         1000, 60000)))
+            fleet.advance(0.01)
+            farthest = max(farthest, fleet.state(0)["pos"][0])
+        travelled, estimate = farthest + 2.0, braking_distance(speed, brake)
+        assert not fleet.status(0)["crashed"]
+        assert 0.5 * estimate <= travelled <= estimate, (speed, travelled, estimate)
+
+
 def test_a_low_battery_landing_waits_for_a_safe_place_to_brake_at_most_a_second(setup):
     drones = [SimpleNamespace(name=f"d{i}", body=f"cf{i}") for i in (1, 2)]
     gate = setup.gates[0]

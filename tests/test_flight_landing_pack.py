@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from cfrace.drone import load_profile
+from cfrace.flight.config import SafetyConfig
 from cfrace.flight.landing import LandingSetup, separation_accel
+from cfrace.flight.safety import Fence
 from cfrace.flight.softsafe import SoftState, fly_on_together, flying_others
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
@@ -133,6 +135,7 @@ def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_i
     (it flies through), the drone 0.2 m ahead of it flies on with it, a drone far away lands at once;
     once the last one is through both land in the same tick."""
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf2x_paper"))
+    fence = Fence.from_track(setup.track, SafetyConfig().geofence_margin_m)
 
     def drone(name):
         return SimpleNamespace(stopped=False, landing=None, frozen_pos=None, name=name, body=name, landing_result=None)
@@ -145,11 +148,12 @@ def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_i
     ahead = last + 0.2 * np.array(RACE_END_STATE["vel"]) / np.linalg.norm(RACE_END_STATE["vel"])
     drones = [drone("a"), drone("b"), drone("c")]
     # the leader's own gate is the one behind it (index 0): alone, it would land at once
-    ests = [est(last, RACE_END_STATE["vel"]), est(ahead, RACE_END_STATE["vel"]), est((-2.0, 3.0, 0.75), (0, -4, 0))]
+    ests = [est(last, RACE_END_STATE["vel"]), est(ahead, RACE_END_STATE["vel"]), est((0.0, 6.5, 1.0), (0, 4, 0))]
     soft = SoftState(3)
-    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 0, 0], setup)
+    soft.land_after_race(drones, ests, 3.71, 3.71, [5, 0, 0], fence, setup)
     assert drones[0].landing is None and drones[1].landing is None and drones[2].landing is not None
-    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 0, 0], setup)          # the last one is through
+    ests[:2] = [est((-2.3, 3.2, 0.8), (1.0, -2.0, 0.0)), est((-2.1, 3.1, 0.8), (1.0, -2.0, 0.0))]   # through, turning
+    soft.land_after_race(drones, ests, 3.95, 3.71, [0, 0, 0], fence, setup)
     assert drones[0].landing is not None and drones[1].landing is not None
 
 

@@ -12,6 +12,7 @@ import pytest
 from cfrace.flight.config import FlightConfig
 from cfrace.flight.dryrun import dry_run
 from cfrace.flight.flightlog import read_log
+from cfrace.flight.replay import replay_log
 from test_flight_faults import check_landings
 
 
@@ -32,6 +33,12 @@ def test_race_ends_with_every_drone_landed(tmp_path, start):
     assert set(landed) == {"ego", "opp"} and all(abs(m["vz_mps"]) <= 0.5 for m in landed.values())
     texts = [m.get("text", "") for _, m in data.messages("/event")]
     assert sum(t.startswith("go_to") for t in texts) == 2 and sum(t == "notify_stop" for t in texts) == 2
+    # the replay reproduces the race and its end, where DS flies on through its gate on its policy
+    # while ours has begun to land
+    first_landing = min(t for t, m in data.messages("/event") if m["kind"] == "landing")
+    assert max(t for t, _ in data.messages("/obs")) > first_landing
+    r = replay_log(tmp_path / "r.mcap")
+    assert r["identical"] and r["observations"] > 0, r
 
 
 #: the ours file of 2026-12-02 (pipeline stage ours_lemniscate_twin), with which the race ends below were found

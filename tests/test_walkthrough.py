@@ -141,6 +141,18 @@ def test_walkthrough_step_by_step(tmp_path):
     assert log.complete and log.count("/foxglove/tf") > 50 and log.meta["uris"][0] == f"udp://127.0.0.1:{base}"
     for name in ("fly_trajectory.png", "fly_speed.png", "fly_timing.png"):
         assert (tmp_path / "plots" / name).stat().st_size > 10_000
+    # the speed plot's racing figures are the result's; the replay ("Next") reproduces the flight,
+    # its end included (a drone that flew on after the finish)
+    import numpy as np
+
+    from cfrace.flight.logplot import racing_until, trajectories
+    from cfrace.flight.replay import replay_log
+    until, trajs = racing_until(log), trajectories(log)
+    for d in json.loads((tmp_path / "fly.json").read_text())["drones"]:
+        tr = trajs[d["body"]]
+        speed = np.linalg.norm(tr["vel"], axis=1)[tr["t"] < until[d["body"]]]
+        assert abs(float(np.nanmean(speed)) - d["speed_mean"]) < 0.05, (d, until)
+    assert replay_log(tmp_path / "fly.mcap")["identical"]
     assert (tmp_path / "lemniscate.png").exists()
 
 

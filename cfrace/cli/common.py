@@ -13,6 +13,8 @@ from pathlib import Path
 
 from rich.console import Console
 
+from cfrace.errors import ConfigError
+
 #: `--json -`: the JSON document goes to stdout, so everything a command prints for people goes to stderr
 STDOUT = "-"
 
@@ -107,3 +109,31 @@ def race_exit_code(result: dict, late_signal: str | None = None) -> int:
     from cfrace.flight.runner import result_exit_code
 
     return result_exit_code(result, late_signal)
+
+
+def check_writable(path: Path | None, what: str) -> None:
+    """ConfigError (one line) unless ``path`` can be written (`-`: stdout, always); checked before
+    anything flies."""
+    if path is None or to_stdout(path):
+        return
+    existed = path.exists()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path, "ab"):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot write there ({exc.strerror or exc})") from None
+    if not existed:
+        path.unlink()
+
+
+def check_folder(path: Path | None, what: str) -> None:
+    """ConfigError (one line) unless ``path`` is a folder or can be made one (made here)."""
+    if path is None:
+        return
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{what} {path}: not a folder (a file of that name exists)")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"{what} {path}: cannot make that folder ({exc.strerror or exc})") from None

@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from cfrace.cli.common import write_json
+from cfrace.cli.common import check_folder, check_writable, write_json
 from rich.console import Console
 from rich.table import Table
 
@@ -31,6 +31,15 @@ def _write_json(path: Optional[Path], data: dict) -> None:
     write_json(data, path, console, indent=2)
 
 
+def _check_outputs(json_out: Optional[Path] = None, md: Optional[Path] = None, plot: Optional[Path] = None,
+                   heatmap: Optional[Path] = None) -> None:
+    """One line (ConfigError) before any race flies when an output cannot be written."""
+    check_writable(json_out, "--json")
+    check_writable(md, "--md")
+    check_writable(heatmap, "--heatmap")
+    check_folder(plot, "--plot")
+
+
 def _f(v, spec: str = ".2f") -> str:
     return "–" if v is None else format(v, spec)
 
@@ -48,6 +57,8 @@ def eval_cmd(
 ) -> None:
     """Single-agent benchmark (paper Table I): N runs of L laps per policy from random gate starts."""
     from cfrace.evaluate.single import evaluate, markdown_table
+
+    _check_outputs(json_out=json_out, md=md_out, plot=plot)
 
     r = evaluate(list(policies), track, obstacles, runs, laps, seed, time_limit, profile, plot, start=start)
     t = Table(title=f"single-agent benchmark: {r.track}{' with obstacles' if r.obstacles else ''}, {r.runs} runs x "
@@ -92,6 +103,7 @@ def race_cmd(
     from cfrace.errors import ConfigError
     from cfrace.evaluate.race import race
 
+    _check_outputs(json_out=json_out, plot=plot)
     if entrants is not None:
         if ego is not None or opp is not None:
             raise ConfigError("give either --entrants A,B,... or --ego and --opp, not both")
@@ -178,6 +190,7 @@ def tournament_cmd(
     With --field N: a free-for-all of N-drone races with an Elo-scale rating."""
     from cfrace.evaluate.race import tournament
 
+    _check_outputs(json_out=json_out, heatmap=heatmap)
     if field_size is not None:
         if ray or address:
             from cfrace.errors import ConfigError

@@ -12,7 +12,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, race_exit_code, to_stdout, write_json
+from cfrace.cli.common import (DEFAULT_PROFILE, check_writable, choose_profile, human_console, race_exit_code, to_stdout,
+                               write_json)
 from cfrace.errors import ConfigError
 
 console = Console(stderr=True)
@@ -126,22 +127,6 @@ def loop_table(loop: dict, title: str | None = None) -> Table:
         t.add_row(f"inference {name} (ONNX)", _ms(s))
     t.add_row("skipped ticks", str(loop.get("skipped", 0)))
     return t
-
-
-def check_writable(path: Path | None, what: str) -> None:
-    """ConfigError (one line) unless ``path`` can be written (`-`: stdout, always); checked before
-    anything flies."""
-    if path is None or to_stdout(path):
-        return
-    existed = path.exists()
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with open(path, "ab"):
-            pass
-    except OSError as exc:
-        raise ConfigError(f"{what} {path}: cannot write there ({exc.strerror or exc})") from None
-    if not existed:
-        path.unlink()
 
 
 def race_policies(ego: str | None, opp: str | None, policies: str | None, drones: int | None) -> tuple[str, ...]:

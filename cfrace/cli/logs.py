@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import human_console, write_json
+from cfrace.cli.common import check_folder, human_console, write_json
 
 log_app = typer.Typer(help="Flight logs (MCAP): summary and plots. A truncated log (a killed flight) is "
                            "read up to the cut and says so; exit code 0.", no_args_is_help=True)
@@ -114,6 +114,7 @@ def plot_cmd(
     from cfrace.flight.logplot import plot_log
 
     data = read_log(file)
+    check_folder(out, "-o")
     paths = plot_log(data, out if out is not None else file.parent)
     if not paths:
         console.print("nothing to plot (no trajectories, timing or known track in this log)")

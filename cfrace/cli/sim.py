@@ -193,8 +193,9 @@ def replay_cmd(
     verdict = ("[green]identical[/green]" if r["identical"] else
                "[red]nothing to compare[/red] (the log ends before the first policy step)" if not r["observations"]
                else "[red]MISMATCH[/red]")
-    human_console(json_out).print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict} "
-              f"({r['mismatched']} differ, max |diff| {r['max_abs_diff']:.3g})")
+    detail = (f" ({r['mismatched']} differ: {r['not_replayed']} not replayed, the others by at most "
+              f"{r['max_abs_diff']:.3g})" if r["mismatched"] else "")
+    human_console(json_out).print(f"{r['observations']} observations over {r['ticks']} ticks replayed: {verdict}{detail}")
     write_json(r, json_out)
     if not r["identical"]:
         sys.exit(1)

@@ -9,7 +9,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import write_json
+from cfrace.cli.common import check_writable, write_json
+from cfrace.errors import ConfigError
 
 tracks_app = typer.Typer(help="Race tracks: list them, show gates, obstacles and a picture.", no_args_is_help=True)
 console = Console()
@@ -19,7 +20,6 @@ console = Console()
 def list_cmd(json_out: Optional[Path] = typer.Option(None, "--json", help="Write the list as JSON (- : to stdout).")
              ) -> None:
     """List the tracks in tracks/: name, gates, obstacles and arena size."""
-    from cfrace.errors import ConfigError
     from cfrace.track import list_tracks, load_track
     from cfrace.paths import TRACKS_DIR
 
@@ -54,6 +54,10 @@ def show_cmd(
     from cfrace.trackplot import arena_text, gate_rows, plot_track
 
     t = load_track(track)
+    if png is not None:
+        if png.suffix.lower() != ".png":
+            raise ConfigError(f"--png {png}: the picture is a PNG file, give a name ending in .png")
+        check_writable(png, "--png")
     gates = Table(title=f"track '{t.name}': gates in race order ({t.source})")
     for col in ("#", "x m", "y m", "z m", "yaw deg", "pass direction (-n)", "notes"):
         gates.add_column(col, justify="right" if col in ("#", "x m", "y m", "z m", "yaw deg") else "left")

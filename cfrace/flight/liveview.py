@@ -60,17 +60,20 @@ class LiveView:
         table = Table(title=f"{self.title}   t = {t:5.1f} s", expand=False)
         for col in ("drone", "body", "gate", "lap", "speed", "max", "safety", "mocap age", "link", "latency"):
             table.add_column(col, justify="right" if col not in ("drone", "body", "safety") else "left")
-        p = loop.progress
+        core = loop.core
+        tally = core.tally()     # after the race's end: as it ended (nothing scores while drones land)
         now = loop.link_clock()
         for i, d in enumerate(loop.drones):
             e = ests[i]
             q = d.link.quality
             speed = float(np.linalg.norm(e.vel)) if e.valid else float("nan")
-            state = Text(f"STOPPED ({d.stop_kind})", style="bold red") if d.stopped else Text("flying", style="green")
+            state = (Text(f"STOPPED ({d.stop_kind})", style="bold red") if d.stopped else
+                     Text("landing", style="yellow") if d.landing is not None else Text("flying", style="green"))
             link = "up" if q.connected and q.rx_age(now) < 0.5 else "LOST"
             if q.link_quality == q.link_quality:
                 link += f" {q.link_quality:.0f}%"
-            table.add_row(d.name, d.body, str(int(p.target[i])), f"{int(p.laps[i])}/{self.laps}",
+            gate = "-" if core.race_over is not None or d.stopped else str(int(core.progress.target[i]))
+            table.add_row(d.name, d.body, gate, f"{tally[i][1]}/{self.laps}",
                           _fmt(speed, ".1f", " m/s"), _fmt(d.speed_max, ".1f"), state,
                           _fmt(e.age_s * 1e3, ".0f", " ms"), link, _fmt(q.latency_ms, ".1f", " ms"))
         lines = [table]

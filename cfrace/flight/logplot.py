@@ -189,7 +189,8 @@ def plot_log(data: FlightLogData, out_dir: str | Path, *, dpi: int = 120) -> lis
         written.append(_save(_trajectory_figure(plt, data, track, trajs, colors, title), out / f"{stem}_trajectory.png",
                              dpi))
     if trajs:
-        written.append(_save(_speed_figure(plt, trajs, colors, title), out / f"{stem}_speed.png", dpi))
+        written.append(_save(_speed_figure(plt, trajs, colors, title, racing_until(data)), out / f"{stem}_speed.png",
+                             dpi))
     ts = timing_series(data)
     if len(ts["t"]):
         written.append(_save(_timing_figure(plt, data, ts, log_loop_figures(data), title), out / f"{stem}_timing.png",
@@ -218,16 +219,31 @@ def _trajectory_figure(plt, data: FlightLogData, track, trajs: dict, colors: dic
     return fig
 
 
-def _speed_figure(plt, trajs: dict, colors: dict, title: str):
-    """Each body's estimated speed over the flight."""
+def racing_until(data: FlightLogData) -> dict:
+    """body -> flight time at which it stopped racing (its first landing or stop /event), as the
+    race's result counts its speeds; bodies that raced to the log's end are absent."""
+    out: dict = {}
+    for t, m in data.messages("/event"):
+        body = m.get("body")
+        if body is not None and m.get("kind") in ("landing", "stop") and body not in out:
+            out[body] = t
+    return out
+
+
+def _speed_figure(plt, trajs: dict, colors: dict, title: str, until: dict):
+    """Each body's estimated speed over the flight; max and mean in the legend over its racing
+    (until it began to land or was stopped: the result table's figures), marked by a dotted line."""
     fig, ax = plt.subplots(figsize=(9, 4))
     for body, d in trajs.items():
         speed = np.linalg.norm(d["vel"], axis=1)
         ok = np.isfinite(speed)
-        if ok.any():
+        racing = ok & (d["t"] < until.get(body, np.inf))
+        if racing.any():
             ax.plot(d["t"][ok], speed[ok], color=colors[body], lw=1.2,
-                    label=f"{body} (max {speed[ok].max():.2f}, mean {speed[ok].mean():.2f} m/s)")
-    ax.set_xlabel("flight time t [s]")
+                    label=f"{body} racing: max {speed[racing].max():.2f}, mean {speed[racing].mean():.2f} m/s")
+        if body in until:
+            ax.axvline(until[body], color=colors[body], ls=":", lw=1)
+    ax.set_xlabel("flight time t [s] (dotted: stops racing)")
     ax.set_ylabel("speed [m/s]")
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right")

@@ -148,7 +148,8 @@ def read_log(path: str | Path) -> FlightLogData:
                          raw=found.raw, other=found.other, channels=found.channels)
     metas = data.messages("/meta")
     if not metas:
-        raise LogError(f"{path} is not a cfrace flight log (no /meta message)")
+        raise LogError(f"{path} is not a cfrace flight log (no /meta message)" if not truncated else
+                       f"{path}: an MCAP file cut before its first message ({reason}), nothing to read")
     data.meta = metas[0][1]
     summaries = data.messages("/summary")
     data.summary = summaries[-1][1] if summaries else None

@@ -29,7 +29,8 @@ from cfrace.flight.loop import Drone, FlightLoop, ObservationBuilder
 from cfrace.flight.loopstate import inference_phases
 from cfrace.flight.mocap import frame_from_msg, open_mocap
 from cfrace.flight.progress import FastRaceProgress
-from cfrace.flight.safety import Fence
+from cfrace.flight.landing import LandingSetup
+from cfrace.flight.safety import CommandLimits, Fence
 from cfrace.track import Track, load_track
 
 
@@ -38,12 +39,15 @@ class _ReplayClock:
         self.ticks, self.dt, self.i = ticks, dt, -1
         self.realtime, self.skipped = False, 0
         self.links: list = []   #: links marked as heard at every tick
+        self.kill = None        #: the loop's KillSwitch: the log's last tick ends the replay
 
     def start(self) -> None:
         self.i = -1
 
     def wait_next(self) -> Tick:
         self.i = min(self.i + 1, len(self.ticks) - 1)
+        if self.i == len(self.ticks) - 1 and self.kill is not None:
+            self.kill.request("end of the log")    # (a cut log, a flight ended by the operator)
         m = self.ticks[self.i]
         for link in self.links:
             link.quality.last_rx = self.now()
@@ -104,6 +108,7 @@ class _Logged:
     ticks: list[dict]
     frames: dict
     obs: dict
+    landing: bool          #: the flight landed its drones (/meta "landing"; older logs: it logged a /landing)
 
 
 def _policies(meta: dict, load) -> list:
@@ -137,11 +142,13 @@ def _read(path: str | Path, data) -> _Logged:
     if not ticks or any(m.get("now") is None for m in ticks):
         raise LogError(f"{path}: no per-tick /timing with 'now' (not a cfrace fly/dry-run log)")
     logged = {}
+    last_k = int(ticks[-1]["k"])      # a log cut inside a tick: its /obs without its /timing
     for _, m in data.messages("/obs"):
         for body, v in m.items():
-            if body != "k" and v is not None:
+            if body != "k" and v is not None and int(m["k"]) <= last_k:
                 logged[(int(m["k"]), body)] = np.asarray(v, dtype=np.float32)
-    return _Logged(*setup, ticks, frames, logged)
+    landing = bool(meta.get("landing", data.count("/landing") > 0))
+    return _Logged(*setup, ticks, frames, logged, landing)
 
 
 def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightLoop:
@@ -153,28 +160,37 @@ def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightL
               for i, (n, phase) in enumerate(zip(meta["policies"], inference_phases(pols)))]
     estimator = PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s, alpha=float(meta.get("velocity_alpha", 0.5)),
                               lead_s=float(meta.get("latency_comp_s", 0.0)))
+    # the race's own timeout (logs before it was in /meta: the last tick) and its landings: after the
+    # race's end a drone may fly on on its policy before it lands (softsafe.land_after_race)
+    timeout_s = float(meta.get("timeout_s", float(clock.ticks[-1]["t"]) - 1e-9))
     return FlightLoop(drones=drones, mocap=source, estimator=estimator,
                       progress=FastRaceProgress(track.gate_array(), len(drones)),
                       obs_builder=ObservationBuilder(track.gate_corners()), clock=clock,
                       fence=Fence.from_track(track, safety.geofence_margin_m), safety_cfg=safety,
-                      laps=lg.laps, timeout_s=float(clock.ticks[-1]["t"]) - 1e-9, log=log,
-                      link_clock=clock.now)
+                      laps=lg.laps, timeout_s=timeout_s, log=log, link_clock=clock.now,
+                      limits=CommandLimits.from_profile(profile),
+                      landing=LandingSetup.for_race(track, profile) if lg.landing else None,
+                      hover_start=meta.get("start") == "hover")
 
 
-def _compare(logged: dict, replayed: dict) -> tuple[int, int, float]:
-    """(observations compared, mismatched, max |difference|) of the logged against the replayed."""
-    compared = mismatched = 0
+def _compare(logged: dict, replayed: dict) -> tuple[int, int, int, float]:
+    """(observations compared, mismatched, of those not replayed at all, max |difference| of the
+    replayed ones: inf for one of another shape) of the logged against the replayed."""
+    compared = mismatched = missing = 0
     max_diff = 0.0
     for key, v in logged.items():
         r = replayed.get(key)
         compared += 1
-        if r is None or r.shape != v.shape or not np.array_equal(r, v):
+        if r is None:
             mismatched += 1
-            if r is not None and r.shape == v.shape:
-                max_diff = max(max_diff, float(np.max(np.abs(r.astype(np.float64) - v))))
-            else:
-                max_diff = float("inf")
-    return compared, mismatched, max_diff
+            missing += 1
+        elif r.shape != v.shape:
+            mismatched += 1
+            max_diff = float("inf")
+        elif not np.array_equal(r, v):
+            mismatched += 1
+            max_diff = max(max_diff, float(np.max(np.abs(r.astype(np.float64) - v))))
+    return compared, mismatched, missing, max_diff
 
 
 def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
@@ -196,7 +212,10 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
         link.connect()
     clock.links = links   # links never go silent in a replay: keep them "heard" every tick
     collect = _Collect()
-    _loop(lg, clock, source, links, collect).run()
-    compared, mismatched, max_diff = _compare(lg.obs, collect.obs)
+    loop = _loop(lg, clock, source, links, collect)
+    clock.kill = loop.kill
+    loop.run()
+    compared, mismatched, missing, max_diff = _compare(lg.obs, collect.obs)
     return {"log": str(path), "ticks": len(lg.ticks), "frames": len(lg.frames), "observations": compared,
-            "mismatched": mismatched, "max_abs_diff": max_diff, "identical": compared > 0 and mismatched == 0}
+            "mismatched": mismatched, "not_replayed": missing, "max_abs_diff": max_diff,
+            "identical": compared > 0 and mismatched == 0}

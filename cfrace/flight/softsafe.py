@@ -15,8 +15,8 @@ from cfrace.sim.gates import to_gate_frame
 
 OPPONENT_AHEAD_M = 0.5   #: m, a downed drone counts as in the way only this far along the path or more
 BRAKE_LAG_S = 0.3        #: s the braking takes to turn the thrust round (flown on at speed meanwhile)
-#: s a drone may fly on on its policy before it lands where braking is not safe: after the race's end
-#: (through its target gate), and after a DEFERRABLE soft failsafe (may_start_landing)
+#: s a drone may fly on on its policy before it lands where braking is not safe (brakes_unsafe): after
+#: the race's end (land_after_race), and after a DEFERRABLE soft failsafe (may_start_landing)
 FLY_THROUGH_MAX_S = 1.0
 #: m, a drone this near the line of one that flies on (and ahead of it, within its brake's sep_m) flies
 #: on with it (fly_on_together): two radii and a drift; 0.42 m off it, braking lets it pass
@@ -81,6 +81,14 @@ def braking_distance(speed: float, brake: ld.BrakeController) -> float:
     if speed <= v_cap:
         return speed * BRAKE_LAG_S + speed / brake.k_vel
     return speed * BRAKE_LAG_S + (speed * speed - v_cap * v_cap) / (2.0 * brake.accel_max) + v_cap / brake.k_vel
+
+
+def brakes_unsafe(pos, vel, gate, fence, setup: ld.LandingSetup) -> bool:
+    """Would braking from here take the drone out of ``fence`` (brakes_out_of_fence) or into the frame
+    of ``gate``, its target (brakes_into_gate)? The one rule by which a drone told to land flies on
+    first: after the race's end (SoftState.land_after_race) and for a DEFERRABLE soft failsafe
+    (SoftState.may_start_landing)."""
+    return brakes_out_of_fence(pos, vel, fence, setup) or brakes_into_gate(pos, vel, gate, setup)
 
 
 def brakes_into_gate(pos, vel, gate, setup: ld.LandingSetup) -> bool:
@@ -170,11 +178,12 @@ class SoftState:
     def low_battery_s(self, i: int, t: float) -> float:
         return 0.0 if self.vbat_low_since[i] is None else t - self.vbat_low_since[i]
 
-    def land_after_race(self, drones: list, ests: list, t: float, t_end: float, targets, setup: ld.LandingSetup) -> None:
+    def land_after_race(self, drones: list, ests: list, t: float, t_end: float, targets, fence,
+                        setup: ld.LandingSetup) -> None:
         """After the race's end (at t_end) every drone still racing lands, but one whose braking would
-        take it into the gate ahead of it (brakes_into_gate) flies on through that gate on its policy
-        first, for at most FLY_THROUGH_MAX_S after the end: it lands once braking would take it into
-        no gate ahead (through one gate, it may be too close to the next) or that time is up. A drone
+        take it into the gate ahead of it or out of ``fence`` (brakes_unsafe) flies on on its policy
+        first, for at most FLY_THROUGH_MAX_S after the end: it lands once braking is safe (through one
+        gate, it may be too close to the next) or that time is up. A drone
         just ahead of one that flies on, in its way, flies on with it (fly_on_together): braking there,
         it would be run into from behind."""
         self.race_on = False
@@ -183,8 +192,8 @@ class SoftState:
             return
         fly = set()
         if t - t_end < FLY_THROUGH_MAX_S:
-            fly = {i for i in racing if ests[i].valid and brakes_into_gate(ests[i].pos, ests[i].vel,
-                                                                          setup.gates[int(targets[i])], setup)}
+            fly = {i for i in racing if ests[i].valid and brakes_unsafe(ests[i].pos, ests[i].vel,
+                                                                       setup.gates[int(targets[i])], fence, setup)}
             fly = fly_on_together(racing, fly, ests, setup.brake.sep_m)
         for i in racing:
             if i not in fly:
@@ -198,14 +207,14 @@ class SoftState:
     def may_start_landing(self, drones: list, i: int, est, t: float, kinds: list, gate, fence,
                           setup: ld.LandingSetup) -> bool:
         """May drone i, told to land for ``kinds`` at t, start braking now? A landing of the DEFERRABLE
-        kinds alone waits while braking would take the drone out of the fence (brakes_out_of_fence) or
-        into the frame of ``gate``, its target (brakes_into_gate), for at most FLY_THROUGH_MAX_S from the
+        kinds alone waits while braking would take the drone out of the fence or into the frame of
+        ``gate``, its target (brakes_unsafe), for at most FLY_THROUGH_MAX_S from the
         first tick it was told: the drone races on meanwhile (a low battery is no reason to brake into
         a wall; its gates still count). An /event says when it flies on and when it brakes anyway."""
         if not all(k in DEFERRABLE for k in kinds) or not est.valid:
             return self.asked_done(i)
         first = self.land_asked.setdefault(i, t)
-        if not (brakes_out_of_fence(est.pos, est.vel, fence, setup) or brakes_into_gate(est.pos, est.vel, gate, setup)):
+        if not brakes_unsafe(est.pos, est.vel, gate, fence, setup):
             return self.asked_done(i)
         d = drones[i]
         if t - first >= FLY_THROUGH_MAX_S or t == first:

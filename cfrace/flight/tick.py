@@ -75,7 +75,7 @@ class TickCore:
                  hover_start: bool = False, consistency: bool = True):
         self.landing = landing   #: None: every stop cuts the motors (no landing)
         self.hover_start = hover_start   #: drones hover (high-level commander) until their first inference
-        self.race_over: tuple | None = None   #: (end, winner, t, _tally()) once the race is decided
+        self.race_over: tuple | None = None   #: (end, winner, t, tally()) once the race is decided
         self.soft = SoftState(len(drones))   #: what the soft failsafes and the landings remember
         self.drones, self.estimator, self.progress = drones, estimator, progress
         self.obs_builder, self.fence, self.safety_cfg = obs_builder, fence, safety_cfg
@@ -224,15 +224,17 @@ class TickCore:
 
     def _end(self, decision, ests: list, t: float) -> tuple[str, str]:
         """(end, winner) of this tick. With landing: once the race is decided every drone still flying
-        lands (SoftState.land_after_race: through its target gate first if it would brake into its
-        frame), and the loop ends when every drone is down or stopped (a hard stop ends it at once)."""
+        lands (SoftState.land_after_race: on its policy first while braking would take it into its
+        target gate's frame or out of the fence), and the loop ends when every drone is down or
+        stopped (a hard stop ends it at once)."""
         end, winner = self.race_end(decision, t)
         if self.landing is None or decision.stop_all:
             return end, winner
         if self.race_over is None and end:
-            self.race_over = (end, winner, t, self._tally())
+            self.race_over = (end, winner, t, self.tally())
         if self.race_over is not None:
-            self.soft.land_after_race(self.drones, ests, t, self.race_over[2], self.progress.target, self.landing)
+            self.soft.land_after_race(self.drones, ests, t, self.race_over[2], self.progress.target, self.fence,
+                                     self.landing)
         if any(not d.stopped and (d.landing is not None or self.race_over is not None) for d in self.drones):
             return "", "draw"
         return (self.race_over[0], self.race_over[1]) if self.race_over is not None else (end, winner)
@@ -366,7 +368,7 @@ class TickCore:
                 d.setpoint_map(np.asarray(d.policy(obs), dtype=np.float32).reshape(4))
 
     # ------------------------------------------------------------------ results
-    def _tally(self) -> list[tuple[int, int, list]]:
+    def tally(self) -> list[tuple[int, int, list]]:
         """Per drone (gates passed, laps, lap times): as at the race's end once it is decided (a drone
         flying on through the gate ahead before it lands scores nothing more), else as now."""
         if self.race_over is not None:
@@ -377,11 +379,11 @@ class TickCore:
     def race_state(self) -> dict:
         return {d.body: {"drone": d.name, "gates_passed": g, "laps": laps, "target": int(self.progress.target[i]),
                          "lap_times": list(lt), "stopped": d.stopped, "stop_kind": d.stop_kind}
-                for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self._tally()))}
+                for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self.tally()))}
 
     def drone_results(self) -> list[dict]:
         out = []
-        for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self._tally())):
+        for i, (d, (g, laps, lt)) in enumerate(zip(self.drones, self.tally())):
             out.append({"name": d.name, "body": d.body, "policy": str(d.meta.get("path", "")),
                         "method": d.meta.get("method"), "laps": laps, "gates_passed": g,
                         "lap_times": [round(x, 3) for x in lt], "stopped": d.stopped,
