@@ -365,3 +365,25 @@ def test_sim_stand_refuses_the_in_process_bus():
     r = _cfrace("sim", "stand", "--bus", "can://virtual/x", "--duration", "1")
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "the virtual interface only reaches this process" in r.stderr
+
+
+def test_second_run_refuses_a_locked_drone(patient_sensor):
+    """After a run the drone's emergency-stop watchdog locks it (reboot required): a second run on
+    the same drone says so in one line before the plan runs, and sends it nothing more."""
+    bus = _bus()
+    tiny = Plan(levels=(30000,), motors=(0,), hold_s=0.2, settle_s=0.1, rest_s=0.1, slew=300000.0,
+                tau_repeats=1, tau_hold_s=0.1)
+    with SimStand(sensor=str(patient_sensor), bus=bus) as stand:
+        run_stand(stand.uri, stand.sensor, bus, tiny, confirmed=True, out=lambda s: None)
+        t_end = time.monotonic() + 3.0
+        while not stand.fleet.status(0)["emergency_stopped"] and time.monotonic() < t_end:
+            time.sleep(0.05)          # the watchdog fires 1 s after the last feed
+        assert stand.fleet.supervisor_bitfield(0) >> 6 & 1                   # "is locked"
+        sent, lines = stand.fleet.status(0)["setpoints_received"], []
+        with pytest.raises(LinkError, match=r"locked .*power-cycle it") as e:
+            run_stand(stand.uri, stand.sensor, bus, tiny, confirmed=True, out=lines.append)
+        assert "\n" not in str(e.value) and lines == []
+        # nothing sent after the check but the zero-thrust setpoint of cflib's own close_link (the run's
+        # stop would add its STOP setpoints, the plan its override writes and lines)
+        assert stand.fleet.status(0)["setpoints_received"] <= sent + 1
+        assert int(stand.fleet.get_param(0, "motorPowerSet.enable")) == 0

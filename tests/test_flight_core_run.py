@@ -461,3 +461,23 @@ def test_latency_options_reach_the_flight_and_its_log(pols, tmp_path, monkeypatc
                              monkeypatch, capsys)
     assert code == 2 and err.strip().splitlines() == [
         "error: latency_comp_s: must be in [0, 0.1) s, got 0.15"], err
+
+
+def test_profile_trained_names_the_profile_it_cannot_find(tmp_path):
+    """--profile trained: a policy trained on a profile file outside calibration/ (or on another file
+    of a shipped profile's name) is refused with one line, not flown on the default profile."""
+    from cfrace.cli.common import choose_profile
+    from cfrace.flight.holdpolicy import make_hold_policy
+    from cfrace.paths import CALIBRATION_DIR
+    from cfrace.track import load_track
+
+    text = (CALIBRATION_DIR / "cf2x_paper.yaml").read_text()
+    (tmp_path / "mine.yaml").write_text(text.replace("name: cf2x_paper", "name: mine"))
+    (tmp_path / "other.yaml").write_text(text.replace("max_rates_deg: [100.0, 100.0, 200.0]", "max_rates_deg: [120.0, 120.0, 200.0]"))
+    track = load_track("lemniscate")
+    assert choose_profile("trained", track, str(make_hold_policy(tmp_path / "a.onnx", "solo36", "lemniscate", False)),
+                          False)[0] == "cf2x_paper"
+    for prof, says in (("mine.yaml", "not in"), ("other.yaml", "other than")):
+        pol = make_hold_policy(tmp_path / f"{prof}.onnx", "solo36", "lemniscate", False, profile=str(tmp_path / prof))
+        with pytest.raises(CfraceError, match=says):
+            choose_profile("trained", track, str(pol), False)

@@ -75,3 +75,19 @@ def test_a_low_battery_arms_nothing():
     checks = run_checks(links, ["cf1", "cf2"], fleet.profile, poses, fleet.advance, PreflightConfig())
     assert [c.name for c in checks if not c.ok] == ["battery"] and len(checks) == 6
     assert not fleet.status(0)["armed"] and not fleet.status(1)["armed"]
+
+
+def test_a_radio_that_reports_no_link_quality_fails_the_link_check():
+    """A UDP link to simulated drones measures no link quality (it passes, and says so); a Crazyradio
+    link must report one: without it the check fails rather than passing on NaN."""
+    from cfrace.flight.preflight import check_status
+    fleet, links, _ = setup()
+    link = links[0]
+    link.quality.link_quality = float("nan")
+    (udp,) = [c for c in check_status(link, 0, PreflightConfig()) if c.name == "link"]
+    assert udp.ok and "not measured on this link" in udp.detail
+    link.uri = "radio://0/80/2M/E7E7E7E701"
+    (radio,) = [c for c in check_status(link, 0, PreflightConfig()) if c.name == "link"]
+    assert not radio.ok and "not reported" in radio.detail
+    link.quality.link_quality = 95.0
+    assert [c for c in check_status(link, 0, PreflightConfig()) if c.name == "link"][0].ok

@@ -44,8 +44,22 @@ def test_reproduce_train_prints_the_commands(tmp_path):
     assert r.exit_code == 0, r.output
     assert "# 1. ds_lemniscate: to do" in r.output and "# 2. ss_lemniscate (after ds_lemniscate): to do" in r.output
     assert f"--init-from {tmp_path}/ds_lemniscate/checkpoint.pt --init-critic" in r.output.replace("\n", "")
-    bad = CliRunner().invoke(app, ["reproduce", "--run"])
-    assert bad.exit_code != 0 and "--train --run" in str(bad.exception)
+    # options of the other mode are refused, not ignored (the report takes minutes)
+    for args, says in ((["--run"], "--train --run"), (["--only", "ds_lemniscate"], "--train --only"),
+                       (["--runs-dir", "x"], "--train --runs-dir"), (["--train", "--quick"], "not to --train")):
+        bad = CliRunner().invoke(app, ["reproduce", *args])
+        assert bad.exit_code != 0 and says in str(bad.exception), (args, bad.output)
+
+
+def test_the_pipelines_repository_files_are_named_wherever_it_runs_from():
+    """Stages warm-started from a shipped file name it absolutely (the printed commands run from any
+    folder); references to other stages stay references."""
+    from cfrace.paths import ROOT
+    runs = {r.name: r for r in load_pipeline().runs}
+    twin = next(r for r in runs.values() if str(r.options.get("init_from", "")).endswith("ours_lemniscate.onnx"))
+    assert twin.options["init_from"] == str(ROOT / "policies" / "ours_lemniscate.onnx")
+    assert all(Path(x).is_absolute() and Path(x).is_file() for x in twin.options["fixed_opponent"].split(","))
+    assert runs["dm_lemniscate"].options["init_from"] == "ds_lemniscate"
 
 
 def test_choose_rule():

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import sys
 
 import pytest
@@ -66,10 +67,22 @@ def test_cli_errors_are_one_line(tmp_path, monkeypatch, capsys):
              ["train", "--track", "complex", "--steps", "10"],
              ["train", "--resume", str(tmp_path / "nothing"), "--steps", "10"],
              ["train", "--method", "ours", "--track", "complex", "--steps", "10", "--device", "tpu"]]
-    for args in cases:
+    (tmp_path / "empty.pt").write_bytes(b"")
+    run = ["--steps", "10", "--out", str(tmp_path / "new")]
+    # refused before the banner and before the run folder is made (cfrace.rl.inputs.check_inputs)
+    before_banner = [["train", "--method", "dss", "--track", "complex", *run],
+                     ["train", "--method", "ds", "--track", "complexx", *run],
+                     ["train", "--method", "ds", "--track", "complex", "--init-from", str(tmp_path / "empty.pt"), *run],
+                     ["train", "--method", "ours", "--track", "complex", "--fixed-opponent",
+                      f"{Path(__file__).parents[1] / 'policies' / 'ds_complex.onnx'},nope.onnx", *run],
+                     ["export", str(tmp_path / "empty.pt"), "-o", str(tmp_path / "x.onnx")]]
+    for args in cases + before_banner:
         monkeypatch.setattr(sys, "argv", ["cfrace", *args])
         with pytest.raises(SystemExit) as exc:
             main()
         assert exc.value.code == 2, args
-        err = capsys.readouterr().err.strip().splitlines()
+        out = capsys.readouterr()
+        err = out.err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error: "), err
+        if args in before_banner:
+            assert "training" not in out.out and not (tmp_path / "new").exists(), (args, out.out)

@@ -89,9 +89,15 @@ def test_resume_refuses_other_task(tmp_path):
         resume_config(tmp_path / "run", method="ds")
     with pytest.raises(ConfigError):
         load_checkpoint(tmp_path / "nowhere")
-    (tmp_path / "junk.pt").write_bytes(b"garbage")
-    with pytest.raises(ConfigError):
-        load_checkpoint(tmp_path / "junk.pt")
+    for name, data in (("junk.pt", b"garbage"), ("empty.pt", b""), ("zeros.pt", bytes(100)), ("text.pt", b"hello")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ConfigError, match="not a cfrace training checkpoint"):
+            load_checkpoint(tmp_path / name)
+    import zipfile                                # a zip, but no checkpoint: the message says what torch said
+    with zipfile.ZipFile(tmp_path / "other.zip", "w") as z:
+        z.writestr("a.txt", "x")
+    with pytest.raises(ConfigError, match="not a readable checkpoint"):
+        load_checkpoint(tmp_path / "other.zip")
 
 
 def test_signal_checkpoints_and_stops(tmp_path):

@@ -117,10 +117,35 @@ def test_refuses_non_loopback_and_busy_ports(fleet):
     busy.bind(("127.0.0.1", 0))
     port = busy.getsockname()[1]
     try:
-        with pytest.raises(LinkError, match=f"udp://127.0.0.1:{port}"):
+        with pytest.raises(LinkError, match=f"udp://127.0.0.1:{port} \\(drone cf1's port\\)"):
             SimCrazyflieServer(fleet, base_port=port).start()
     finally:
         busy.close()
+
+
+def test_a_busy_pose_port_is_named(fleet):
+    """`sim serve --port P` with P - 1 taken: the line says P - 1 is the pose port."""
+    for _ in range(20):                      # a port P - 1 that is busy while P, P + 1 are free
+        busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        busy.bind(("127.0.0.1", 0))
+        port = busy.getsockname()[1]
+        try:
+            with pytest.raises(LinkError) as e:
+                SimCrazyflieServer(fleet, base_port=port + 1).start()
+        finally:
+            busy.close()
+        if f":{port} " in str(e.value):
+            break
+    assert str(e.value) == (f"simcf: cannot listen on udp://127.0.0.1:{port} (the ground-truth pose port, the "
+                            f"first drone's port {port + 1} - 1): Address already in use")
+
+
+def test_no_lag_warning_below_one_clock_tick(fleet):
+    server = SimCrazyflieServer(fleet, base_port=0)
+    server.overruns, server.sim_lag = 1, 0.004          # would print as "0.00 s"
+    assert server.lag_warning() == ""
+    server.overruns, server.sim_lag = 3, 0.25
+    assert server.lag_warning() == "  warning: simulation fell behind real time by 0.25 s"
 
 
 @pytest.mark.parametrize("reset", [False, True])

@@ -5,7 +5,9 @@ Built on CflibLink (connection, link-loss detection, stop); cflib's log API is t
 adds, and this is the one other module that imports cflib. Names and units as the firmware:
 parameters motorPowerSet.enable (uint8: 0 off, 1 each motor its own value, 2 m1 to all) and
 motorPowerSet.m1..m4 (uint16 counts); log variables pm.vbat (float, V) and, where the drone
-measures motor speed, rpm.m1..m4 (uint16, revolutions per minute).
+measures motor speed, rpm.m1..m4 (uint16, revolutions per minute). A drone whose supervisor
+reports "is locked" (bit 6 of supervisor.info, cflib Supervisor.is_locked: after an emergency stop
+or its emergency-stop watchdog, i.e. after every stand run) ignores the override until rebooted.
 """
 
 from __future__ import annotations
@@ -17,13 +19,14 @@ import warnings
 import numpy as np
 
 from cfrace.errors import LinkError
-from cfrace.flight.link_cflib import CflibLink
+from cfrace.flight.link_cflib import LOCKED_BIT, CflibLink
 
 from cflib.crazyflie.log import LogConfig  # noqa: E402
 
 MOTOR_PARAMS = ("motorPowerSet.enable", "motorPowerSet.m1", "motorPowerSet.m2", "motorPowerSet.m3",
                 "motorPowerSet.m4")
 RPM_VARS = ("rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4")
+LOCK_READS = 3      #: supervisor state requests (0.2 s each) before a drone that does not answer passes
 
 
 class StandLink(CflibLink):
@@ -38,7 +41,8 @@ class StandLink(CflibLink):
         self.last_log: float | None = None      #: host time of the newest log packet
 
     def prepare(self, period_ms: int = 10) -> None:
-        """Check the TOCs, zero the motor override, start the battery / motor-speed log, arm."""
+        """Check the TOCs and that the drone is not locked, zero the motor override, start the battery /
+        motor-speed log, arm."""
         cf = self._need()
         missing = [n for n in MOTOR_PARAMS if cf.param.toc.get_element_by_complete_name(n) is None]
         if missing:
@@ -46,6 +50,7 @@ class StandLink(CflibLink):
                             "update the Crazyflie firmware")
         if cf.log.toc.get_element_by_complete_name("pm.vbat") is None:
             raise LinkError(f"{self.uri}: the firmware logs no pm.vbat")
+        self.refuse_locked()
         self.has_rpm = all(cf.log.toc.get_element_by_complete_name(n) is not None for n in RPM_VARS)
         self._params["motorPowerSet.enable"] = threading.Event()
         cf.param.add_update_callback(group="motorPowerSet", name="enable", cb=self._param_cb)
@@ -66,6 +71,25 @@ class StandLink(CflibLink):
             warnings.simplefilter("ignore")
             cf.supervisor.send_arming_request(True)
         self.feed_watchdog()
+
+    def refuse_locked(self) -> None:
+        """LinkError if the supervisor reports the drone locked (its motors would stay dead through the
+        plan). Then the link is closed at once: nothing more goes to the drone (but cflib's zero-thrust
+        setpoint on closing). A reply of 0 is no reply (a drone that answers has some state bit set)
+        or legacy firmware: read again."""
+        cf = self._need()
+        bits = 0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
+            for _ in range(LOCK_READS):
+                bits = int(cf.supervisor.read_bitfield() or 0)
+                if bits:
+                    break
+        if bits >> LOCKED_BIT & 1:
+            self._shutdown()
+            raise LinkError(f"{self.uri}: the drone is locked (supervisor: emergency stop, e.g. its emergency-stop "
+                            "watchdog 1 s after the last stand run) and its motors would not spin: power-cycle "
+                            "it (a simulated one: restart `cfrace sim stand`), then run again")
 
     def _on_log(self, timestamp, data, conf) -> None:
         now = time.monotonic()

@@ -285,6 +285,8 @@ def fly_config(config: Path | None, mocap: str | None, profile: str | None, **op
         raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
     name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
                                 _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
+    if profile is None and "profile" in from_file and rule == "--profile":
+        rule = f"profile: in {config}"
     if not cfg.uris:
         raise ConfigError("missing --uris (one link URI per drone)")
     return replace(cfg, profile=name), rule

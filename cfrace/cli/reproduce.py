@@ -32,8 +32,12 @@ def reproduce_cmd(
     from cfrace.errors import ConfigError
     from cfrace.evaluate.reproduce import ReproduceConfig, reproduce
 
-    if run and not train:
-        raise ConfigError("--run runs the training pipeline: give --train --run")
+    if not train:
+        for given, option in ((run, "--run"), (only is not None, "--only"), (runs_dir is not None, "--runs-dir")):
+            if given:
+                raise ConfigError(f"{option} belongs to the training pipeline: give --train {option} ...")
+    elif quick or test_seeds is not None or runs is not None or races is not None:
+        raise ConfigError("--quick, --test-seeds, --runs and --races belong to the report, not to --train")
     if train:
         _pipeline(run, only, runs_dir)
         return

@@ -176,6 +176,8 @@ def train_cmd(
                           update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
                           obstacle_curriculum=obstacle_curriculum, rewards=rewards)
+    from cfrace.rl.inputs import check_inputs
+    check_inputs(cfg, sources=resume is None)     # one line, before the banner and the run folder
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     ippo = cfg.ippo()

@@ -54,12 +54,14 @@ def load_pipeline(path: Path = PIPELINE, only: str | None = None):
             if bad or "export" not in run.select:
                 raise ConfigError(f"{path}: {run.name}.select: unknown key(s) {sorted(bad)} or no export "
                                   f"(keys: {', '.join(sorted(SELECT_KEYS))})")
-    # the files it writes are named relative to the repository (policies/...), wherever it runs from
+    # the files it reads and writes are named relative to the repository (policies/...), wherever it
+    # runs from (and wherever its printed commands are pasted)
     sweep = dataclasses.replace(sweep, runs=tuple(
-        dataclasses.replace(r, export=None if r.export is None else {**r.export, "file": str(ROOT / r.export["file"])},
+        dataclasses.replace(r, options=_repo_paths(r.options),
+                            export=None if r.export is None else {**r.export, "file": str(ROOT / r.export["file"])},
                             select=None if r.select is None
-                            else {**r.select, "export": str(ROOT / r.select["export"])}) if r.export or r.select
-        else r for r in sweep.runs))
+                            else {**r.select, "export": str(ROOT / r.select["export"])})
+        for r in sweep.runs))
     if only:
         globs = [g.strip() for g in only.split(",") if g.strip()]
         keep = {r.name for r in sweep.runs if any(fnmatch.fnmatch(r.name, g) for g in globs)}
@@ -73,6 +75,17 @@ def load_pipeline(path: Path = PIPELINE, only: str | None = None):
                     todo.append(dep)
         sweep = dataclasses.replace(sweep, runs=tuple(r for r in sweep.runs if r.name in keep))
     return sweep
+
+
+def _repo_paths(options: dict) -> dict:
+    """A stage's train options with every file they name inside the repository (--init-from,
+    --fixed-opponent: A,B) made absolute; references to other stages are left as they are."""
+    out = dict(options)
+    for key in ("init_from", "fixed_opponent"):
+        if isinstance(out.get(key), str):
+            out[key] = ",".join(str(ROOT / x.strip()) if (ROOT / x.strip()).is_file() else x
+                                for x in out[key].split(","))
+    return out
 
 
 def describe(sweep, out_root: Path) -> list[str]:

@@ -129,13 +129,17 @@ def check_status(link, drone: int, cfg: PreflightConfig) -> list[Check]:
     q = link.quality
     vbat = st.get("vbat", float("nan"))
     lat, lq = q.latency_ms, q.link_quality
-    link_ok = (not lat == lat or lat <= cfg.max_latency_ms) and (not lq == lq or lq >= cfg.min_link_quality)
+    # a Crazyradio measures the link quality; a UDP link (simulated drones) has none to report
+    radio = str(getattr(link, "uri", "")).startswith("radio://")
+    link_ok = (not lat == lat or lat <= cfg.max_latency_ms) and (lq >= cfg.min_link_quality if lq == lq else not radio)
+    quality = f"{lq:.0f} %" if lq == lq else ("not reported (a radio must report it)" if radio else
+                                              "not measured on this link")
     return [
         Check("firmware", drone, st["protocol"] >= cfg.min_protocol,
               f"CRTP protocol {st['protocol']} (need >= {cfg.min_protocol})"),
         Check("battery", drone, vbat == vbat and vbat >= cfg.min_vbat, f"{vbat:.2f} V (need >= {cfg.min_vbat} V)"),
         Check("link", drone, bool(q.connected and link_ok),
-              f"latency {lat:.1f} ms, link quality {lq:.0f} % (limits {cfg.max_latency_ms:g} ms, "
+              f"latency {lat:.1f} ms, link quality {quality} (limits {cfg.max_latency_ms:g} ms, "
               f"{cfg.min_link_quality:g} %)"),
     ]
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Callable
 
 from cfrace.drone import DroneProfile, load_profile
+from cfrace.env.actions import action_map_constants
 from cfrace.env.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
 from cfrace.flight.clock import RealClock
@@ -24,6 +25,7 @@ from cfrace.flight.links import link_factory, stop_log_path
 from cfrace.flight.mocap import open_mocap
 from cfrace.flight.safety import CommandLimits, Fence
 from cfrace.policy import OnnxPolicy, resolve_policy
+from cfrace.paths import CALIBRATION_DIR
 from cfrace.track import Track, ground_start_positions, load_track
 
 
@@ -89,14 +91,27 @@ def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
 
 
 def training_profile(track: Track, ego: str, obstacles: bool, default: str = "cf21bl") -> str:
-    """The drone profile the ego policy was trained for (metadata drone_profile), if it names a
-    known profile; else ``default``. Policy errors surface later, in resolve_race."""
+    """The drone profile the ego policy was trained for (metadata drone_profile). ConfigError (one
+    line) when no profile of that name is in calibration/, or when the one there is not the one it
+    trained on (its action-map constants, recorded in the metadata, differ): a policy trained on a
+    profile file elsewhere (`--profile PATH`) needs that path again. ``default`` only for a policy
+    that does not load or names no profile (its error surfaces later, in resolve_race)."""
     try:
-        name = OnnxPolicy(resolve_policy(ego, track.name, obstacles)).meta["drone_profile"]
-        load_profile(name)
-        return name
+        meta = OnnxPolicy(resolve_policy(ego, track.name, obstacles)).meta
+        name = meta["drone_profile"]
     except (CfraceError, KeyError):
         return default
+    try:
+        prof = load_profile(name)
+    except CfraceError:
+        raise ConfigError(f"--profile trained: {ego} was trained on drone profile {name!r}, which is not in "
+                          f"{CALIBRATION_DIR}; give --profile PATH (its YAML)") from None
+    recorded = {k: meta.get(k) for k in action_map_constants(prof)}
+    if recorded != action_map_constants(prof):
+        raise ConfigError(f"--profile trained: {ego} was trained on a drone profile {name!r} other than "
+                          f"{CALIBRATION_DIR / name}.yaml (max thrust or body rates differ); give --profile PATH "
+                          f"(its YAML)")
+    return name
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,11 @@ def load_checkpoint(path: str | Path) -> dict:
     if not path.exists():
         raise ConfigError(f"{path}: no such checkpoint")
     import pickle
+    import zipfile
+
+    if not zipfile.is_zipfile(path):    # torch.save writes a zip archive: anything else is no checkpoint of ours
+        what = "an empty file" if path.stat().st_size == 0 else "not a torch zip archive"
+        raise ConfigError(f"{path}: not a cfrace training checkpoint ({what}; `cfrace train` writes checkpoint.pt)")
 
     import torch
 
@@ -50,7 +55,8 @@ def load_checkpoint(path: str | Path) -> dict:
         raise ConfigError(f"{path}: refused, not a plain-data checkpoint: loading it would run code or build "
                           f"objects ({unsafe[:120] or 'unsupported pickle content'})") from None
     except Exception as exc:  # torch raises many types for damaged files
-        raise ConfigError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:120]})") from None
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise ConfigError(f"{path}: not a readable checkpoint ({first[:120]})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a cfrace training checkpoint")
     return ckpt

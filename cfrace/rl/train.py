@@ -20,17 +20,17 @@ from typing import Callable
 import torch
 
 from cfrace import __version__
-from cfrace.contract import METHODS, MULTI_AGENT_METHODS
-from cfrace.drone import DEFAULT_PROFILE, load_profile
+from cfrace.contract import MULTI_AGENT_METHODS
+from cfrace.drone import DEFAULT_PROFILE
 from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE, OPPONENT_RULES
+from cfrace.env.observations import DEFAULT_OPPONENT_RULE
 from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset
 from cfrace.rl.logs import CsvLog, TensorBoardLog, plot_training_curve
 from cfrace.rl.precision import Precision, resolve_precision
 from cfrace.rl.runner import Runner
-from cfrace.track import load_track, obstacle_scale
+from cfrace.track import obstacle_scale
 
 
 @dataclass(frozen=True)
@@ -108,19 +108,11 @@ def set_threads(threads: int | None, device: torch.device) -> int:
 
 def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     """The RaceEnv of this config, plus the export metadata that describes it."""
-    if cfg.method not in METHODS:
-        raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
     from cfrace.env.race_env import RaceEnv
     from cfrace.env.rewards import reward_scales
-    if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
-        raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
-                          f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
-    if cfg.opponent_rule not in OPPONENT_RULES:
-        raise ConfigError(f"--opponent-rule {cfg.opponent_rule!r}: one of {', '.join(OPPONENT_RULES)}")
-    track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    from cfrace.rl.inputs import check_inputs
+    track, profile = check_inputs(cfg, sources=False)
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
-        if not 0.0 <= cfg.ground_start_prob <= 1.0:
-            raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
         track = replace(track, spawn=replace(track.spawn, ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,

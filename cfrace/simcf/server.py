@@ -43,6 +43,7 @@ class SimCrazyflieServer:
         self.fleet = fleet
         self.host = "127.0.0.1"
         self.base_port = int(base_port)
+        self._pose_port_given = pose_port is not None
         self.pose_port_requested = (self.base_port - 1 if self.base_port else 0) if pose_port is None else int(pose_port)
         self.realtime = bool(realtime)
         self.tick = float(tick)
@@ -77,8 +78,8 @@ class SimCrazyflieServer:
         try:
             for i in range(self.fleet.n):
                 port = self.base_port + i if self.base_port else 0
-                self._socks.append(self._bind(port))
-            self._pose_sock = self._bind(self.pose_port_requested)
+                self._socks.append(self._bind(port, f"drone {self.fleet.body_names[i]}'s port"))
+            self._pose_sock = self._bind(self.pose_port_requested, self._pose_port_words())
         except LinkError:
             self._close_sockets()
             raise
@@ -91,13 +92,18 @@ class SimCrazyflieServer:
             t.start()
         return self
 
-    def _bind(self, port: int) -> socket.socket:
+    def _pose_port_words(self) -> str:
+        if self._pose_port_given or not self.base_port:
+            return "the ground-truth pose port"
+        return f"the ground-truth pose port, the first drone's port {self.base_port} - 1"
+
+    def _bind(self, port: int, what: str) -> socket.socket:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             sock.bind((self.host, port))
         except OSError as e:
             sock.close()
-            raise LinkError(f"simcf: cannot listen on udp://{self.host}:{port}: {e.strerror or e}") from None
+            raise LinkError(f"simcf: cannot listen on udp://{self.host}:{port} ({what}): {e.strerror or e}") from None
         sock.setblocking(False)
         return sock
 
@@ -123,6 +129,13 @@ class SimCrazyflieServer:
     def poses(self) -> tuple[float, dict]:
         """(t_sim s, {body: (pos, quat wxyz)}), thread-safe."""
         return self.fleet.poses()
+
+    def lag_warning(self) -> str:
+        """The line saying how far the simulation fell behind real time, or "" for less than one clock
+        tick (a lag that would print as 0.00 s is no news)."""
+        if self.sim_lag < self.tick:
+            return ""
+        return f"  warning: simulation fell behind real time by {self.sim_lag:.2f} s"
 
     def stats(self) -> list[dict]:
         """Per drone: datagrams received / sent, legacy setpoints received, client address."""
@@ -275,8 +288,9 @@ def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arm
             stats = server.stats()
         for s in stats:
             out(f"  {s['uri']}: {s['rx']} packets in, {s['tx']} out, {s['setpoints']} setpoints")
-        if server.overruns:
-            out(f"  warning: simulation fell behind real time by {server.sim_lag:.2f} s")
+        lag = server.lag_warning()
+        if lag:
+            out(lag)
         return stats
     finally:
         if restore is not None:
