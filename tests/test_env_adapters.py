@@ -106,6 +106,10 @@ def test_gymnasium_vector_env():
     assert finals > 0       # random actions crash: the autoreset path ran
     with pytest.raises(ConfigError):
         RaceVectorEnv(4, "dm")
+    with pytest.raises(ConfigError, match="num_envs"):
+        RaceVectorEnv(0, "ds")
+    with pytest.raises(ConfigError, match="episode_s"):
+        RaceVectorEnv(2, "ds", episode_s=-1.0)
 
 
 def test_parallel_vector_env_matches_raceenv():

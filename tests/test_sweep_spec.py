@@ -141,6 +141,9 @@ def test_reward_weights_become_reward_flags(tmp_path):
     ("grid: {method: [ds, 3]}", "grid.method: expected a string"),
     ("colours: 3", "colours: unknown key"),
     ("", "no runs"),
+    ("runs: [{name: a, method: dss}]", "runs[0] (a).method: unknown method 'dss' (choose from ours, ds, ss, dm)"),
+    ("grid: {method: [ds, ss], track: lemniscat}", "grid (ds_lemniscat_s0).track: "),
+    ("runs: [{name: a, method: ds, track: tracks/nothere.yaml}]", "runs[0] (a).track: tracks/nothere.yaml: no such"),
 ])
 def test_bad_files_give_one_line(tmp_path, body, message):
     with pytest.raises(ConfigError) as exc:
@@ -149,10 +152,18 @@ def test_bad_files_give_one_line(tmp_path, body, message):
     assert message in text and "\n" not in text and "s.yaml" in text
 
 
+def test_a_track_file_is_a_track(tmp_path):
+    track = Path(__file__).resolve().parents[1] / "tracks" / "complex.yaml"
+    (run,) = spec(f"runs: [{{name: a, method: ss, track: {track}}}]", tmp_path).runs
+    assert run.options["track"] == str(track)
+    with pytest.raises(ConfigError, match=r"runs\[0\] \(a\)\.track: .*lemniscat.yaml: no such track file \(known: "):
+        spec("runs: [{name: a, method: ss, track: lemniscat}]", tmp_path)
+
+
 def test_version_and_out_required(tmp_path):
     with pytest.raises(ConfigError, match="version: expected 1"):
         parse_spec({"out": "x", "runs": [{"name": "a", "method": "ds", "track": "t"}]})
-    with pytest.raises(ConfigError, match="out: expected"):
+    with pytest.raises(ConfigError, match=r"out: expected the output folder \(a string; or give --out\), got None"):
         parse_spec({"version": 1, "runs": [{"name": "a", "method": "ds", "track": "t"}]})
     with pytest.raises(ConfigError, match="track missing"):
         parse_spec({"version": 1, "out": "x", "runs": [{"name": "a", "method": "ds"}]})
@@ -234,3 +245,74 @@ def test_dry_run_prints_commands_and_state(tmp_path):
     assert lines[1].startswith("  cfrace train --track lemniscate") and lines[1].endswith(f"--out {tmp_path}/out/a")
     assert lines[4] == f"  cfrace export {tmp_path}/out/b/checkpoint.pt -o {tmp_path}/out/b.onnx --agent best"
     assert not (tmp_path / "out").exists()
+
+
+def _cfrace(capsys, *args) -> tuple[int, str, str]:
+    """`cfrace ARGS` in this process: (exit code, stdout, stderr)."""
+    from cfrace.cli.main import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(list(args))
+    out, err = capsys.readouterr()
+    return exc.value.code, out, err
+
+
+@pytest.mark.parametrize("body, message", [
+    ("runs: [{name: a, method: ds}, {name: b, method: ss}, {name: c, method: ss, init_from: dz}]",
+     "runs[2].init_from: 'dz' is neither a run of this sweep nor an existing checkpoint or run folder"),
+    ("runs: [{name: a, method: dss}]", "runs[0] (a).method: unknown method 'dss'"),
+    ("runs: [{name: a, method: ds, track: lemniscat}]", "runs[0] (a).track: "),
+])
+def test_dry_run_refuses_what_the_run_refuses(tmp_path, capsys, body, message):
+    p = tmp_path / "s.yaml"
+    p.write_text(BASE + body)
+    for mode in ("--dry-run", "--sequential"):
+        code, out, err = _cfrace(capsys, "sweep", str(p), mode)
+        assert code == 2 and out == "", (mode, out)
+        assert err.startswith(f"error: {p}: {message}") and err.count("\n") == 1, (mode, err)
+
+
+def test_dry_run_prints_what_would_run(tmp_path, capsys):
+    """Per state: a fresh start, a resume for the rest of the budget, an export only, nothing."""
+    import torch
+
+    from cfrace.rl.checkpoint import FORMAT
+
+    out = tmp_path / "out"
+    p = tmp_path / "s.yaml"
+    p.write_text(BASE.replace("runs/x", str(out)) + f"""
+runs:
+  - {{name: fresh, method: ds, steps: 5000}}
+  - {{name: stopped, method: ds, minutes: 1}}
+  - {{name: trained, method: ds, steps: 500, export: {{file: {tmp_path}/t.onnx}}}}
+  - {{name: finished, method: ds, steps: 500}}
+""")
+    for name, wall_s in (("stopped", 6.0), ("trained", 9.0), ("finished", 9.0)):
+        (out / name).mkdir(parents=True)
+        torch.save({"format": FORMAT, "runner": {"env_steps": 768}, "wall_s": wall_s}, out / name / "checkpoint.pt")
+    code, text, err = _cfrace(capsys, "sweep", str(p), "--dry-run")
+    assert code == 0, err
+    assert text.splitlines() == [
+        "fresh (new; after nothing)",
+        f"  cfrace train --preset cpu --threads 1 --track lemniscate --method ds --steps 5000 --out {out}/fresh",
+        "stopped (interrupted; after nothing)",
+        f"  cfrace train --resume {out}/stopped --threads 1 --minutes 0.9",
+        "trained (trained, not exported; after nothing)",
+        f"  cfrace export {out}/trained/checkpoint.pt -o {tmp_path}/t.onnx --agent best",
+        "finished (done; after nothing)"]
+
+
+def test_out_option_stands_in_for_a_missing_out_key(tmp_path, capsys):
+    p = tmp_path / "nomethod.yaml"
+    p.write_text("version: 1\nruns: [{name: a, method: ds, track: lemniscate, steps: 1}]\n")
+    assert load_spec(p, out=tmp_path / "t").out == str(tmp_path / "t")
+    code, text, err = _cfrace(capsys, "sweep", str(p), "--out", str(tmp_path / "t"), "--dry-run")
+    assert code == 0, err
+    assert text.splitlines()[1].endswith(f"--steps 1 --out {tmp_path}/t/a")
+    code, _, err = _cfrace(capsys, "sweep", str(p), "--dry-run")
+    assert code == 2 and err == f"error: {p}: out: expected the output folder (a string; or give --out), got None\n"
+    p.write_text("version: 1\nout: 3\nruns: [{name: a, method: ds, track: lemniscate, steps: 1}]\n")
+    with pytest.raises(ConfigError, match="out: expected the output folder"):   # a bad one stays an error
+        load_spec(p, out=tmp_path / "t")
+    p.write_text(f"version: 1\nout: {tmp_path}/file_out\nruns: [{{name: a, method: ds, track: lemniscate}}]\n")
+    assert load_spec(p, out=tmp_path / "t").out == str(tmp_path / "t") and load_spec(p).out == f"{tmp_path}/file_out"

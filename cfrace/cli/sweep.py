@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shlex
 import sys
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -38,7 +39,8 @@ def _summary(report, out_root: Path) -> None:
 
 def sweep_cmd(
     spec: Path = typer.Argument(..., help="sweep file (docs/sweep.md)"),
-    out: Optional[Path] = typer.Option(None, "--out", help="output root (default: the file's `out`)"),
+    out: Optional[Path] = typer.Option(None, "--out", help="output root instead of the file's `out` (which "
+                                                           "the file may then leave out)"),
     address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: a local instance)"),
     cpus: Optional[int] = typer.Option(None, "--cpus", min=1, help="CPUs of the local instance (default: all cores)"),
     retries: int = typer.Option(1, "--retries", min=0, help="times a failed run is tried again (it resumes)"),
@@ -49,31 +51,50 @@ def sweep_cmd(
     """Run a grid or list of training runs (on Ray by default); resume a stopped sweep; plot curves."""
     from cfrace.sweep.parse import load_spec
 
-    sweep = load_spec(spec, check_paths=not dry_run)
-    out_root = out or Path(sweep.out)
+    sweep = load_spec(spec, out=out)   # every check of the real run, --dry-run included
+    out_root = Path(sweep.out)
     if dry_run:
-        for run in sweep.runs:
-            state = "done" if run.done(out_root) else ("interrupted" if run.started(out_root) else "new")
-            console.print(f"[bold]{run.name}[/bold] ({state}; after {', '.join(run.deps) or 'nothing'})",
-                          highlight=False)
-            console.print("  cfrace " + shlex.join(run.train_argv(out_root)), highlight=False, soft_wrap=True)
-            if run.export is not None:
-                console.print("  cfrace " + shlex.join(run.export_argv(out_root)), highlight=False, soft_wrap=True)
+        _dry_run(sweep, out_root)
         return
     if sequential:
         from cfrace.sweep.local import run_local
 
         run_local(sweep, out_root, echo=lambda s: console.print(s, highlight=False))
     else:
-        from cfrace.sweep.progress import progress_table
-        from cfrace.sweep.ray_exec import require_ray, run_ray
+        _on_ray(sweep, spec, out_root, address, cpus, retries, plot)
+    _curves(sweep, out_root, plot)
 
-        require_ray()
-        title = f"sweep {spec} -> {out_root}" + (f" on {address}" if address else " on a local Ray instance")
-        console.print(f"{title}: {len(sweep.runs)} runs, starting Ray...")
-        last = [0.0]
-        import time
 
+def _dry_run(sweep, out_root: Path) -> None:
+    """Each run's state and the commands a real run would start for it now (none when it is done)."""
+    from cfrace.sweep.local import start_command
+
+    for run in sweep.runs:
+        export = [run.export_argv(out_root)] if run.export is not None else []
+        if run.done(out_root):
+            state, argvs = "done", []
+        elif run.trained(out_root):
+            state, argvs = "trained, not exported", export
+        else:
+            action, argv = start_command(run, out_root)
+            state, argvs = "new" if action == "start" else "interrupted", [argv, *export]
+        console.print(f"[bold]{run.name}[/bold] ({state}; after {', '.join(run.deps) or 'nothing'})",
+                      highlight=False)
+        for argv in argvs:
+            console.print("  cfrace " + shlex.join(argv), highlight=False, soft_wrap=True)
+
+
+def _on_ray(sweep, spec: Path, out_root: Path, address: Optional[str], cpus: Optional[int], retries: int,
+            plot: Optional[Path]) -> None:
+    """The sweep on Ray with a live table; Ctrl-C or SIGTERM stops it with one line (exit 130 / 143)."""
+    from cfrace.sweep.progress import progress_table
+    from cfrace.sweep.ray_exec import require_ray, run_ray
+
+    require_ray()
+    title = f"sweep {spec} -> {out_root}" + (f" on {address}" if address else " on a local Ray instance")
+    console.print(f"{title}: {len(sweep.runs)} runs, starting Ray...")
+    last = [0.0]
+    try:
         with Live(console=console, refresh_per_second=2, transient=False) as live:
             def update(states) -> None:
                 live.update(progress_table(states, out_root, title))
@@ -82,13 +103,16 @@ def sweep_cmd(
                     live.console.print(progress_table(states, out_root, title))
 
             report = run_ray(sweep, out_root, address, cpus, retries, on_update=update)
-        _summary(report, out_root)
-        if not report.ok:
-            _curves(sweep, out_root, plot)
-            console.print(f"[red]{len(report.failed)} run(s) failed, {len(report.blocked)} blocked[/red]; "
-                          f"run the same command again to resume")
-            sys.exit(1)
-    _curves(sweep, out_root, plot)
+    except KeyboardInterrupt as exc:   # run_ray turns SIGTERM into KeyboardInterrupt("SIGTERM")
+        how = "SIGTERM" if str(exc) == "SIGTERM" else "Ctrl-C"
+        print(f"sweep stopped ({how}); run the same command again to resume", file=sys.stderr)
+        raise typer.Exit(143 if how == "SIGTERM" else 130) from None
+    _summary(report, out_root)
+    if not report.ok:
+        _curves(sweep, out_root, plot)
+        console.print(f"[red]{len(report.failed)} run(s) failed, {len(report.blocked)} blocked[/red]; "
+                      f"run the same command again to resume")
+        sys.exit(1)
 
 
 def _curves(sweep, out_root: Path, plot: Optional[Path]) -> None:

@@ -23,6 +23,10 @@ def check_inputs(cfg, sources: bool = True) -> tuple:
                           f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
     if cfg.opponent_rule not in OPPONENT_RULES:
         raise ConfigError(f"--opponent-rule {cfg.opponent_rule!r}: one of {', '.join(OPPONENT_RULES)}")
+    if cfg.num_envs is not None and not cfg.num_envs >= 1:
+        raise ConfigError(f"--envs (num_envs) must be at least 1, got {cfg.num_envs}")
+    if cfg.episode_s is not None and not cfg.episode_s > 0:
+        raise ConfigError(f"--episode-s (episode_s) must be > 0 s, got {cfg.episode_s}")
     if cfg.ground_start_prob is not None and not 0.0 <= cfg.ground_start_prob <= 1.0:
         raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
     track, profile = load_track(cfg.track), load_profile(cfg.profile)

@@ -8,9 +8,11 @@ import string
 from pathlib import Path
 from typing import Any
 
+from cfrace.contract import METHODS
 from cfrace.errors import ConfigError
 from cfrace.sweep.spec import (EXPORT_AGENTS, EXPORT_KEYS, REFERENCES, RUN_KEYS, SWEEP_OWNED, TOP_KEYS, VERSION, Run,
                                Sweep, TrainOption, fmt_value, train_options)
+from cfrace.track import load_track
 from cfrace.yamlcfg import load_yaml
 
 
@@ -124,7 +126,8 @@ def _export(path: str, where: str, value: Any) -> dict:
     return {"file": value["file"], "agent": agent}
 
 
-def parse_spec(data: dict, path: str = "<sweep>", check_paths: bool = True) -> Sweep:
+def parse_spec(data: dict, path: str = "<sweep>", check_paths: bool = True,
+               out: str | Path | None = None) -> Sweep:
     """A Sweep from the parsed YAML mapping (see load_spec)."""
     data = _mapping(path, "top level", data)
     for k in data:
@@ -132,9 +135,10 @@ def parse_spec(data: dict, path: str = "<sweep>", check_paths: bool = True) -> S
             raise ConfigError(f"{path}: {k}: unknown key (top level: {', '.join(TOP_KEYS)})")
     if data.get("version") != VERSION:
         raise ConfigError(f"{path}: version: expected {VERSION}, got {data.get('version')!r}")
-    out = data.get("out")
-    if not isinstance(out, str) or not out:
-        raise ConfigError(f"{path}: out: expected the output folder (a string), got {out!r}")
+    file_out = data.get("out")   # --out stands in for a missing `out:`; a bad one is still an error
+    if ("out" in data or out is None) and (not isinstance(file_out, str) or not file_out):
+        raise ConfigError(f"{path}: out: expected the output folder (a string; or give --out), got {file_out!r}")
+    out = str(out) if out is not None else file_out
     defaults = _check_options(path, "defaults", _mapping(path, "defaults", data.get("defaults") or {}))
     built = _named_runs(path, defaults, _raw_runs(path, data))
     names = {name: where for name, _, where, _ in built}
@@ -173,11 +177,22 @@ def _named_runs(path: str, defaults: dict, raw: list) -> list[tuple[str, dict, s
         if name in names:
             raise ConfigError(f"{path}: {where}: duplicate run name {name!r} (also {names[name]})")
         names[name] = where
-        for key in ("method", "track"):
-            if key not in merged:
-                raise ConfigError(f"{path}: {where} ({name}): {key} missing (give it in defaults, grid or the run)")
+        _check_task(f"{path}: {where} ({name})", merged)
         built.append((name, merged, where, extra))
     return built
+
+
+def _check_task(where: str, opts: dict) -> None:
+    """What `cfrace train` would refuse: a method it does not know, a track it cannot load."""
+    for key in ("method", "track"):
+        if key not in opts:
+            raise ConfigError(f"{where}: {key} missing (give it in defaults, grid or the run)")
+    if opts["method"] not in METHODS:   # the trainer's own list and message (cfrace.rl.train.make_env)
+        raise ConfigError(f"{where}.method: unknown method {opts['method']!r} (choose from {', '.join(METHODS)})")
+    try:
+        load_track(opts["track"])       # as the trainer loads it: a known name or a track file
+    except ConfigError as exc:
+        raise ConfigError(f"{where}.track: {exc}") from None
 
 
 def _linked_run(path: str, names: dict, name: str, opts: dict, where: str, extra: dict, check_paths: bool) -> Run:
@@ -237,7 +252,8 @@ def _dependency_order(path: str, runs: dict[str, Run]) -> list[Run]:
     return order
 
 
-def load_spec(path: str | Path, check_paths: bool = True) -> Sweep:
+def load_spec(path: str | Path, check_paths: bool = True, out: str | Path | None = None) -> Sweep:
     """Read and validate a sweep file. ``check_paths``: references that are not runs of the sweep
-    must exist on disk (checkpoint or run folder)."""
-    return parse_spec(load_yaml(Path(path)), str(path), check_paths)
+    must exist on disk (checkpoint or run folder). ``out`` (`cfrace sweep --out`): the output root
+    instead of the file's `out`, which may then be left out."""
+    return parse_spec(load_yaml(Path(path)), str(path), check_paths, out)

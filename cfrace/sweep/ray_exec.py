@@ -11,8 +11,12 @@ filesystem every node sees, and every node needs cfrace installed.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
+import socket
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +46,8 @@ def init_ray(address: str | None = None, cpus: int | None = None):
         return ray
     kw = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR,
               configure_logging=True)
+    if address:
+        check_address(address)
     try:
         if address:
             ray.init(address=address, **kw)
@@ -53,6 +59,48 @@ def init_ray(address: str | None = None, cpus: int | None = None):
                           f"cluster started with `ray start` wants RAY_AUTH_MODE=token and its ~/.ray/auth_token)") \
             from None
     return ray
+
+
+def check_address(address: str, timeout_s: float = 3.0) -> None:
+    """A one-line ConfigError unless something accepts a TCP connection on the address's port within
+    ``timeout_s`` (ray.init would retry an address with nothing behind it for minutes, warning)."""
+    if address in ("auto", "local"):   # Ray's own look-ups, no port to try
+        return
+    host, _, port = address.split("://", 1)[-1].rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"--address {address}: expected HOST:PORT or ray://HOST:PORT")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s).close()
+    except OSError as exc:
+        raise ConfigError(f"--address {address}: nothing answers at {host}:{port} ({exc.strerror or exc}); "
+                          f"is the Ray head running (`ray start --head`)?") from None
+
+
+@contextlib.contextmanager
+def sigterm_stops():
+    """SIGTERM raises KeyboardInterrupt("SIGTERM") in the main thread, so it stops the driver as Ctrl-C
+    does (the flight stack's convention; `cfrace sweep` exits 143 on it). Entered after ray.init, it also
+    takes SIGTERM back from the crash handler Ray's core worker installs (a "*** SIGTERM received ...
+    PC: @" dump)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    got = []
+
+    def stop(signum, frame):
+        got.append(signum)
+        raise KeyboardInterrupt("SIGTERM")
+
+    old = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    except KeyboardInterrupt:
+        if got:   # ray.wait turns the handler's exception into a bare KeyboardInterrupt
+            raise KeyboardInterrupt("SIGTERM") from None
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def run_threads(run: Run) -> int:
@@ -131,7 +179,9 @@ class _Scheduler:
 def run_ray(sweep: Sweep, out_root: str | Path | None = None, address: str | None = None, cpus: int | None = None,
             retries: int = 1, on_update: Callable[[list[RunState]], None] | None = None,
             poll_s: float = 1.0) -> SweepReport:
-    """Run the sweep on Ray; returns when every run is done, failed or blocked by a failed one."""
+    """Run the sweep on Ray; returns when every run is done, failed or blocked by a failed one. Ctrl-C
+    or SIGTERM raise KeyboardInterrupt (str "SIGTERM" for the latter); the runs go on from their
+    checkpoints when the sweep is run again."""
     ray = init_ray(address, cpus)
     out_root = str(out_root if out_root is not None else sweep.out)
     total = int(ray.cluster_resources().get("CPU", 0))
@@ -141,15 +191,16 @@ def run_ray(sweep: Sweep, out_root: str | Path | None = None, address: str | Non
                               f"instance has {total} CPUs")
     t0 = time.perf_counter()
     sched = _Scheduler(ray, sweep, out_root, retries)
-    while True:
-        sched.submit_ready()
-        if on_update is not None:
-            on_update(list(sched.states.values()))
-        if not sched.running:
-            break
-        ready, _ = ray.wait(list(sched.running), num_returns=1, timeout=poll_s)
-        for ref in ready:
-            sched.collect(ref)
+    with sigterm_stops():
+        while True:
+            sched.submit_ready()
+            if on_update is not None:
+                on_update(list(sched.states.values()))
+            if not sched.running:
+                break
+            ready, _ = ray.wait(list(sched.running), num_returns=1, timeout=poll_s)
+            for ref in ready:
+                sched.collect(ref)
     states = list(sched.states.values())
     return SweepReport(states, time.perf_counter() - t0, sum(s.wall_s for s in states),
                        [s.run.name for s in states if s.state == "failed"],

@@ -210,7 +210,7 @@ def checkpoint_progress(path: Path) -> tuple[int, float]:
 @dataclass(frozen=True)
 class Sweep:
     path: str
-    out: str                 #: the output root of the file (`cfrace sweep --out` overrides it)
+    out: str                 #: the output root: `cfrace sweep --out`, else the file's `out`
     runs: tuple[Run, ...]    #: dependency order
 
     def run(self, name: str) -> Run:
