@@ -5,6 +5,8 @@ every moment of a window, each ending with both drones landing from wherever the
         [--from 1.0] [--to 9.0] [--step 0.03] [--json FILE]
     .venv/bin/python benchmarks/race_end_landings.py --policies ours,ds,ours,ds,ours,ds,ours,ds --track complex ...
         (a swarm: drones that crashed racing are not landings; each race end's slowest tick in CPU ms)
+    .venv/bin/python benchmarks/race_end_landings.py --compare NEW.json:OLD.json ... [--json F]
+        (the same scan by two code versions: bad race ends, landings that start at another time)
 
 Per race end: whether a simulated drone crashed (the simulator's crash flag at the end: a gate frame,
 an obstacle, a floor impact), the safety events that acted and the pose outliers (a crash in the
@@ -22,6 +24,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -52,7 +56,40 @@ def as_in_race(row: dict, reference: dict) -> bool:
         and set(row["crashed"]) <= set(reference["all_crashed"])
 
 
+def compare(pairs: list[str], out: str = "") -> None:
+    """NEW.json:OLD.json pairs of the same scan by two code versions: bad race ends of each, and the
+    landings that start at another time (or end another way) in the new one, with the shift."""
+    doc = {}
+    for pair in pairs:
+        new_path, old_path = pair.split(":")
+        new, old = (json.load(open(x)) for x in (new_path, old_path))
+        shifts, other = [], 0
+        for rn, ro in zip(new["rows"], old["rows"]):
+            for drone, (kind, t) in rn["landings"].items():
+                kind_old, t_old = ro["landings"].get(drone, (None, None))
+                if (kind, t) != (kind_old, t_old):
+                    if kind == kind_old and t is not None and t_old is not None:
+                        shifts.append(round(t - t_old, 3))
+                    else:
+                        other += 1
+        row = {"bad": [new["bad"], old["bad"]], "as_in_race": [new["as_in_race"], old["as_in_race"]],
+               "runs": new["runs"], "landings_shifted": len(shifts), "landings_changed_otherwise": other,
+               "shift_s": [min(shifts), max(shifts)] if shifts else None}
+        doc[Path(new_path).name] = row
+        print(f"{new_path}: bad {row['bad'][0]} (old {row['bad'][1]}) of {row['runs']}; {len(shifts)} landings "
+              f"start at another time ({row['shift_s']} s), {other} otherwise changed")
+    if out:
+        Path(out).write_text(json.dumps(doc, indent=1))
+
+
 def main() -> None:
+    if sys.argv[1:2] == ["--compare"]:
+        ap = argparse.ArgumentParser(description=compare.__doc__.splitlines()[0])
+        ap.add_argument("--compare", nargs="+", metavar="NEW.json:OLD.json", required=True)
+        ap.add_argument("--json", default="")
+        a = ap.parse_args()
+        compare(a.compare, a.json)
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ego", default="ds")
     ap.add_argument("--opp", default="ours")

@@ -46,7 +46,7 @@ def test_reproduce_train_prints_the_commands(tmp_path):
     assert f"--init-from {tmp_path}/ds_lemniscate/checkpoint.pt --init-critic" in r.output.replace("\n", "")
     # options of the other mode are refused, not ignored (the report takes minutes)
     for args, says in ((["--run"], "--train --run"), (["--only", "ds_lemniscate"], "--train --only"),
-                       (["--runs-dir", "x"], "--train --runs-dir"), (["--train", "--quick"], "not to --train")):
+                       (["--runs-dir", "x"], "--train --runs-dir"), (["--train", "--quick"], "not to --train"), (["--train", "--out", "x"], "not to --train")):
         bad = CliRunner().invoke(app, ["reproduce", *args])
         assert bad.exit_code != 0 and says in str(bad.exception), (args, bad.output)
 

@@ -19,14 +19,13 @@ import warnings
 import numpy as np
 
 from cfrace.errors import LinkError
-from cfrace.flight.link_cflib import LOCKED_BIT, CflibLink
+from cfrace.flight.link_cflib import CflibLink
 
 from cflib.crazyflie.log import LogConfig  # noqa: E402
 
 MOTOR_PARAMS = ("motorPowerSet.enable", "motorPowerSet.m1", "motorPowerSet.m2", "motorPowerSet.m3",
                 "motorPowerSet.m4")
 RPM_VARS = ("rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4")
-LOCK_READS = 3      #: supervisor state requests (0.2 s each) before a drone that does not answer passes
 
 
 class StandLink(CflibLink):
@@ -50,7 +49,9 @@ class StandLink(CflibLink):
                             "update the Crazyflie firmware")
         if cf.log.toc.get_element_by_complete_name("pm.vbat") is None:
             raise LinkError(f"{self.uri}: the firmware logs no pm.vbat")
-        self.refuse_locked()
+        self.refuse_locked("e.g. its emergency-stop watchdog 1 s after the last stand run; its motors would not "
+                           "spin", "power-cycle it (a simulated one: restart `cfrace sim stand`), then run again",
+                           close=True)
         self.has_rpm = all(cf.log.toc.get_element_by_complete_name(n) is not None for n in RPM_VARS)
         self._params["motorPowerSet.enable"] = threading.Event()
         cf.param.add_update_callback(group="motorPowerSet", name="enable", cb=self._param_cb)
@@ -71,25 +72,6 @@ class StandLink(CflibLink):
             warnings.simplefilter("ignore")
             cf.supervisor.send_arming_request(True)
         self.feed_watchdog()
-
-    def refuse_locked(self) -> None:
-        """LinkError if the supervisor reports the drone locked (its motors would stay dead through the
-        plan). Then the link is closed at once: nothing more goes to the drone (but cflib's zero-thrust
-        setpoint on closing). A reply of 0 is no reply (a drone that answers has some state bit set)
-        or legacy firmware: read again."""
-        cf = self._need()
-        bits = 0
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
-            for _ in range(LOCK_READS):
-                bits = int(cf.supervisor.read_bitfield() or 0)
-                if bits:
-                    break
-        if bits >> LOCKED_BIT & 1:
-            self._shutdown()
-            raise LinkError(f"{self.uri}: the drone is locked (supervisor: emergency stop, e.g. its emergency-stop "
-                            "watchdog 1 s after the last stand run) and its motors would not spin: power-cycle "
-                            "it (a simulated one: restart `cfrace sim stand`), then run again")
 
     def _on_log(self, timestamp, data, conf) -> None:
         now = time.monotonic()

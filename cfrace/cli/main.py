@@ -106,11 +106,6 @@ def _run(args: list[str]) -> int:
     except cx.ClickException as exc:
         print(f"error: {exc.format_message()}", file=sys.stderr)
         return exc.exit_code
-    except OSError as exc:    # a file or folder a command was given that cannot be read or written
-        if exc.filename is None:
-            raise
-        print(f"error: {exc.filename}: {exc.strerror or exc}", file=sys.stderr)
-        return 2
     return code if isinstance(code, int) else 0
 
 

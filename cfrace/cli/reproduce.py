@@ -13,9 +13,10 @@ console = Console()
 
 
 def reproduce_cmd(
-    out: Path = typer.Option(Path("report"), "--out", help="folder for report.md, report.json and the PNGs"),
+    out: Optional[Path] = typer.Option(None, "--out", help="folder for report.md, report.json and the PNGs "
+                                                          "(default: report)"),
     quick: bool = typer.Option(False, "--quick", help="a few runs per cell (under a minute; figures indicative)"),
-    seed: int = typer.Option(0, "--seed", help="seed of Table I and the matrices"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="seed of Table I and the matrices (default 0)"),
     test_seeds: Optional[str] = typer.Option(None, "--test-seeds",
                                              help="fresh seeds of the ours-vs-DS races (default 1,2,3; --quick: 1)"),
     runs: Optional[int] = typer.Option(None, "--runs", min=1, help="Table I runs per policy (default 50)"),
@@ -36,8 +37,9 @@ def reproduce_cmd(
         for given, option in ((run, "--run"), (only is not None, "--only"), (runs_dir is not None, "--runs-dir")):
             if given:
                 raise ConfigError(f"{option} belongs to the training pipeline: give --train {option} ...")
-    elif quick or test_seeds is not None or runs is not None or races is not None:
-        raise ConfigError("--quick, --test-seeds, --runs and --races belong to the report, not to --train")
+    elif quick or any(x is not None for x in (test_seeds, runs, races, out, seed)):
+        raise ConfigError("--out, --quick, --seed, --test-seeds, --runs and --races belong to the report, "
+                          "not to --train")
     if train:
         _pipeline(run, only, runs_dir)
         return
@@ -48,7 +50,7 @@ def reproduce_cmd(
             kw["test_seeds"] = tuple(int(s) for s in test_seeds.split(",") if s.strip())
         except ValueError:
             raise ConfigError(f"--test-seeds {test_seeds!r}: expected comma-separated integers") from None
-    cfg = ReproduceConfig.make(out, quick, seed=seed, **kw)
+    cfg = ReproduceConfig.make(out or Path("report"), quick, seed=0 if seed is None else seed, **kw)
     report = reproduce(cfg, on_progress=lambda text: console.print(f"[dim]{text}[/dim]"))
     for claim in report["claims"]:
         mark = {True: "[green]holds[/green]", False: "[red]does not hold[/red]", None: "–"}[claim["holds"]]

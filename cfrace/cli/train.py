@@ -177,7 +177,7 @@ def train_cmd(
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
                           obstacle_curriculum=obstacle_curriculum, rewards=rewards)
     from cfrace.rl.inputs import check_inputs
-    check_inputs(cfg, sources=resume is None)     # one line, before the banner and the run folder
+    check_inputs(cfg, warm_start=resume is None)     # one line, before the banner and the run folder
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
                                        f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
     ippo = cfg.ippo()

@@ -31,6 +31,7 @@ _log.propagate = False   # cflib logs tracebacks for expected failures; we repor
 
 _drivers_ready = False
 _drivers_lock = threading.Lock()
+LOCK_READS = 3      #: supervisor state requests before a drone that does not answer passes
 LOCKED_BIT = 6   #: the supervisor state bit "is locked": the firmware must be restarted (cflib Supervisor.STATES)
 
 
@@ -129,16 +130,30 @@ class CflibLink:
         except (TypeError, ValueError):
             pass
 
+    def refuse_locked(self, why: str, then: str, close: bool = False) -> None:
+        """LinkError (with ``close``: the link closed first) if the supervisor reports the drone locked by
+        an emergency stop (bit LOCKED_BIT of supervisor.info; it ignores every command until rebooted). A reply of 0
+        is no reply (a drone that answers has some state bit set) or legacy firmware: read again, up to
+        LOCK_READS times."""
+        cf = self._need()
+        bits = 0
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
+            for _ in range(LOCK_READS):
+                bits = int(cf.supervisor.read_bitfield() or 0)
+                if bits:
+                    break
+        if bits >> LOCKED_BIT & 1:
+            if close:
+                self._shutdown()
+            raise LinkError(f"{self.uri}: the drone is locked by an emergency stop ({why}): {then}")
+
     def setup(self) -> None:
         """Refuse a drone the firmware has locked (an emergency stop: reboot required); rate mode for
         roll and pitch (confirmed by the drone), arming, zero-thrust unlock."""
         cf = self._need()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")   # legacy firmware: no supervisor state (reads 0)
-            bits = int(cf.supervisor.read_bitfield() or 0)
-        if bits >> LOCKED_BIT & 1:
-            raise LinkError(f"{self.uri}: the drone is locked by an emergency stop (e.g. its emergency-stop "
-                            "watchdog after the last flight with --estop-watchdog): restart it (power cycle) first")
+        self.refuse_locked("e.g. its emergency-stop watchdog after the last flight with --estop-watchdog",
+                           "restart it (power cycle) first")
         for name in RATE_MODE_PARAMS:
             group, _, pname = name.partition(".")
             self._params[name] = threading.Event()

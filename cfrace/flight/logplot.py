@@ -220,13 +220,15 @@ def _trajectory_figure(plt, data: FlightLogData, track, trajs: dict, colors: dic
 
 
 def racing_until(data: FlightLogData) -> dict:
-    """body -> flight time at which it stopped racing (its first landing or stop /event), as the
-    race's result counts its speeds; bodies that raced to the log's end are absent."""
+    """body -> flight time at which it stopped racing, as the race's result counts its speeds: the
+    start of its landing (/landing t_start) or its stop (/event "stop"), the earlier; bodies that
+    raced to the log's end are absent."""
     out: dict = {}
-    for t, m in data.messages("/event"):
-        body = m.get("body")
-        if body is not None and m.get("kind") in ("landing", "stop") and body not in out:
-            out[body] = t
+    ends = [(m.get("body"), m.get("t_start")) for _, m in data.messages("/landing")]
+    ends += [(m.get("body"), t) for t, m in data.messages("/event") if m.get("kind") == "stop"]
+    for body, t in ends:
+        if body is not None and t is not None:
+            out[body] = min(float(t), out.get(body, math.inf))
     return out
 
 

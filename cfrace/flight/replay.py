@@ -108,7 +108,7 @@ class _Logged:
     ticks: list[dict]
     frames: dict
     obs: dict
-    landing: bool          #: the flight landed its drones (/meta "landing"; older logs: it logged a /landing)
+    landing: bool          #: the flight landed its drones (/meta "landing"; older logs: a /landing or landing /event)
 
 
 def _policies(meta: dict, load) -> list:
@@ -147,7 +147,8 @@ def _read(path: str | Path, data) -> _Logged:
         for body, v in m.items():
             if body != "k" and v is not None and int(m["k"]) <= last_k:
                 logged[(int(m["k"]), body)] = np.asarray(v, dtype=np.float32)
-    landing = bool(meta.get("landing", data.count("/landing") > 0))
+    landing = bool(meta.get("landing", data.count("/landing") > 0 or any(
+        m.get("kind") == "landing" for _, m in data.messages("/event"))))
     return _Logged(*setup, ticks, frames, logged, landing)
 
 

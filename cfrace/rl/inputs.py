@@ -13,11 +13,17 @@ from cfrace.errors import ConfigError
 from cfrace.track import load_track
 
 
-def check_inputs(cfg, sources: bool = True) -> tuple:
+def check_method(method: str, where: str = "") -> None:
+    """ConfigError (one line, after ``where``) unless ``method`` is one of the four schemes."""
+    if method not in METHODS:
+        raise ConfigError(f"{where}unknown method {method!r} (choose from {', '.join(METHODS)})")
+
+
+def check_inputs(cfg, sources: bool = True, warm_start: bool = True) -> tuple:
     """(track, profile) of a TrainConfig once its method, drone count, opponent rule, start mix and
-    (``sources``: a new run) warm-start / frozen-opponent files hold up; ConfigError (one line) else."""
-    if cfg.method not in METHODS:
-        raise ConfigError(f"unknown method {cfg.method!r} (choose from {', '.join(METHODS)})")
+    (``sources``) its frozen-opponent files and (and ``warm_start``: a new run, not a resumed one) its
+    warm-start file hold up; ConfigError (one line) else."""
+    check_method(cfg.method)
     if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
         raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
                           f"({', '.join(MULTI_AGENT_METHODS)}), not {cfg.method}")
@@ -30,7 +36,7 @@ def check_inputs(cfg, sources: bool = True) -> tuple:
     if cfg.ground_start_prob is not None and not 0.0 <= cfg.ground_start_prob <= 1.0:
         raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
-    files = [("--init-from", cfg.init_from)] + [("--fixed-opponent", x.strip())
+    files = [("--init-from", cfg.init_from if warm_start else None)] + [("--fixed-opponent", x.strip())
                                                 for x in (cfg.fixed_opponent or "").split(",") if x.strip()]
     for option, source in (files if sources else []):
         if source:

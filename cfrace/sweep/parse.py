@@ -8,7 +8,7 @@ import string
 from pathlib import Path
 from typing import Any
 
-from cfrace.contract import METHODS
+from cfrace.rl.inputs import check_method
 from cfrace.errors import ConfigError
 from cfrace.sweep.spec import (EXPORT_AGENTS, EXPORT_KEYS, REFERENCES, RUN_KEYS, SWEEP_OWNED, TOP_KEYS, VERSION, Run,
                                Sweep, TrainOption, fmt_value, train_options)
@@ -187,8 +187,7 @@ def _check_task(where: str, opts: dict) -> None:
     for key in ("method", "track"):
         if key not in opts:
             raise ConfigError(f"{where}: {key} missing (give it in defaults, grid or the run)")
-    if opts["method"] not in METHODS:   # the trainer's own list and message (cfrace.rl.train.make_env)
-        raise ConfigError(f"{where}.method: unknown method {opts['method']!r} (choose from {', '.join(METHODS)})")
+    check_method(opts["method"], f"{where}.method: ")   # the trainer's own rule (cfrace.rl.inputs)
     try:
         load_track(opts["track"])       # as the trainer loads it: a known name or a track file
     except ConfigError as exc:
