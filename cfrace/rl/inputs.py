@@ -20,9 +20,9 @@ def check_method(method: str, where: str = "") -> None:
 
 
 def check_inputs(cfg, sources: bool = True, warm_start: bool = True) -> tuple:
-    """(track, profile) of a TrainConfig once its method, drone count, opponent rule, start mix and
-    (``sources``) its frozen-opponent files and (and ``warm_start``: a new run, not a resumed one) its
-    warm-start file hold up; ConfigError (one line) else."""
+    """(track, profile) of a TrainConfig once its method, drone count, opponent rule, worlds, episode
+    length and start mix hold up, and with ``sources`` its frozen-opponent files and (``warm_start``:
+    a new run, not a resumed one) its warm-start file load; ConfigError (one line) else."""
     check_method(cfg.method)
     if cfg.drones is not None and (cfg.drones < 2 or cfg.method not in MULTI_AGENT_METHODS):
         raise ConfigError(f"--drones {cfg.drones}: at least 2, and only for the multi-agent methods "
