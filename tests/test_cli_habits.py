@@ -419,3 +419,17 @@ def test_readme_and_docs_wording():
     readme = (ROOT / "README.md").read_text()
     assert "`cfrace sim replay" in readme
     assert "half a lap" not in readme + (ROOT / "docs" / "flight.md").read_text()
+
+
+def test_the_profile_rule_says_where_the_profile_came_from():
+    """--profile wins over the flight config file's profile:, which wins over the default; the result
+    line names the source (`profile: in FILE` for the file, not "--profile")."""
+    from cfrace.cli.common import choose_profile
+    from cfrace.track import load_track
+
+    room = {"profile": "cf2x_paper"}
+    assert choose_profile(None, room=room, config="room.yaml") == ("cf2x_paper", "profile: in room.yaml")
+    assert choose_profile("cf21bl", room=room, config="room.yaml") == ("cf21bl", "--profile")
+    assert choose_profile(None, room={}, config="room.yaml")[1].startswith("the default")
+    name, rule = choose_profile(None, load_track("lemniscate"), "ours", False, {"profile": "trained"}, "room.yaml")
+    assert name == "cf2x_paper" and rule == "the ego policy's training profile"

@@ -87,11 +87,15 @@ def write_json(doc, path: Path | str | None, said: Console | None = None, *, ind
         said.print(f"wrote {path}", highlight=False)
 
 
-def choose_profile(profile: str | None, track=None, ego: str | None = None, obstacles: bool = False
-                   ) -> tuple[str, str]:
+def choose_profile(profile: str | None, track=None, ego: str | None = None, obstacles: bool = False,
+                   room: dict | None = None, config=None) -> tuple[str, str]:
     """The one rule for the drone profile of `sim serve`, `fly` and `sim dry-run`: --profile NAME
-    if given; ``trained``: the ego policy's training profile; else DEFAULT_PROFILE. Returns
-    (profile name, why: the words the banner and the result show)."""
+    if given, else ``profile:`` of the flight config file ``config`` (its keys: ``room``);
+    ``trained``: the ego policy's training profile; else DEFAULT_PROFILE. Returns (profile name,
+    why: the words the banner and the result show)."""
+    if profile is None and room and "profile" in room:
+        name, rule = choose_profile(room["profile"], track, ego, obstacles)
+        return name, (rule if room["profile"] == TRAINED else f"profile: in {config}")
     if profile is None:
         return DEFAULT_PROFILE, "the default (--profile to change)"
     if profile == TRAINED:

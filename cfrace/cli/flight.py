@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import (DEFAULT_PROFILE, check_writable, choose_profile, human_console, race_exit_code, to_stdout,
+from cfrace.cli.common import (DEFAULT_PROFILE, check_writable, choose_profile, human_console, race_exit_code,
                                write_json)
 from cfrace.errors import ConfigError
 
@@ -283,10 +283,7 @@ def fly_config(config: Path | None, mocap: str | None, profile: str | None, **op
     cfg = make_config(config, mocap=mocap, profile=profile, **options)
     if mocap is None and "mocap" not in from_file:
         raise ConfigError(f"missing --mocap: real drones fly from motion capture; give one of {MOCAP_FORMS}")
-    name, rule = choose_profile(profile if profile is not None else from_file.get("profile"),
-                                _track_or_none(cfg.track), cfg.ego, cfg.obstacles)
-    if profile is None and "profile" in from_file and rule == "--profile":
-        rule = f"profile: in {config}"
+    name, rule = choose_profile(profile, _track_or_none(cfg.track), cfg.ego, cfg.obstacles, from_file, config)
     if not cfg.uris:
         raise ConfigError("missing --uris (one link URI per drone)")
     return replace(cfg, profile=name), rule

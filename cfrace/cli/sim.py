@@ -132,9 +132,7 @@ def _room(config: Path | None, profile: str | None, obstacles: bool | None, trac
     room = load_flight_file(config) if config else {}
     if obstacles is None:
         obstacles = bool(room.get("obstacles", False))
-    name, rule = choose_profile(profile if profile is not None else room.get("profile"), track, ego, obstacles)
-    if profile is None and "profile" in room:
-        rule = f"profile: in {config}"
+    name, rule = choose_profile(profile, track, ego, obstacles, room, config)
     return room, obstacles, name, rule
 
 
