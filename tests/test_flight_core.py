@@ -219,9 +219,25 @@ def test_real_clock_skips_missed_ticks_instead_of_bursting():
     assert [a.k, b.k, c.k] == [0, 3, 4] and clock.skipped == 2
 
 
+def test_real_clock_final_wait_yields_without_sleeping():
+    """Real time: after the warm-up the clock waits out the last 0.1 ms with sched_yield, never with
+    time.sleep(0) (which arms a timer per call: ticks started up to 0.1 ms late on a VM)."""
+    sleeps = []
+
+    def sleep(s):
+        sleeps.append(s)
+        time.sleep(s)
+
+    clock = RealClock(0.01, sleep=sleep)
+    clock.start()
+    ticks = [clock.wait_next(lambda: None, 0.0015) for _ in range(6)]
+    assert 0 not in sleeps and len(sleeps) >= 4            # one real sleep per tick up to the lead, nothing more
+    assert [t.k for t in ticks] == list(range(6))
+
+
 def test_real_clock_warms_up_from_lead_ahead_until_just_before_the_deadline_and_never_when_late():
     ft = FakeTime()
-    clock = RealClock(0.01, perf=ft.perf, sleep=ft.sleep)
+    clock = RealClock(0.01, perf=ft.perf, sleep=ft.sleep, yield_cpu=lambda: ft.sleep(0))
     clock.start()
     calls = []
 
@@ -236,7 +252,7 @@ def test_real_clock_warms_up_from_lead_ahead_until_just_before_the_deadline_and_
     # from the deadline minus the lead (plus the sleep's overshoot), while one more 0.3-ms call
     # still ends 0.1 ms (WARM_GUARD_S) before the deadline: at 9.1 and 9.4 ms, not at 9.7 ms
     assert calls == [(1, 0.0091), (1, 0.0094)]
-    # then no more sleeping through: only sleep(0) (which overshoots by 0.1 ms here) up to the deadline
+    # then no more sleeping through: only the yield (here a sleep(0), overshooting by 0.1 ms) up to the deadline
     assert ft.sleeps[n_sleeps] == pytest.approx(0.007) and set(ft.sleeps[n_sleeps + 1:]) == {0}
     assert t1.k == 1 and 0.0 <= t1.late_s <= 0.0001
     ft.now += 0.0095                           # work ran into the lead window: no warm-up

@@ -6,10 +6,12 @@ more deadlines, those ticks are SKIPPED (counted) and the loop runs the newest d
 with fresh mocap data. Without a warm-up, waiting is a plain sleep.
 ``wait_next(before, lead_s)`` sleeps until ``lead_s`` ahead of the deadline, then calls
 ``before()`` again and again while one more call still ends ``WARM_GUARD_S`` before the deadline
-(at most ``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``sleep(0)`` in a loop: it yields the GIL but
-keeps the CPU): the flight loop keeps its code and data warm with it
-(FlightLoop.prewarm). On this VM anything the loop does after a real sleep, even one of 0.1 ms,
-runs several times slower (docs/benchmarks.md, "Warm-up window").
+(at most ``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``os.sched_yield()``
+in a loop: it lets cflib's and the mocap's threads take the GIL but keeps the CPU): the flight loop
+keeps its code and data warm with it (FlightLoop.prewarm). On this VM anything the loop does after
+a real sleep, even one of 0.1 ms, runs several times slower (docs/benchmarks.md, "Warm-up window").
+Not ``time.sleep(0)``: that arms a timer on every call (about 0.1 ms a call on a VM), so the tick
+started up to one such call late (docs/benchmarks.md, "Period jitter").
 
 LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
 period (or by a requested stall) and the loop's time is k dt.
@@ -18,6 +20,7 @@ period (or by a requested stall) and the loop's time is k dt.
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 
@@ -35,9 +38,11 @@ class Tick:
 
 
 class RealClock:
-    def __init__(self, dt: float, *, perf=time.perf_counter, sleep=time.sleep):
+    def __init__(self, dt: float, *, perf=time.perf_counter, sleep=time.sleep, yield_cpu=None):
         self.dt = float(dt)
         self._perf, self._sleep = perf, sleep
+        #: the final wait's call: gives up the GIL, not the CPU (sleep(0) where there is no sched_yield)
+        self._yield = yield_cpu or getattr(os, "sched_yield", None) or (lambda: sleep(0))
         self.t0 = math.nan
         self._k_next = 0
         self.skipped = 0
@@ -75,7 +80,7 @@ class RealClock:
                 a = b
             now = self._perf()
             while now < deadline:    # stay on the CPU: a real sleep here undoes the warm-up
-                self._sleep(0)       # lets cflib's and the mocap's threads take the GIL meanwhile
+                self._yield()        # lets cflib's and the mocap's threads take the GIL meanwhile
                 now = self._perf()
         if now < deadline:
             self._sleep(deadline - now)
