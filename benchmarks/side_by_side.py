@@ -9,7 +9,8 @@ OLD and NEW are checkout roots or git revisions of this repository (a revision's
 and PYTHONPATH=SRC), so that both see the same machine load and neither always runs second. Prints, per figure, the median of each
 version and the ratio new/old as speed (higher is better: rates are new/old, latencies old/new).
 Figures: bench sim (C kernel, 4096 worlds x 2 drones, one thread, 200 steps, best of 5), bench train (the cpu preset,
-ours on complex, one thread), bench loop (10 s, or --loop-s, the paper-size actors and the shipped policies, and 8 drones
+ours on complex, one thread), floor (the machine's floor of `bench loop --floor-s`: the clock with no work, --loop-s long),
+bench loop (10 s, or --loop-s, the paper-size actors and the shipped policies, and 8 drones
 on the complex track, all landing at its end: also the longest tick and the skipped ticks; lockstep_swarm8: the
 tick's compute alone in a lockstep dry-run of 8 shipped policies (and its tick count: the same race); the jitter p99 of a 10-s
 loop is its 10th-largest period error and moves with a handful of the VM's stalls: longer loops measure it better).
@@ -33,6 +34,8 @@ BENCHES: dict[str, list[str]] = {
     "train": ["bench", "train", "--threads", "1", "--iterations", "2"],
     "loop_paper": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "paper"],
     "loop_shipped": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--policies", "shipped"],
+    # the machine's floor: the loop's clock with no work (bare_loop: RealClock.wait_next, empty warm-up)
+    "floor": ["bench", "loop", "--duration-s", "1", "--floor-s", "{loop_s}", "--policies", "shipped"],
     # 8 drones on the complex track: all of them start landing in the race's last tick
     "loop_swarm8": ["bench", "loop", "--duration-s", "{loop_s}", "--floor-s", "0", "--drones", "8", "--track", "complex"],
     # the tick's CPU work alone: 8 shipped policies from a hover start in lockstep (no sleep, no warm-up,
@@ -48,6 +51,11 @@ def figures(name: str, doc: dict) -> dict[str, tuple[float, bool]]:
         return {"sim drone-steps/s": (doc["results"][0]["drone_steps_per_s"], True)}
     if name == "train":
         return {"train env-steps/s": (doc["env_steps_per_s"], True)}
+    if name == "floor":
+        fl = doc["floor"]
+        return {"floor jitter p50 ms": (fl["period_jitter_ms"]["p50"], False),
+                "floor jitter p99 ms": (fl["period_jitter_ms"]["p99"], False),
+                "floor tick late p99 ms": (fl["late_ms"]["p99"], False)}
     loop = doc["loop"]
     if name.startswith("lockstep"):
         return {f"{name} compute p50 ms": (loop["compute_ms"]["p50"], False),

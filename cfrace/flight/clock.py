@@ -9,9 +9,10 @@ with fresh mocap data. Without a warm-up, waiting is a plain sleep.
 (at most ``WARM_MAX_CALLS`` times), then waits out the rest without sleeping (``os.sched_yield()``
 in a loop: it lets cflib's and the mocap's threads take the GIL but keeps the CPU): the flight loop
 keeps its code and data warm with it (FlightLoop.prewarm). On this VM anything the loop does after
-a real sleep, even one of 0.1 ms, runs several times slower (docs/benchmarks.md, "Warm-up window").
-Not ``time.sleep(0)``: that arms a timer on every call (about 0.1 ms a call on a VM), so the tick
-started up to one such call late (docs/benchmarks.md, "Period jitter").
+a real sleep, even one of 0.1 ms, runs several times slower (docs/benchmarks.md, "What each warm-up pays").
+Not ``time.sleep(0)``: that arms a timer on every call (one timer interrupt each; on this VM a call
+can take 0.1 ms), ``sched_yield`` arms none (docs/benchmarks.md, "Against the commit before the
+consolidation").
 
 LockstepClock: no waiting at all; every wait_next() advances the simulated drones by exactly one
 period (or by a requested stall) and the loop's time is k dt.
