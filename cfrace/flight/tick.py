@@ -142,7 +142,7 @@ class TickCore:
         d.obs, d.action, d.thrust_n, d.rates_dps = obs, act, thrust, rates
         # FLYING_MIN_COUNTS, not 0: a zero-thrust setpoint makes the firmware reset its rate
         # controller and idle the motors; the policy's zero thrust means "rotors as low as the rate
-        # control allows", as in training (docs/flight.md, "What the dry-run shows ...")
+        # control allows", as in training (docs/flight.md, "Trained policies through the flight stack")
         d.counts = max(FLYING_MIN_COUNTS, counts) if math.isfinite(thrust) else 0
 
     def positions(self, ests: list) -> list[tuple[float, float, float]]:
