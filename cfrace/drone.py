@@ -110,7 +110,7 @@ def _pid(r: Reader, key: str) -> PID:
 def load_profile(name_or_path: str | Path = DEFAULT_PROFILE) -> DroneProfile:
     """Load a drone profile by name (calibration/NAME.yaml) or path; strict."""
     r = open_named(name_or_path, CALIBRATION_DIR, "drone profile")
-    name = r.string("name")
+    name = r.file_name(CALIBRATION_DIR)
     description = r.string("description", "")
     mass = r.number("mass", positive=True)
     inertia = r.vector("inertia", 3, positive=True)

@@ -235,7 +235,7 @@ def _validate(track: Track, r: Reader) -> None:
 def load_track(name_or_path: str | Path) -> Track:
     """Load a track by name (tracks/NAME.yaml) or path; strict, ConfigError on any problem."""
     r = open_named(name_or_path, TRACKS_DIR, "track")
-    name = r.string("name")
+    name = r.file_name(TRACKS_DIR)
     g = r.mapping("gate", {})
     gate = GateGeometry(g.number("opening", 1.0, positive=True), g.number("border", 0.2, positive=True),
                         g.number("thickness", 0.04, positive=True))

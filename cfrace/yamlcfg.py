@@ -59,6 +59,15 @@ class Reader:
     def has(self, key: str) -> bool:
         return key in self.data
 
+    def file_name(self, folder: Path) -> str:
+        """The ``name`` key; in ``folder`` (where files are found by name) it must be the file's name."""
+        name = self.string("name")
+        path = Path(self.path)
+        if path.parent.resolve() == Path(folder).resolve() and name != path.stem:
+            raise self.fail("name", f"'{name}' is not the file's name '{path.stem}': files in {folder.name}/ "
+                                    "are found by their file name, so the two must be equal")
+        return name
+
     def raw(self, key: str, default: Any = ...) -> Any:
         if key not in self.data:
             if default is ...:

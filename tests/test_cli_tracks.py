@@ -111,3 +111,18 @@ def test_list_reports_a_broken_track_file_and_still_lists_the_others(tmp_path):
     assert result.returncode == 0, result.stderr
     assert "broken" in result.stdout and "invalid" in result.stdout
     assert "lemniscate" in result.stdout and "complex" in result.stdout
+
+
+def test_a_track_whose_name_is_not_its_file_name_is_refused_with_one_line(tmp_path):
+    """Tracks are found by file name; a file whose `name:` differs would list under one name and be
+    found under another (and policies are matched by the name)."""
+    home = tmp_path / "home"
+    shutil.copytree(TRACKS_DIR, home / "tracks")
+    text = (TRACKS_DIR / "lemniscate.yaml").read_text().replace("name: lemniscate", "name: ovalx")
+    assert "name: ovalx" in text
+    (home / "tracks" / "oval2.yaml").write_text(text)
+    result = run_cli("tracks", "show", "oval2", home=home)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert result.stderr.count("\n") == 1 and "'ovalx'" in result.stderr and "'oval2'" in result.stderr
+    listed = run_cli("tracks", "list", home=home)
+    assert listed.returncode == 0 and "oval2" in listed.stdout and "lemniscate" in listed.stdout

@@ -171,6 +171,38 @@ def test_mismatched_policy_is_refused_before_anything_flies(pols, tmp_path):
         _fleet_and_race(pols, tmp_path, obstacles=True)
 
 
+def test_a_link_type_without_the_whole_link_protocol_is_refused_before_anything_is_sent(pols, tmp_path):
+    """A new link type (docs/architecture.md, "How to add ...") that lacks part of the Link protocol
+    is refused with one line naming what it lacks, before any link connects, not mid-race."""
+    from dataclasses import replace
+
+    from cfrace.errors import LinkError
+    from cfrace.flight.dryrun import sim_io
+    from cfrace.flight.runner import run_race
+    from cfrace.flight.setup import resolve_race
+    from cfrace.simcf.firmware import SimFleet
+
+    class HalfLink:                       # connect, setup, send, stop, close, quality: not enough
+        def __init__(self, uri):
+            self.uri = uri
+
+        def connect(self, timeout_s):
+            raise AssertionError("connected")
+
+        setup = send = stop = close = connect
+        quality = None
+
+    c = cfg(pols, tmp_path)
+    fleet = SimFleet("lemniscate", PROFILE, 2, obstacles=False)
+    io = sim_io(c, fleet, lockstep=True, uris=["sim://0", "sim://1"])
+    made = io.open_link
+    io = replace(io, open_link=lambda i, uri: made(i, uri) if i == 0 else HalfLink(uri))
+    with pytest.raises(LinkError, match=r"sim://1: HalfLink is not a cfrace Link: it lacks high_level, notify_stop, "
+                                        r"read_status, send_pose \(the Link protocol"):
+        run_race(resolve_race(c), io)
+    assert fleet.status(0)["setpoints_received"] == 0 and fleet.get_param(0, "flightmode.stabModeRoll") == 1
+
+
 def test_corrupt_policy_is_refused(pols, tmp_path):
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"\x08\x07garbage" * 10)

@@ -78,6 +78,47 @@ def test_no_import_cycles_in_cfrace():
     assert find_cycle(import_graph()) is None
 
 
+#: docs/architecture.md's layers, bottom first: a module imports only its own layer and those below
+LAYERS = [
+    ("data", ["cfrace", "cfrace.errors", "cfrace.paths", "cfrace.yamlcfg", "cfrace.arrays", "cfrace.drone",
+              "cfrace.track"]),
+    ("model", ["cfrace.env.observations", "cfrace.env.actions", "cfrace.sim"]),
+    ("policy contract", ["cfrace.contract"]),
+    ("environment and policy files", ["cfrace.env", "cfrace.env.race_env", "cfrace.env.rewards", "cfrace.policy",
+                                      "cfrace.policygraph"]),
+    ("applications", ["cfrace.rl", "cfrace.evaluate", "cfrace.sweep", "cfrace.env.adapters", "cfrace.flight",
+                      "cfrace.simcf", "cfrace.calibrate", "cfrace.export", "cfrace.trackplot"]),
+    ("CLI", ["cfrace.cli", "cfrace.__main__"]),
+]
+#: imports up the layers, each with its reason
+UPWARD_IMPORTS = {
+    # the sweep writes `cfrace train` command lines from that command's own signature (one definition
+    # of the training options), imported inside sweep.spec.train_options
+    ("cfrace.sweep.spec", "cfrace.cli.train"),
+}
+
+
+def layer_of(module: str) -> int:
+    """The index in LAYERS of the longest prefix naming ``module`` (KeyError if none does)."""
+    best = None
+    for k, (_, prefixes) in enumerate(LAYERS):
+        for p in prefixes:
+            if (module == p or module.startswith(p + ".")) and (best is None or len(p) > best[1]):
+                best = (k, len(p))
+    if best is None:
+        raise KeyError(f"{module} is in no layer of LAYERS (docs/architecture.md)")
+    return best[0]
+
+
+def test_every_module_imports_only_its_layer_and_those_below():
+    graph = import_graph()
+    up = sorted((a, b) for a, deps in graph.items() for b in deps
+                if layer_of(b) > layer_of(a) and (a, b) not in UPWARD_IMPORTS)
+    assert not up, "imports up the layers: " + ", ".join(f"{a} ({LAYERS[layer_of(a)][0]}) -> {b} "
+                                                         f"({LAYERS[layer_of(b)][0]})" for a, b in up)
+    assert all(b in graph[a] for a, b in UPWARD_IMPORTS), "a listed exception no longer exists: drop it"
+
+
 def _modules_loaded_by(code: str) -> set[str]:
     out = subprocess.run([sys.executable, "-c", code + "\nimport sys; print('\\n'.join(sys.modules))"],
                          capture_output=True, text=True, check=True).stdout

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Callable
@@ -25,7 +26,18 @@ def open_link(uri: str, *, clock=time.monotonic) -> Link:
         raise LinkError(f"{uri}: a sim:// link needs the in-process simulator (cfrace sim dry-run --lockstep)")
     if uri.startswith("null://"):
         return RecordingLink(uri, clock=clock)
-    raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N)")
+    raise LinkError(f"{uri}: unknown link URI (expected radio://..., udp://HOST:PORT, sim://N, null://N)")
+
+
+def check_link(link, uri: str) -> Link:
+    """``link`` if it has every member of the Link protocol (cfrace/flight/link.py); else LinkError
+    naming what it lacks, before anything is sent (a missing one would fail in the race)."""
+    members = set(Link.__annotations__) | {m for m in vars(Link) if not m.startswith("_")}
+    missing = sorted(m for m in members if not hasattr(link, m))
+    if missing:
+        raise LinkError(f"{uri}: {type(link).__name__} is not a cfrace Link: it lacks {', '.join(missing)} "
+                        "(the Link protocol of cfrace/flight/link.py)")
+    return link
 
 
 def stop_log_path(log: Path | None) -> Path | None:
@@ -67,6 +79,7 @@ def wait_heard(links, link_clock, limit_s: float, timeout_s: float = 2.0) -> Non
         if not silent:
             return
         if time.monotonic() > end:
-            raise LinkError(f"{silent[0].uri}: the drone has not answered for "
-                            f"{silent[0].quality.rx_age(now):.1f} s before the start")
+            age = silent[0].quality.rx_age(now)
+            raise LinkError(f"{silent[0].uri}: the drone has " + (f"not answered for {age:.1f} s" if math.isfinite(age)
+                                                                  else "never answered") + " before the start")
         time.sleep(0.01)

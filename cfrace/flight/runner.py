@@ -34,7 +34,7 @@ from cfrace.errors import LogError
 from cfrace.flight import realtime
 from cfrace.flight import safety as sf
 from cfrace.flight.consistency import check_still
-from cfrace.flight.links import wait_heard
+from cfrace.flight.links import check_link, wait_heard
 from cfrace.flight.swarm import check_take_off
 from cfrace.flight.estimator import PoseEstimator
 from cfrace.flight.foxglove_scene import log_write_error, open_sink
@@ -229,7 +229,7 @@ class RaceRun:
         self.mocap.open(cfg.mocap_timeout_s)
         self._check_separation()
         for i, uri in enumerate(io.uris):
-            self.links.append(io.open_link(i, uri))
+            self.links.append(check_link(io.open_link(i, uri), uri))
         for link in self.links:
             link.connect(cfg.connect_timeout_s)
         if io.still_s > 0:     # before anything is armed: the poses must not move on their own
