@@ -360,5 +360,7 @@ def test_radio_budget_from_bitcraze_figures():
         check_radios(["radio://0/80/2M/E7E7E7E7E1", "radio://0/90/2M/E7E7E7E7E2"])
     with pytest.raises(ConfigError, match="one address"):
         check_radios(["radio://0/80/2M/E7E7E7E7E1", "radio://0/80/2M/e7e7e7e7e1?safelink=0"])
+    with pytest.raises(ConfigError, match="the same drone .* on two radios"):     # one drone, two radios
+        check_radios(["radio://0/80/2M/E7E7E7E7E1", "radio://1/80/2M/E7E7E7E7E1"])
     with pytest.raises(ConfigError, match="not a Crazyradio URI"):
         parse_radio_uri("radio://0/200/2M")

@@ -423,3 +423,17 @@ def test_paths_checked_together_are_judged_as_each_alone():
             assert batch.tolist() == alone
             seen |= set(alone)
     assert seen == {True, False}
+
+
+def test_a_drone_that_reaches_the_floor_while_braking_is_stopped_there_and_not_called_landed():
+    """A drone diving low when its landing begins can hit the floor before the firmware's go-to: it
+    is stopped at once (no go-to to a drone on the floor) and its landing says floor, not down."""
+    from cfrace.flight.landing import BrakeController, LandingPilot
+
+    pilot = LandingPilot(BrakeController(0.04, 0.9), np.array([0.0, 3.0]), 0.015)
+    quat = np.array([1.0, 0.0, 0.0, 0.0])
+    step = pilot.step(0.0, [0.0, 2.0, 0.30], [2.0, 0.0, -1.5], quat)
+    assert step.rates_dps is not None and not step.done                # braking
+    step = pilot.step(0.1, [0.2, 2.0, 0.03], [2.0, 0.0, -1.5], quat)   # 3 cm: on the floor
+    assert step.done and pilot.hit_floor and not step.high_level and not step.notify_stop
+    assert pilot.touchdown.vz == pytest.approx(-1.5)

@@ -248,7 +248,8 @@ def register(app: typer.Typer) -> None:
                                                           "battery, link, body and yaw of each drone; exit 2 on a failure."),
         hover: bool = typer.Option(False, "--hover", help="Hover test only: take off 0.5 m, hold 5 s, land "
                                                           "(the drones of --hover-drones, one after the other)."),
-        hover_drones: str = typer.Option("0,1", help="--hover: which drones (0 ego, 1 opp)."),
+        hover_drones: Optional[str] = typer.Option(None, help="--hover: which drones, by index (0 ego, 1 opp; "
+                                                               "default: all)."),
     ):
         """Race 2 (--ego/--opp) or N (--policies) Crazyflies from motion capture with ONNX policies at 100 Hz."""
         from cfrace.flight.config import split_list
@@ -265,13 +266,34 @@ def register(app: typer.Typer) -> None:
                                velocity_alpha=velocity_alpha,
                                latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
                                start=start, landing=landing, pose_stream=pose_stream, estop_watchdog=estop_watchdog)
+        check_writable(cfg.log, "--log")
         if check or hover:
-            return first_flight_cmd(cfg, check, [int(v) for v in split_list(hover_drones) or ()] if hover else [],
-                                    json_out)
+            return first_flight_cmd(cfg, check, hover_list(hover_drones, len(cfg.uris)) if hover else [], json_out)
+        if hover_drones is not None:
+            raise ConfigError("--hover-drones chooses the drones of a hover test: give --hover too (without it "
+                              "this would fly a race)")
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
 
         race_and_report(lambda say: fly(resolve_race(cfg), console=console, announce=say), rule, json_out)
+
+
+def hover_list(text: str | None, drones: int) -> list[int]:
+    """--hover-drones: distinct drone indices 0..drones-1 (None: every drone); ConfigError (one
+    line) otherwise, before anything connects."""
+    from cfrace.flight.config import split_list
+
+    if text is None:
+        return list(range(drones))
+    try:
+        picked = [int(v) for v in split_list(text) or ()]
+    except ValueError:
+        raise ConfigError(f"--hover-drones {text!r}: expected drone indices such as 0,1") from None
+    bad = [i for i in picked if not 0 <= i < drones]
+    if not picked or bad or len(set(picked)) < len(picked):
+        raise ConfigError(f"--hover-drones {text!r}: expected distinct indices from 0 to {drones - 1} "
+                          f"({drones} drones)")
+    return picked
 
 
 def fly_config(config: Path | None, mocap: str | None, profile: str | None, **options):

@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import check_folder, human_console, write_json
+from cfrace.cli.common import check_folder, check_writable, human_console, write_json
 
 log_app = typer.Typer(help="Flight logs (MCAP): summary and plots. A truncated log (a killed flight) is "
                            "read up to the cut and says so; exit code 0.", no_args_is_help=True)
@@ -38,6 +38,7 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
     from cfrace.flight.flightlog import read_log
     from cfrace.flight.logplot import log_stats
 
+    check_writable(json_out, "--json")
     data = read_log(file)
     s = log_stats(data)
     console = human_console(json_out)

@@ -106,6 +106,10 @@ def _run(args: list[str]) -> int:
     except cx.ClickException as exc:
         print(f"error: {exc.format_message()}", file=sys.stderr)
         return exc.exit_code
+    except MemoryError as exc:    # e.g. --runs 5000000: numpy cannot allocate the worlds (a flight has stopped its drones)
+        print(f"error: not enough memory for this request ({str(exc).splitlines()[0] if str(exc) else 'MemoryError'}): "
+              "ask for fewer runs, races or worlds", file=sys.stderr)
+        return 2
     return code if isinstance(code, int) else 0
 
 

@@ -9,6 +9,8 @@ from typing import Optional
 import typer
 from rich.console import Console
 
+from cfrace.cli.common import check_folder
+
 console = Console()
 
 
@@ -50,6 +52,9 @@ def reproduce_cmd(
             kw["test_seeds"] = tuple(int(s) for s in test_seeds.split(",") if s.strip())
         except ValueError:
             raise ConfigError(f"--test-seeds {test_seeds!r}: expected comma-separated integers") from None
+        if not kw["test_seeds"]:
+            raise ConfigError(f"--test-seeds {test_seeds!r}: no seed given (the claims need fresh seeds)")
+    check_folder(out or Path("report"), "--out")
     cfg = ReproduceConfig.make(out or Path("report"), quick, seed=0 if seed is None else seed, **kw)
     report = reproduce(cfg, on_progress=lambda text: console.print(f"[dim]{text}[/dim]"))
     for claim in report["claims"]:

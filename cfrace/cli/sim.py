@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.console import Console
 
-from cfrace.cli.common import DEFAULT_PROFILE, choose_profile, human_console, write_json
+from cfrace.cli.common import DEFAULT_PROFILE, check_writable, choose_profile, human_console, write_json
 from cfrace.cli.flight import FOXGLOVE_HELP
 
 sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
@@ -105,13 +105,18 @@ def dry_run_cmd(
     """Race 2 (--ego/--opp) or N (--policies, --drones) simulated Crazyflies through the whole flight stack
     (real cflib over UDP)."""
     from cfrace.cli.flight import race_and_report, race_policies
-    from cfrace.flight.config import FlightConfig, split_list
+    from cfrace.flight.config import FlightConfig, check_policy_sources, load_flight_file, split_list
     from cfrace.flight.dryrun import dry_run
     from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
+    room = load_flight_file(config) if config else {}
+    check_policy_sources(room, config, ego, opp, split_list(policies))
+    if ego is None and opp is None and policies is None:     # the file's drones, as `fly` flies them
+        policies = ",".join(room["policies"]) if room.get("policies") else None
+        ego, opp = (None, None) if policies else (room.get("ego"), room.get("opp"))
     specs, the_track = race_policies(ego, opp, policies, drones), load_track(track)
-    room, obstacles, profile, rule = _room(config, profile, obstacles, the_track, specs[0])
+    obstacles, profile, rule = _room(room, config, profile, obstacles, the_track, specs[0])
     cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (), laps=laps,
                        profile=profile, obstacles=obstacles, **({"safety": room["safety"]} if "safety" in room else {}),
                        bodies=split_list(bodies) or ("cf1", "cf2"), log=log, timeout_s=timeout_s,
@@ -119,21 +124,19 @@ def dry_run_cmd(
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
                        start=start, landing=landing, pose_stream=pose_stream)
+    check_writable(log, "--log")
     race_and_report(lambda say: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                                         mocap_latency_s=mocap_latency_ms / 1e3, console=console,
                                         setup=resolve_race(cfg, the_track), announce=say), rule, json_out)
 
 
-def _room(config: Path | None, profile: str | None, obstacles: bool | None, track, ego: str):
-    """What the dry-run takes from `fly`'s config file: (the file's keys, obstacles, profile, the
-    words of the profile rule); the options win over the file."""
-    from cfrace.flight.config import load_flight_file
-
-    room = load_flight_file(config) if config else {}
+def _room(room: dict, config: Path | None, profile: str | None, obstacles: bool | None, track, ego: str):
+    """What the dry-run takes from `fly`'s config file ``room`` (its keys) besides the policies:
+    (obstacles, profile, the words of the profile rule); the options win over the file."""
     if obstacles is None:
         obstacles = bool(room.get("obstacles", False))
     name, rule = choose_profile(profile, track, ego, obstacles, room, config)
-    return room, obstacles, name, rule
+    return obstacles, name, rule
 
 
 @sim_app.command("faults")

@@ -46,6 +46,8 @@ SAFETY_MAX = {"geofence_margin_m": 10.0, "floor_z_m": 2.0, "floor_grace_s": 3600
               "speed_max_mps": 50.0, "mocap_stale_s": 1.0, "link_timeout_s": 5.0, "overrun_stop_s": 1.0,
               "fence_soft_m": 10.0, "mocap_glitches": 1000.0, "opponent_clearance_m": 10.0, "low_battery_v": 5.0,
               "low_battery_s": 60.0, "min_separation_m": 5.0, "start_slot_m": 10.0}
+#: limits that must be above 0: at 0 they would stop every drone at the start
+SAFETY_ABOVE_ZERO = frozenset({"tilt_max_deg", "speed_max_mps", "mocap_stale_s", "link_timeout_s", "overrun_stop_s"})
 TIMEOUT_MAX_S = 3600.0   #: s, the longest race and the longest connect / mocap wait
 
 
@@ -85,7 +87,7 @@ class SafetyConfig:
 
     def __post_init__(self):
         for f in fields(self):
-            _limit(f"safety.{f.name}", getattr(self, f.name), SAFETY_MAX[f.name])
+            _limit(f"safety.{f.name}", getattr(self, f.name), SAFETY_MAX[f.name], lo_open=f.name in SAFETY_ABOVE_ZERO)
 
 
 @dataclass(frozen=True)
@@ -243,16 +245,29 @@ def load_flight_file(path: str | Path) -> dict:
             out[key] = v
     if r.has("safety"):
         s = r.mapping("safety")
-        kw = {f.name: s.number(f.name, min=0.0, max=SAFETY_MAX[f.name]) for f in fields(SafetyConfig) if s.has(f.name)}
+        kw = {f.name: s.number(f.name, min=0.0, max=SAFETY_MAX[f.name], positive=f.name in SAFETY_ABOVE_ZERO)
+              for f in fields(SafetyConfig) if s.has(f.name)}
         s.done()
         out["safety"] = SafetyConfig(**kw)
     r.done()
     return out
 
 
+def check_policy_sources(from_file: dict, file, ego, opp, policies) -> None:
+    """The file's ``policies:`` (N drones) and --ego/--opp (two), or its ``ego:``/``opp:`` and
+    --policies, do not mix: one of them would be dropped without a word."""
+    if (ego or opp) and from_file.get("policies"):
+        raise ConfigError(f"{file}: its 'policies:' race {len(from_file['policies'])} drones and --ego/--opp "
+                          "race two: give one of them")
+    if policies and (from_file.get("ego") or from_file.get("opp")):
+        raise ConfigError(f"{file}: its 'ego:'/'opp:' race two drones and --policies races "
+                          f"{len(policies)}: give one of them")
+
+
 def make_config(file: str | Path | None = None, **options) -> FlightConfig:
     """FlightConfig from an optional YAML file, overridden by the options that are not None."""
     kw = load_flight_file(file) if file else {}
+    check_policy_sources(kw, file, options.get("ego"), options.get("opp"), options.get("policies"))
     safety_over = options.pop("safety_overrides", None) or {}
     kw.update({k: v for k, v in options.items() if v is not None})
     if safety_over:

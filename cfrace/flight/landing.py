@@ -192,6 +192,7 @@ class LandingPilot:
     may_go: object = None
     held_s: float = 0.0               #: s it held before its go-to
     pos: np.ndarray | None = None     #: (3,) m, the newest estimate it was fed
+    hit_floor: bool = False           #: it reached the floor while braking or holding: not a landing
 
     def step(self, t: float, pos, vel, quat, near=()) -> LandingStep:
         """The drone's estimate at loop time t (near: (pos, vel) of the other flying drones close to it,
@@ -200,7 +201,9 @@ class LandingPilot:
             self.t_start = t
             self.touchdown = Touchdown(self.ground_z)
         pos = self.pos = np.asarray(pos, np.float64)
-        self.touchdown.update(t - self.t_start, pos, vel)
+        if self.touchdown.update(t - self.t_start, pos, vel) and self.phase in (BRAKE, HOLD):
+            self.phase, self.hit_floor = DOWN, True      # on the floor before the firmware took over: stop
+            return LandingStep(done=True)
         if self.phase == BRAKE:
             speed = float(np.linalg.norm(vel))
             if self.spot is None or (speed >= self.cfg.brake_done_mps and t - self.t_start < self.cfg.brake_max_s):

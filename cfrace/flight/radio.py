@@ -76,4 +76,11 @@ def check_radios(uris: list[str] | tuple[str, ...], rate_hz: float = 100.0) -> d
             raise ConfigError(f"Crazyradio {dev}: its drones must share one channel and data rate ({names})")
         if len({r.address for r in group}) < len(group):
             raise ConfigError(f"Crazyradio {dev}: two drones on one address ({names}); give each its own")
+    seen: dict[tuple, str] = {}
+    for r in (r for group in radios.values() for r in group):    # one drone reached by two radios
+        key = (r.channel, r.datarate, r.address)
+        if key in seen:
+            raise ConfigError(f"{seen[key]} and {r.uri}: the same drone (channel, data rate and address) on two "
+                              "radios; give each drone its own address")
+        seen[key] = r.uri
     return radios

@@ -247,7 +247,7 @@ class TickCore:
                 if d.landing_result is not None and "down" in d.landing_result:
                     d.frozen_pos = ests[i].pos.copy()
                     d.stop_k = k
-                    kind = "landed" if d.landing_result["down"] else "landing_timeout"
+                    kind = "landed" if d.landing_result["down"] else d.landing_result.get("cut", "landing_timeout")
                     if self.mark_stopped(i, t, kind):
                         stops.append((i, kind))
                 continue
