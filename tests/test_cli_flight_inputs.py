@@ -88,3 +88,19 @@ def test_report_and_log_outputs_under_a_file_and_an_empty_seed_list_are_refused(
                      "no seed")
     assert not (tmp_path / "rp").exists()
     one_line_refusal(run("log", "info", "any.mcap", "--json", "room.yaml/x.json", cwd=tmp_path), "--json")
+
+
+def test_replay_of_a_log_cut_before_its_first_tick_and_a_bad_json_path(tmp_path):
+    r = run("sim", "dry-run", "--track", "lemniscate", "--ego", "ours", "--opp", "ds", "--lockstep", "--quiet",
+            "--laps", "1", "--log", "f.mcap", cwd=tmp_path)
+    assert r.returncode in (0, 3), r.stderr
+    (tmp_path / "cut.mcap").write_bytes((tmp_path / "f.mcap").read_bytes()[:6000])
+    r = run("sim", "replay", "cut.mcap", cwd=tmp_path)
+    assert r.returncode == 1 and "nothing to compare" in r.stdout and "Traceback" not in r.stderr, r.stdout + r.stderr
+    (tmp_path / "room.yaml").write_text("laps: 1\n")
+    one_line_refusal(run("sim", "replay", "f.mcap", "--json", "room.yaml/x.json", cwd=tmp_path), "--json")
+
+
+def test_two_body_names_for_three_drones_are_refused_not_filled_in(tmp_path):
+    one_line_refusal(run("sim", "dry-run", "--track", "lemniscate", "--policies", "ours,ds,ours", "--bodies", "cf1,cf2",
+                         "--lockstep", "--quiet", cwd=tmp_path), "bodies: need 3")

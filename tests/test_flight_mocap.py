@@ -108,6 +108,11 @@ def test_sim_source_exact_without_noise_and_unknown_body():
     with pytest.raises(MocapError) as err:
         src.open(timeout_s=0.2)
     assert str(err.value) == "unknown mocap body 'cf3' (seen: cf1, cf2) from sim"
+    # no poses at all (an unreachable system, or one tracking nothing) is not called a naming slip
+    src = open_mocap("sim", bodies=["cf1", "cf2"], sim=FakeSim(names=()))
+    with pytest.raises(MocapError, match=r"^sim: no poses at all \(expected bodies cf1, cf2\): is the motion "
+                                         r"capture system running, reachable"):
+        src.open(timeout_s=0.2)
 
 
 def test_sim_source_noise_latency_dropout():

@@ -119,7 +119,7 @@ def dry_run_cmd(
     obstacles, profile, rule = _room(room, config, profile, obstacles, the_track, specs[0])
     cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (), laps=laps,
                        profile=profile, obstacles=obstacles, **({"safety": room["safety"]} if "safety" in room else {}),
-                       bodies=split_list(bodies) or ("cf1", "cf2"), log=log, timeout_s=timeout_s,
+                       bodies=split_list(bodies) or (), log=log, timeout_s=timeout_s,
                        quiet=quiet or lockstep, foxglove_port=foxglove,
                        rt_priority=rt_priority, prewarm_s=prewarm_ms / 1e3, velocity_alpha=velocity_alpha,
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
@@ -190,6 +190,7 @@ def replay_cmd(
     Exit code 0: identical; 1: an observation differs, or the log holds none; 2: not a flight log."""
     from cfrace.flight.replay import replay_log
 
+    check_writable(json_out, "--json")
     r = replay_log(log, via_replay_source=via_replay_source)
     verdict = ("[green]identical[/green]" if r["identical"] else
                "[red]nothing to compare[/red] (the log ends before the first policy step)" if not r["observations"]

@@ -101,7 +101,7 @@ class FlightConfig:
     policies: tuple[str, ...] = ()
     uris: tuple[str, ...] = ()                   #: link URI per drone (radio://, udp://, sim://N)
     mocap: str = "sim"                           #: mocap source spec (vicon://HOST, replay://F.mcap, sim)
-    bodies: tuple[str, ...] = ("cf1", "cf2")     #: mocap body name per drone (N drones: cf1 .. cfN by default)
+    bodies: tuple[str, ...] = ()                 #: mocap body name per drone (() : cf1 .. cfN)
     laps: int = 3
     profile: str = "cf21bl"                      #: drone profile of the flown drones
     obstacles: bool = False
@@ -149,7 +149,7 @@ class FlightConfig:
         n = len(self.specs)
         if not 2 <= n <= MAX_DRONES:
             raise ConfigError(f"policies: a race needs 2 to {MAX_DRONES} drones, got {n}")
-        if n != 2 and tuple(self.bodies) == ("cf1", "cf2"):
+        if not self.bodies:
             object.__setattr__(self, "bodies", tuple(f"cf{i + 1}" for i in range(n)))
         if len(self.bodies) != n:
             raise ConfigError(f"bodies: need {n} mocap body names (one per drone), got {list(self.bodies)}")

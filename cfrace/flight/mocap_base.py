@@ -86,7 +86,10 @@ class SourceBase:
         return [b for b in self.bodies if b not in self._seen]
 
     def _body_error(self) -> MocapError:
-        seen = ", ".join(sorted(self._seen)) or "none"
+        if not self._seen:    # nothing at all: the system is not reachable or tracks nothing, not a naming slip
+            return MocapError(f"{self.name}: no poses at all (expected bodies {', '.join(self.bodies)}): is the "
+                              "motion capture system running, reachable at that address and tracking them?")
+        seen = ", ".join(sorted(self._seen))
         missing = self._missing()
         what = f"body '{missing[0]}'" if len(missing) == 1 else \
             "bodies " + ", ".join(f"'{b}'" for b in missing)

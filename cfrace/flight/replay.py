@@ -139,10 +139,10 @@ def _read(path: str | Path, data) -> _Logged:
         frames = {int(m["k"]): frame_from_msg(m) for _, m in data.messages("/mocap/pose")}
     except (KeyError, TypeError, ValueError) as exc:
         raise LogError(f"{path}: cannot replay this log ({type(exc).__name__}: {exc})") from None
-    if not ticks or any(m.get("now") is None for m in ticks):
+    if any(m.get("now") is None for m in ticks):
         raise LogError(f"{path}: no per-tick /timing with 'now' (not a cfrace fly/dry-run log)")
     logged = {}
-    last_k = int(ticks[-1]["k"])      # a log cut inside a tick: its /obs without its /timing
+    last_k = int(ticks[-1]["k"]) if ticks else -1     # a log cut inside a tick: its /obs without its /timing
     for _, m in data.messages("/obs"):
         for body, v in m.items():
             if body != "k" and v is not None and int(m["k"]) <= last_k:
@@ -201,6 +201,9 @@ def replay_log(path: str | Path, *, via_replay_source: bool = False) -> dict:
     frame per read) instead of by tick index; needs a log with exactly one frame per tick (a
     lockstep dry-run without mocap faults)."""
     lg = _read(path, read_log(path))
+    if not lg.ticks:      # a cfrace log cut before its first tick: nothing to compare (exit code 1)
+        return {"log": str(path), "ticks": 0, "frames": len(lg.frames), "observations": 0, "mismatched": 0,
+                "not_replayed": 0, "max_abs_diff": 0.0, "identical": False}
     clock = _ReplayClock(lg.ticks, 1.0 / lg.rate_hz)
     source = _LogFrames(lg.frames, clock)
     if via_replay_source:
