@@ -219,6 +219,11 @@ def _validate(track: Track, r: Reader) -> None:
     for i, (x, y, z, yaw) in enumerate(track.gates):
         if not (a.x[0] <= x <= a.x[1] and a.y[0] <= y <= a.y[1]):
             raise r.fail(f"gates[{i}]", f"gate centre ({x}, {y}) is outside the arena x {list(a.x)}, y {list(a.y)}")
+        side = track.gate.opening / 2.0 * np.array([-math.sin(yaw), math.cos(yaw)])   # the opening, across the path
+        for end in (np.array([x, y]) + side, np.array([x, y]) - side):
+            if not (a.x[0] <= end[0] <= a.x[1] and a.y[0] <= end[1] <= a.y[1]):
+                raise r.fail(f"gates[{i}]", f"the gate's opening reaches ({end[0]:.2f}, {end[1]:.2f}), outside the "
+                                            f"arena x {list(a.x)}, y {list(a.y)}")
         if z - half_outer < 0.0 or z + half_outer > a.z_max:
             raise r.fail(f"gates[{i}]", f"gate frame z [{z - half_outer:.2f}, {z + half_outer:.2f}] m "
                          f"is outside floor 0 .. ceiling {a.z_max}")

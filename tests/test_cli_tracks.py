@@ -126,3 +126,15 @@ def test_a_track_whose_name_is_not_its_file_name_is_refused_with_one_line(tmp_pa
     assert result.stderr.count("\n") == 1 and "'ovalx'" in result.stderr and "'oval2'" in result.stderr
     listed = run_cli("tracks", "list", home=home)
     assert listed.returncode == 0 and "oval2" in listed.stdout and "lemniscate" in listed.stdout
+
+
+def test_a_gate_whose_opening_reaches_outside_the_arena_is_refused(tmp_path):
+    """Only gate centres were checked against the arena's x and y: a narrower arena left gate 2's
+    opening beyond the fence (the ceiling was checked against the frame already)."""
+    tight = tmp_path / "tight.yaml"
+    text = (TRACKS_DIR / "lemniscate.yaml").read_text()
+    assert "x: [-2.5, 2.5]" in text
+    tight.write_text(text.replace("x: [-2.5, 2.5]", "x: [-2.1, 2.1]"))
+    result = run_cli("tracks", "show", str(tight))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "gates[2]" in result.stderr and "opening reaches (-2.50, 7.00), outside the arena" in result.stderr
