@@ -11,6 +11,7 @@ from rich.console import Console
 
 from cfrace.cli.common import DEFAULT_PROFILE, check_writable, choose_profile, human_console, write_json
 from cfrace.cli.flight import FOXGLOVE_HELP
+from cfrace.flight.faults import KINDS as FAULT_KINDS
 
 sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
                       no_args_is_help=True)
@@ -71,14 +72,12 @@ def dry_run_cmd(
     json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON (- : to stdout)."),
     log: Optional[Path] = typer.Option(None, help="Flight log (.mcap)."),
     foxglove: Optional[int] = typer.Option(None, "--foxglove", metavar="[PORT]", help=FOXGLOVE_HELP),
-    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp|dK],...: mocap_dropout_short, mocap_dropout_long, "
-                                                    "pose_outlier, geofence, nan_policy, link_loss, stall_50ms, "
-                                                    "stall_200ms, sigterm, sigint."),
+    faults: Optional[str] = typer.Option(None, help="KIND@T[:ego|opp|dK],...: " + ", ".join(FAULT_KINDS) + "."),
     lockstep: bool = typer.Option(False, "--lockstep", help="No wall clock, no cflib: the sim advances one tick "
                                                             "per loop iteration (fast, deterministic)."),
     timeout_s: float = typer.Option(60.0, help="End the race (draw) after this many seconds of race time."),
     mocap_noise_m: float = typer.Option(0.0, help="Gaussian mocap position noise (m)."),
-    mocap_latency_ms: float = typer.Option(0.0, help="Simulated mocap latency (ms): a pose reaches the loop this "
+    mocap_latency_ms: float = typer.Option(0.0, min=0.0, help="Simulated mocap latency (ms): a pose reaches the loop this "
                                                      "long after it was taken (interpolated between the "
                                                      "per-tick reads of the simulated drones)."),
     latency_comp_ms: Optional[float] = typer.Option(None, help="The estimator predicts poses this many ms forward "

@@ -274,7 +274,7 @@ def serve(track, drones: int, port: int = 19850, profile=DEFAULT_PROFILE, *, arm
                 f"decks: {', '.join(fleet.decks) or 'none (external position only)'}):")
             for name, uri in zip(fleet.body_names, server.uris):
                 out(f"  {name}: {uri}")
-            out(f"  ground-truth poses: udp://127.0.0.1:{server.pose_port} (mocap source `sim`)")
+            out(f"  ground-truth poses: udp://127.0.0.1:{server.pose_port} (fly --mocap sim://127.0.0.1:{server.pose_port})")
             out("  after a flight: " + ("every drone back on the start grid (--reset-after-flight)" if reset_after_flight
                                         else "the drones stay where they landed, as real drones do; a ground start "
                                              "needs them on the grid (--reset-after-flight: put back)"))
