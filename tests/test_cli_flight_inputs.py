@@ -104,3 +104,16 @@ def test_replay_of_a_log_cut_before_its_first_tick_and_a_bad_json_path(tmp_path)
 def test_two_body_names_for_three_drones_are_refused_not_filled_in(tmp_path):
     one_line_refusal(run("sim", "dry-run", "--track", "lemniscate", "--policies", "ours,ds,ours", "--bodies", "cf1,cf2",
                          "--lockstep", "--quiet", cwd=tmp_path), "bodies: need 3")
+
+
+def test_a_foxglove_port_in_use_is_refused_before_any_link_opens(tmp_path):
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        r = run("sim", "dry-run", "--track", "lemniscate", "--ego", "ours", "--opp", "ds", "--quiet",
+                "--foxglove", str(port), "--log", "f.mcap", cwd=tmp_path)
+    one_line_refusal(r, str(port))
+    assert not list(tmp_path.glob("*.stops.jsonl"))    # the link keeper never started: nothing was sent

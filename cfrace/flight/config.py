@@ -211,7 +211,7 @@ def load_flight_file(path: str | Path) -> dict:
     for key in ("uris", "bodies", "policies"):
         if r.has(key):
             seq = r.sequence(key)
-            if not all(isinstance(s, str) and s for s in seq):
+            if not seq or not all(isinstance(s, str) and s for s in seq):
                 raise r.fail(key, f"expected a list of strings, got {seq!r}")
             out[key] = tuple(seq)
     for key in ("mocap", "profile", "track", "ego", "opp", "start"):
