@@ -135,9 +135,10 @@ def check_take_off(mocap, cfg, realtime: bool, track):
                                   f"{cfg.safety.min_separation_m:g} m, safety.min_separation_m)")
             off = off_start_slots(frame.poses, cfg.bodies, track, cfg.safety.start_slot_m) if slots else []
             if off:
+                served = " (drones of `cfrace sim serve`: restart it or serve them with --reset-after-flight)" \
+                    if cfg.mocap.startswith("sim://") else ""
                 raise ConfigError(f"not on the start grid for a ground start: {'; '.join(off)} (at most "
                                   f"{cfg.safety.start_slot_m:g} m, safety.start_slot_m): put each drone on its slot, "
-                                  "facing gate 0 (simulated drones: restart `cfrace sim serve` or serve them "
-                                  "with --reset-after-flight)")
+                                  f"facing gate 0{served}")
             return mocap if realtime else _Unread(mocap, frame)
     return mocap
