@@ -117,3 +117,8 @@ def test_a_foxglove_port_in_use_is_refused_before_any_link_opens(tmp_path):
                 "--foxglove", str(port), "--log", "f.mcap", cwd=tmp_path)
     one_line_refusal(r, str(port))
     assert not list(tmp_path.glob("*.stops.jsonl"))    # the link keeper never started: nothing was sent
+
+
+def test_a_mistyped_profile_names_the_known_ones_and_trained(tmp_path):
+    one_line_refusal(run("sim", "dry-run", "--track", "lemniscate", "--ego", "ours", "--opp", "ds", "--lockstep",
+                         "--profile", "traned", cwd=tmp_path), "--profile traned", "cf21bl", "'trained'")

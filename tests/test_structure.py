@@ -174,8 +174,7 @@ LONG_FUNCTIONS = {
     "cli/flight.py:register": "holds the `fly` command (defined inside it): its option list",
     "cli/flight.py:fly_cmd": "the `fly` command's option list; the body resolves the config and calls fly",
     "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list; the body calls dry_run",
-    # not only options: 54 lines of them and a 79-line body (the config from the options or the resumed
-    # run, the live progress view): not yet split; its logic belongs in cfrace.rl
+    # its options, then the live progress view (the config is built and checked by checked_config)
     "cli/train.py:train_cmd": "the `train` command's option list and its live progress view",
     "sim/simulator.py:_substep": "the torch reference of one physics step, kept in kernel.c's order to compare them",
 }

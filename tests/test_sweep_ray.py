@@ -31,9 +31,9 @@ grid:
   name: "{{method}}_s{{seed}}"
   method: [ds, ss]
   seed: [0, 1]
-runs:   # a run that cannot train (no such drone profile, which the file's checks leave to the trainer) and one
-        # that needs it
-  - {{name: broken, method: ds, profile: no_such_profile}}
+runs:   # a run that cannot train (its warm start is no checkpoint: the file's checks only see that the path
+        # exists, what it holds is the trainer's to refuse) and one that needs it
+  - {{name: broken, method: ds, init_from: /dev/null}}
   - {{name: needs_broken, method: ds, init_from: broken}}
 """
 
@@ -98,7 +98,7 @@ def test_sweep_killed_and_resumed(tmp_path):
             for line in summary.splitlines() if line.count("│") >= 5}
     assert rows["broken"] == ["failed", "start", "2"] and rows["needs_broken"][0] == "blocked"
     assert "broken: cfrace train exited with code 2" in res.stdout and "needs broken" in res.stdout
-    assert "no_such_profile" in (out / "broken" / "train.log").read_text()
+    assert "/dev/null: not a cfrace training checkpoint" in (out / "broken" / "train.log").read_text()
     assert not (out / "needs_broken").exists()
     assert (out / "curves.png").stat().st_size > 10_000
     assert "combined training curves" in res.stdout and "the time one after another" in res.stdout

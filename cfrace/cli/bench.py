@@ -88,6 +88,7 @@ def sim_cmd(
     from cfrace.sim import bench
 
     sizes = _ints(worlds, "worlds")
+    modes = bench.checked_modes(compile, modes_opt, drones, scenario, track, profile)   # before any output
     if threads > 0:
         import torch
 
@@ -96,15 +97,13 @@ def sim_cmd(
     console.print(f"[bold]cfrace bench sim[/bold] on {machine['cpu']} ({machine['cores']} cores, torch "
                   f"{machine['torch']}, {machine['torch_threads']} threads), load average "
                   f"{machine['loadavg_start'][0]:.2f}")
-    if not modes_opt:   # about a minute: the C kernel (the one that counts), or eager without it
-        avail = bench.choose_modes(compile)
-        modes_opt = ",".join(["c" if "c" in avail else "eager", *(["compiled"] if "compiled" in avail else [])])
-    modes = bench.choose_modes(compile, modes_opt)
     n = len(sizes) * len(modes)
     console.print(f"modes: {', '.join(modes)}; {n} measurements ({len(sizes)} sizes x {len(modes)} modes), "
                   f"{repeats} x {steps} timed steps each")
     results, errors = _measure(bench, sizes, drones, modes, steps=steps, warmup=warmup, substeps=substeps,
                                track=track, profile=profile, repeats=repeats, scenario=scenario)
+    if not results:   # every mode asked for failed: nothing measured is no result
+        raise ConfigError("no mode could run: " + "; ".join(f"{m}: {e}" for m, e in errors.items()))
     peer_doc = bench.measure_peer(peer, bench.peer_python(peer_python_path), sizes, drones, peer_calls, threads,
                                   console.print)
     machine["loadavg_end"] = list(os.getloadavg())

@@ -104,6 +104,12 @@ def choose_profile(profile: str | None, track=None, ego: str | None = None, obst
             raise ConfigError("--profile trained needs a policy (the ego's training profile)")
         from cfrace.flight.setup import training_profile
         return training_profile(track, ego, obstacles, default=DEFAULT_PROFILE), "the ego policy's training profile"
+    from cfrace.paths import CALIBRATION_DIR, resolve_named
+    if not resolve_named(profile, CALIBRATION_DIR, ".yaml").exists():
+        from cfrace.errors import ConfigError
+        known = ", ".join(sorted(p.stem for p in CALIBRATION_DIR.glob("*.yaml")))
+        raise ConfigError(f"--profile {profile}: no such drone profile (known: {known}; or '{TRAINED}': the ego "
+                          "policy's training profile)")
     return profile, "--profile"
 
 

@@ -12,10 +12,12 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.live import Live
+from rich.markup import escape
 from rich.table import Table
 
 # tables are wide: piped output gets 160 columns unless COLUMNS says otherwise
-console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 160)
+# no emoji codes: paths, names and addresses print as given (nohost:abc: is no emoji); user text in markup is escaped
+console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 160, emoji=False)
 
 
 def _summary(report, out_root: Path) -> None:
@@ -24,12 +26,13 @@ def _summary(report, out_root: Path) -> None:
     for col in ("run", "state", "what", "tries", "time"):
         t.add_column(col)
     for s in report.states:
-        t.add_row(s.run.name, s.state, s.action or "-", str(s.attempts), f"{s.wall_s:.0f} s",
+        t.add_row(escape(s.run.name), s.state, s.action or "-", str(s.attempts), f"{s.wall_s:.0f} s",
                   style="red" if s.state in ("failed", "blocked") else None)
     console.print(t)
     for s in report.states:
         if s.error and s.state in ("failed", "blocked"):
-            console.print(f"[red]{s.run.name}: {s.error}[/red] (log: {s.run.out_dir(out_root) / 'train.log'})")
+            console.print(f"[red]{escape(s.run.name)}: {escape(s.error)}[/red] "
+                          f"(log: {escape(str(s.run.out_dir(out_root) / 'train.log'))})")
     ran = [s for s in report.states if s.wall_s > 0]
     if ran:
         console.print(f"sweep wall time {report.wall_s:.0f} s (after Ray was up); the {len(ran)} run(s) took "
@@ -59,7 +62,7 @@ def sweep_cmd(
     if sequential:
         from cfrace.sweep.local import run_local
 
-        run_local(sweep, out_root, echo=lambda s: console.print(s, highlight=False))
+        run_local(sweep, out_root, echo=lambda s: console.print(s, highlight=False, markup=False))
     else:
         _on_ray(sweep, spec, out_root, address, cpus, retries, plot)
     _curves(sweep, out_root, plot)
@@ -78,10 +81,10 @@ def _dry_run(sweep, out_root: Path) -> None:
         else:
             action, argv = start_command(run, out_root)
             state, argvs = "new" if action == "start" else "interrupted", [argv, *export]
-        console.print(f"[bold]{run.name}[/bold] ({state}; after {', '.join(run.deps) or 'nothing'})",
+        console.print(f"[bold]{escape(run.name)}[/bold] ({state}; after {escape(', '.join(run.deps)) or 'nothing'})",
                       highlight=False)
         for argv in argvs:
-            console.print("  cfrace " + shlex.join(argv), highlight=False, soft_wrap=True)
+            console.print("  cfrace " + shlex.join(argv), highlight=False, soft_wrap=True, markup=False)
 
 
 def _on_ray(sweep, spec: Path, out_root: Path, address: Optional[str], cpus: Optional[int], retries: int,
@@ -91,7 +94,7 @@ def _on_ray(sweep, spec: Path, out_root: Path, address: Optional[str], cpus: Opt
     from cfrace.sweep.ray_exec import require_ray, run_ray
 
     require_ray()
-    title = f"sweep {spec} -> {out_root}" + (f" on {address}" if address else " on a local Ray instance")
+    title = escape(f"sweep {spec} -> {out_root}" + (f" on {address}" if address else " on a local Ray instance"))
     console.print(f"{title}: {len(sweep.runs)} runs, starting Ray...")
     last = [0.0]
     try:
@@ -119,7 +122,7 @@ def _curves(sweep, out_root: Path, plot: Optional[Path]) -> None:
     from cfrace.sweep.curves import sweep_curves
 
     for path in sweep_curves(sweep, out_root, plot):
-        console.print(f"combined training curves {path}")
+        console.print(f"combined training curves {path}", markup=False)
 
 
 def bench_sweep_cmd(

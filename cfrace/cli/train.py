@@ -11,12 +11,13 @@ from typing import Optional
 import typer
 from rich.console import Console
 from rich.live import Live
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from cfrace.cli.common import write_json
 
-console = Console()
+console = Console(emoji=False)   # paths and names print as given (a:abc:b is no emoji)
 
 _STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "lap done", "{:.0%}"), ("crash_rate", "crashed", "{:.0%}"),
           ("lap_time_s", "lap s", "{:.2f}"), ("lead_share_agent0", "ego leads", "{:.0%}"),
@@ -138,15 +139,72 @@ def train_cmd(
 ) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG. Ctrl-C
     (or SIGTERM) finishes the iteration, checkpoints and exits 130."""
+    cfg = checked_config(**locals())   # one line, before the banner and the run folder
+    from cfrace.rl.train import train
+
+    budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
+                                       f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
+    ippo = cfg.ippo()
+    per_it = ippo.num_envs * ippo.rollout
+    if cfg.steps is not None and cfg.steps % per_it:
+        budget += (f" (an iteration is {ippo.num_envs} worlds x {ippo.rollout} steps = {per_it:,} env steps, so it "
+                   f"stops after {-(-cfg.steps // per_it) * per_it:,})")
+    console.print(f"training [bold]{escape(cfg.method)}[/bold] on [bold]{escape(cfg.track)}[/bold]"   # user text
+                  f"{' with obstacles' if cfg.obstacles else ''}, preset {escape(cfg.preset)}, budget {budget}, "
+                  f"out {escape(cfg.out)}{' (resumed)' if resume else ''}")
+    progress = Progress(TextColumn("[bold]it {task.fields[it]}"), BarColumn(), TaskProgressColumn(),
+                        TextColumn("{task.fields[steps]} steps"), TimeElapsedColumn(), console=console)
+    task = progress.add_task("train", total=1.0, it=0, steps=0)
+    grid = Table.grid()
+    grid.add_row(progress)
+    last_line = [0.0]
+    said_precision: list[bool] = []
+    with Live(grid, console=console, refresh_per_second=4, transient=False) as live:
+        def update(metrics: dict, info: dict) -> None:
+            if metrics["iteration"] == 1 or not said_precision:
+                said_precision.append(True)
+                live.console.print(f"update precision: {info['precision'].dtype} ({info['precision'].reason})")
+            progress.update(task, completed=info["progress"], it=metrics["iteration"], steps=f"{metrics['env_steps']:,}")
+            view = Table.grid()
+            view.add_row(progress)
+            view.add_row(_figures(metrics, info))
+            live.update(view)
+            if not console.is_terminal and info["elapsed_s"] - last_line[0] >= 30.0:  # logs to a file: a line
+                last_line[0] = info["elapsed_s"]
+                live.console.print(_line(metrics, info))
+
+        result = train(cfg, resume=resume, on_iteration=update)
+    if not console.is_terminal:
+        console.print()
+    how = "stopped by signal, checkpointed" if result.interrupted else "done"
+    console.print(f"{how}: {result.iterations} iterations, {result.env_steps:,} env steps, "
+                  f"{result.wall_s / 60:.1f} min total")
+    if result.exact_resume is False:
+        console.print("[yellow]note: the environment has no saved state; its races restarted on resume[/yellow]")
+    console.print(f"checkpoint {result.checkpoint}\nmetrics {result.out / 'metrics.csv'}  tensorboard {result.out / 'tb'}",
+                  markup=False)
+    if result.curve:
+        console.print(f"training curve {result.curve}", markup=False)
+    if result.interrupted:
+        raise typer.Exit(130)      # as every command after Ctrl-C (the checkpoint is written)
+
+
+def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, seed, out, resume, device, profile,
+                   threads, checkpoint_min, set_, reward, init_from, episode_s, critic_warmup, random_phase,
+                   fixed_opponent, fixed_opponent_frac, fixed_opponent_drones, init_critic, critic_warmup_lr,
+                   precision, ground_start_prob, keep_checkpoints, drones, opponent_rule, obstacle_curriculum,
+                   update_workers, compile_, flight_obs, sources: bool = True):
+    """The TrainConfig of `cfrace train`'s options (its parameters), checked as the command checks it
+    before its banner (cfrace.rl.inputs.check_inputs; ``sources``: also load the files it names);
+    ConfigError (one line) else. `cfrace sweep` checks its runs with it (check_train_argv)."""
     from cfrace.errors import ConfigError
     from cfrace.rl.config import parse_overrides
-
     if resume is None and (method is None or track is None):   # before any heavy import
         raise ConfigError("--method and --track are required (or --resume DIR)")
     overrides = parse_overrides(set_ or [])
     from cfrace.env.rewards import parse_reward_overrides
     rewards = parse_reward_overrides(reward or [])
-    from cfrace.rl.train import TrainConfig, resume_config, train
+    from cfrace.rl.train import TrainConfig, resume_config
 
     if minutes is None and steps is None:
         minutes = 30.0
@@ -177,51 +235,29 @@ def train_cmd(
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
                           obstacle_curriculum=obstacle_curriculum, rewards=rewards)
     from cfrace.rl.inputs import check_inputs
-    check_inputs(cfg, warm_start=resume is None)     # one line, before the banner and the run folder
-    budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
-                                       f"{cfg.steps:,} env steps" if cfg.steps is not None else "") if x)
-    ippo = cfg.ippo()
-    per_it = ippo.num_envs * ippo.rollout
-    if cfg.steps is not None and cfg.steps % per_it:
-        budget += (f" (an iteration is {ippo.num_envs} worlds x {ippo.rollout} steps = {per_it:,} env steps, so it "
-                   f"stops after {-(-cfg.steps // per_it) * per_it:,})")
-    console.print(f"training [bold]{cfg.method}[/bold] on [bold]{cfg.track}[/bold]"
-                  f"{' with obstacles' if cfg.obstacles else ''}, preset {cfg.preset}, budget {budget}, "
-                  f"out {cfg.out}{' (resumed)' if resume else ''}")
-    progress = Progress(TextColumn("[bold]it {task.fields[it]}"), BarColumn(), TaskProgressColumn(),
-                        TextColumn("{task.fields[steps]} steps"), TimeElapsedColumn(), console=console)
-    task = progress.add_task("train", total=1.0, it=0, steps=0)
-    grid = Table.grid()
-    grid.add_row(progress)
-    last_line = [0.0]
-    said_precision: list[bool] = []
-    with Live(grid, console=console, refresh_per_second=4, transient=False) as live:
-        def update(metrics: dict, info: dict) -> None:
-            if metrics["iteration"] == 1 or not said_precision:
-                said_precision.append(True)
-                live.console.print(f"update precision: {info['precision'].dtype} ({info['precision'].reason})")
-            progress.update(task, completed=info["progress"], it=metrics["iteration"], steps=f"{metrics['env_steps']:,}")
-            view = Table.grid()
-            view.add_row(progress)
-            view.add_row(_figures(metrics, info))
-            live.update(view)
-            if not console.is_terminal and info["elapsed_s"] - last_line[0] >= 30.0:  # logs to a file: a line
-                last_line[0] = info["elapsed_s"]
-                live.console.print(_line(metrics, info))
+    check_inputs(cfg, sources=sources, warm_start=resume is None)
+    return cfg
 
-        result = train(cfg, resume=resume, on_iteration=update)
-    if not console.is_terminal:
-        console.print()
-    how = "stopped by signal, checkpointed" if result.interrupted else "done"
-    console.print(f"{how}: {result.iterations} iterations, {result.env_steps:,} env steps, "
-                  f"{result.wall_s / 60:.1f} min total")
-    if result.exact_resume is False:
-        console.print("[yellow]note: the environment has no saved state; its races restarted on resume[/yellow]")
-    console.print(f"checkpoint {result.checkpoint}\nmetrics {result.out / 'metrics.csv'}  tensorboard {result.out / 'tb'}")
-    if result.curve:
-        console.print(f"training curve {result.curve}")
-    if result.interrupted:
-        raise typer.Exit(130)      # as every command after Ctrl-C (the checkpoint is written)
+
+def check_train_argv(argv: list[str]) -> None:
+    """What `cfrace train ARGV` (ARGV without "train") refuses before its banner, without running it:
+    the options parsed as the command parses them (types, ranges), then checked_config without
+    loading the files they name (a sweep's references may not exist yet); ConfigError (one line)."""
+    from typer.main import get_command
+
+    from cfrace.errors import ConfigError
+    try:
+        from typer._click.exceptions import ClickException   # typer >= 0.2x carries its own click
+    except ImportError:                                      # older typer: click itself
+        from click.exceptions import ClickException
+
+    app = typer.Typer()
+    app.command()(train_cmd)
+    try:
+        ctx = get_command(app).make_context("train", list(argv))
+    except ClickException as exc:
+        raise ConfigError(exc.format_message()) from None
+    checked_config(**ctx.params, sources=False)
 
 
 def export_cmd(

@@ -84,14 +84,19 @@ def _step_ms(actor: torch.nn.Module, critic: torch.nn.Module, x_a: torch.Tensor,
     return 1e3 * times[len(times) // 2]
 
 
+def check_precision(mode: str) -> None:
+    """ConfigError (one line) unless ``mode`` is one of MODES (checked before `cfrace train`'s banner too)."""
+    if mode not in MODES:
+        raise ConfigError(f"--precision {mode!r}: choose from {', '.join(MODES)}")
+
+
 def choose_precision(mode: str, device: torch.device, obs_dim: int, critic_dim: int,
                      actor_hidden: Sequence[int], critic_hidden: Sequence[int], minibatch: int,
                      reps: int = 5) -> Precision:
     """Resolve ``--precision`` for this run (see the module docstring)."""
     from cfrace.rl.models import mlp
 
-    if mode not in MODES:
-        raise ConfigError(f"--precision {mode!r}: choose from {', '.join(MODES)}")
+    check_precision(mode)
     if mode == "fp32":
         return Precision("fp32", "fp32", "asked for float32")
     supported = torch.cuda.is_bf16_supported() if device.type == "cuda" else cpu_has_bf16()

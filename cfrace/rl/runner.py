@@ -27,7 +27,6 @@ import numpy as np
 import torch
 from torch import nn
 
-from cfrace.errors import ConfigError
 from cfrace.rl.config import IPPOConfig, std_cap
 from cfrace.rl.ippo import compiled_loss, draw_perms, make_optimizer, ppo_update
 from cfrace.rl.models import AgentModels
@@ -238,9 +237,8 @@ class Runner:
         against it there and against each other elsewhere. Several ``models``: world i of those is
         flown by models[i % len(models)] (one per world). Returns the number of such worlds."""
         models = [models] if isinstance(models, AgentModels) else list(models)
-        if not 1 <= drones < self.num_agents:
-            raise ConfigError(f"--fixed-opponent-drones {drones}: from 1 to {self.num_agents - 1} with "
-                              f"{self.num_agents} drones per world (at least one must learn)")
+        from cfrace.rl.inputs import check_fixed_drones
+        check_fixed_drones(drones, self.num_agents)
         n = int(round(fraction * self.num_envs))
         mask = torch.ones(self.num_envs, self.num_agents, dtype=torch.bool, device=self.device)
         mask[:n, -drones:] = False

@@ -336,10 +336,9 @@ def _fixed_opponent(runner: Runner, cfg: TrainConfig, layout: str | None) -> dic
     from cfrace.rl.models import AgentModels
     from cfrace.rl.warmstart import warm_start
 
-    if not 0.0 < cfg.fixed_opponent_frac <= 1.0:
-        raise ConfigError(f"--fixed-opponent-frac must be in (0, 1], got {cfg.fixed_opponent_frac}")
-    if runner.num_agents < 2:
-        raise ConfigError(f"--fixed-opponent needs a multi-agent method (ours, dm), not {cfg.method}")
+    from cfrace.rl.inputs import check_fixed_opponent
+
+    check_fixed_opponent(cfg, runner.num_agents)
     env, k, sources = runner.env, cfg.fixed_opponent_drones, [x.strip() for x in cfg.fixed_opponent.split(",")]
     opps = [AgentModels(env.obs_dim, env.critic_dim, runner.cfg.actor_hidden, runner.cfg.critic_hidden, 1.0) for _ in sources]
     names = [warm_start(types.SimpleNamespace(agents=[o], env=env), x, layout)["init_from"] for o, x in zip(opps, sources)]

@@ -66,9 +66,8 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
     path = Path(source)
     if path.is_dir():
         path = path / "checkpoint.pt"
+    check_source(path, None, env_layout, critic)
     if path.suffix == ".onnx":
-        if critic:
-            raise ConfigError(f"--init-critic: {path} is an exported policy and has no critic")
         src, meta = onnx_actor_state(path)
         saved, state, best = {"meta": meta}, {"env_steps": meta.get("train_steps", 0)}, 0
     else:
@@ -79,10 +78,9 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         src = state["agents"][min(best, len(state["agents"]) - 1)]   # a shared run keeps one model
     src_layout = saved.get("meta", {}).get("obs_layout")
     added_position = False
+    check_source(source, src_layout, env_layout)
     if src_layout and env_layout and src_layout != env_layout:
         a, b = LAYOUTS[src_layout], LAYOUTS[env_layout]
-        if (a.world_position and not b.world_position) or (a.opponent and not b.opponent):
-            raise ConfigError(f"--init-from {source}: layout {src_layout} does not fit into {env_layout}")
         if b.world_position and not a.world_position:   # a policy of the track without obstacles
             track = getattr(getattr(runner, "env", None), "track", None)
             src = with_world_position(src, a.dim, *position_prior(track))
@@ -103,6 +101,19 @@ def warm_start(runner, source: str | Path, env_layout: str | None, critic: bool 
         agent.load_state_dict(dst)
     return {"init_from": str(path), "init_agent": best, "init_env_steps": int(state.get("env_steps", 0)),
             "init_critic": bool(critic), **({"init_layout": src_layout} if added_position else {})}
+
+
+def check_source(source, src_layout: str | None, env_layout: str | None, critic: bool = False,
+                 option: str = "--init-from") -> None:
+    """ConfigError (one line) unless ``source`` can start a run of ``env_layout``: an exported policy
+    has no critic to copy, and a layout fits into another only by gaining inputs (the opponent block,
+    the world position), never by losing them. warm_start applies it, and check_inputs before the banner."""
+    if critic and Path(source).suffix == ".onnx":
+        raise ConfigError(f"--init-critic: {source} is an exported policy and has no critic")
+    if src_layout and env_layout and src_layout != env_layout:
+        a, b = LAYOUTS[src_layout], LAYOUTS[env_layout]
+        if (a.world_position and not b.world_position) or (a.opponent and not b.opponent):
+            raise ConfigError(f"{option} {source}: layout {src_layout} does not fit into {env_layout}")
 
 
 def position_prior(track) -> tuple[torch.Tensor, torch.Tensor]:

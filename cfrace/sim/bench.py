@@ -54,10 +54,17 @@ SCENARIOS = {"hover": hover_start, "gates": gates_start}
 MODES = ("c", "eager", "compiled")  #: fused C kernel, torch eager, torch.compile
 
 
-def available_modes(compile: bool) -> list[str]:
-    """Simulator modes to measure: the fused C kernel when it builds here,
-    torch eager always, torch.compile when asked."""
-    return (["c"] if ckernel.available() else []) + ["eager"] + (["compiled"] if compile else [])
+def available_modes(compile: bool, drones: int = 1) -> list[str]:
+    """Simulator modes to measure: the fused C kernel when it builds here and takes ``drones`` per
+    world, torch eager always, torch.compile when asked."""
+    c = ckernel.available() and drones <= ckernel.MAX_DRONES
+    return (["c"] if c else []) + ["eager"] + (["compiled"] if compile else [])
+
+
+def check_scenario(scenario: str) -> None:
+    """ConfigError (one line) unless ``scenario`` is one of SCENARIOS."""
+    if scenario not in SCENARIOS:
+        raise ConfigError(f"unknown scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
 
 
 def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int, substeps: int,
@@ -70,8 +77,7 @@ def measure_sim(worlds: int, drones: int, *, mode: str, steps: int, warmup: int,
     trk, prof = load_track(track), load_profile(profile)
     sim = Simulator(trk, prof, worlds, drones, obstacles=True, compile=mode == "compiled",
                     backend="c" if mode == "c" else "torch")
-    if scenario not in SCENARIOS:
-        raise ConfigError(f"unknown scenario {scenario!r} (known: {', '.join(SCENARIOS)})")
+    check_scenario(scenario)
     sim.reset(torch.arange(worlds), SCENARIOS[scenario](trk, worlds, drones))
     thrust = torch.full((worlds, drones), prof.weight)                  # (W, D) N, hover
     rates = torch.zeros(worlds, drones, 3)                               # (W, D, 3) rad/s
@@ -178,18 +184,34 @@ def summarize(results: list[dict], peer: list[dict]) -> list[dict]:
     return rows
 
 
-def choose_modes(compile: bool, modes: str = "") -> list[str]:
-    """The modes to measure: ``modes`` (comma-separated subset of MODES) or every available one."""
+def choose_modes(compile: bool, modes: str = "", drones: int = 1) -> list[str]:
+    """The modes to measure with ``drones`` per world: ``modes`` (comma-separated subset of MODES)
+    or every available one."""
     if not modes:
-        return available_modes(compile)
+        return available_modes(compile, drones)
     wanted = [m.strip() for m in modes.split(",") if m.strip()]
     unknown = [m for m in wanted if m not in MODES]
     if unknown or not wanted:
         raise ConfigError(f"--modes: expected a subset of {','.join(MODES)}, got {modes!r}")
+    if "c" in wanted and drones > ckernel.MAX_DRONES:
+        raise ConfigError(f"--modes c: the C kernel takes at most {ckernel.MAX_DRONES} drones per world, "
+                          f"not --drones {drones} (measure eager or compiled)")
     missing = [m for m in wanted if m not in available_modes(True)]
     if missing:
         raise ConfigError(f"--modes: {', '.join(missing)} not available on this machine")
     return wanted
+
+
+def checked_modes(compile: bool, modes: str, drones: int, scenario: str, track: str, profile: str) -> list[str]:
+    """The modes `cfrace bench sim` measures, once its input holds up (else a one-line ConfigError,
+    before anything is printed): the scenario, track, profile and ``modes`` (default, about a minute:
+    the C kernel if it takes ``drones`` per world, else eager; compiled too with ``compile``)."""
+    check_scenario(scenario)
+    load_track(track), load_profile(profile)
+    if not modes:
+        avail = choose_modes(compile, drones=drones)
+        modes = ",".join(["c" if "c" in avail else "eager", *(["compiled"] if "compiled" in avail else [])])
+    return choose_modes(compile, modes, drones)
 
 
 def measure_all(sizes: list[int], drones: int, modes: list[str], say: Callable[[str], None], **measure) -> tuple:

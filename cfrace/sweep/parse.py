@@ -11,7 +11,7 @@ from typing import Any
 from cfrace.rl.inputs import check_method
 from cfrace.errors import ConfigError
 from cfrace.sweep.spec import (EXPORT_AGENTS, EXPORT_KEYS, REFERENCES, RUN_KEYS, SWEEP_OWNED, TOP_KEYS, VERSION, Run,
-                               Sweep, TrainOption, fmt_value, train_options)
+                               Sweep, TrainOption, check_train, fmt_value, train_options)
 from cfrace.track import load_track
 from cfrace.yamlcfg import load_yaml
 
@@ -144,7 +144,10 @@ def parse_spec(data: dict, path: str = "<sweep>", check_paths: bool = True,
     names = {name: where for name, _, where, _ in built}
     runs = {name: _linked_run(path, names, name, opts, where, extra, check_paths)
             for name, opts, where, extra in built}
-    return Sweep(path, out, tuple(_dependency_order(path, runs)))
+    order = _dependency_order(path, runs)
+    for run in order:      # what `cfrace train` refuses before its banner, refused before any run starts
+        check_train(run, out, path)
+    return Sweep(path, out, tuple(order))
 
 
 def _raw_runs(path: str, data: dict) -> list[tuple[Any, dict, str, dict]]:

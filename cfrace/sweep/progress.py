@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from rich.markup import escape
 from rich.table import Table
 
 from cfrace.sweep.spec import Run
@@ -99,8 +100,8 @@ def progress_table(states: list[RunState], out_root: str | Path, title: str = ""
         style = STATE_STYLE.get(s.state, "")
         state = f"[{style}]{s.state}[/{style}]" if style else s.state
         if s.error and s.state in ("failed", "retrying"):
-            state += f" [dim]({s.error})[/dim]"
-        t.add_row(s.run.name, state, str(s.attempts or "-"), _n(p["iteration"], ".0f"), _n(p["env_steps"], ",.0f"),
+            state += f" [dim]({escape(s.error)})[/dim]"
+        t.add_row(escape(s.run.name), state, str(s.attempts or "-"), _n(p["iteration"], ".0f"), _n(p["env_steps"], ",.0f"),
                   f"{bar:<12} {p['share']:4.0%}", _n(p["fps"], ",.0f"), _n(p["return"], ".3g"),
                   _n(p["success"], ".0%"), f"{wall:.0f} s" if wall else "-")
     return t

@@ -73,6 +73,17 @@ def train_options() -> dict[str, TrainOption]:
     return out
 
 
+def check_train(run: "Run", out_root: str | Path, path: str) -> None:
+    """ConfigError (one line naming the file and the run) where `cfrace train` would refuse the run's
+    options before its banner: the command's own parser and checks (cfrace.cli.train.check_train_argv)."""
+    from cfrace.cli.train import check_train_argv
+
+    try:
+        check_train_argv(run.train_argv(out_root)[1:])
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {run.source} ({run.name}): {exc}") from None
+
+
 def fmt_value(value: Any) -> str:
     """A YAML scalar or list as `cfrace train` reads it on the command line."""
     if value is None:
