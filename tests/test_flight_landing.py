@@ -425,15 +425,32 @@ def test_paths_checked_together_are_judged_as_each_alone():
     assert seen == {True, False}
 
 
-def test_a_drone_that_reaches_the_floor_while_braking_is_stopped_there_and_not_called_landed():
+def test_a_drone_that_falls_on_the_floor_while_braking_is_stopped_there_and_not_called_landed():
     """A drone diving low when its landing begins can hit the floor before the firmware's go-to: it
-    is stopped at once (no go-to to a drone on the floor) and its landing says floor, not down."""
-    from cfrace.flight.landing import BrakeController, LandingPilot
+    is stopped at once (no go-to to a drone on the floor), and its landing result says it crashed
+    (floor_braking, not down); one resting on the floor when its landing began is simply down."""
+    from types import SimpleNamespace
 
-    pilot = LandingPilot(BrakeController(0.04, 0.9), np.array([0.0, 3.0]), 0.015)
+    from cfrace.drone import load_profile
+    from cfrace.flight.landing import BrakeController, LandingPilot
+    from cfrace.flight.softsafe import land_step
+
     quat = np.array([1.0, 0.0, 0.0, 0.0])
-    step = pilot.step(0.0, [0.0, 2.0, 0.30], [2.0, 0.0, -1.5], quat)
-    assert step.rates_dps is not None and not step.done                # braking
-    step = pilot.step(0.1, [0.2, 2.0, 0.03], [2.0, 0.0, -1.5], quat)   # 3 cm: on the floor
-    assert step.done and pilot.hit_floor and not step.high_level and not step.notify_stop
-    assert pilot.touchdown.vz == pytest.approx(-1.5)
+
+    def land(path):
+        pilot = LandingPilot(BrakeController(0.04, 0.9), np.array([0.0, 3.0]), 0.015)
+        d = SimpleNamespace(landing=pilot, landing_result={"t_start": 0.0}, stopped=False,
+                            thrust_curve=load_profile("cf2x_paper").thrust_curve)
+        commands, out = [], "braking"
+        for k, (pos, vel) in enumerate(path):
+            est = SimpleNamespace(pos=np.array(pos, float), vel=np.array(vel, float), quat=quat, valid=True)
+            if land_step(0, [d], [est], 0.1 * k, commands, 8.0) is None and "down" in d.landing_result:
+                out = d.landing_result
+                break
+        return pilot, out, commands
+
+    pilot, result, commands = land([([0.0, 2.0, 0.30], [2.0, 0.0, -1.5]), ([0.2, 2.0, 0.03], [2.0, 0.0, -1.5])])
+    assert pilot.hit_floor and not commands                   # stopped where it fell: no go-to, no land
+    assert result["down"] is False and result["cut"] == "floor_braking" and result["vz_mps"] == pytest.approx(-1.5)
+    pilot, result, commands = land([([0.0, 2.0, 0.016], [0.0, 0.0, 0.0])])    # resting on the floor
+    assert not pilot.hit_floor and result["down"] is True and "cut" not in result and not commands

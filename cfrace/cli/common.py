@@ -88,13 +88,13 @@ def write_json(doc, path: Path | str | None, said: Console | None = None, *, ind
 
 
 def choose_profile(profile: str | None, track=None, ego: str | None = None, obstacles: bool = False,
-                   room: dict | None = None, config=None) -> tuple[str, str]:
+                   room: dict | None = None, config=None, what: str = "--profile") -> tuple[str, str]:
     """The one rule for the drone profile of `sim serve`, `fly` and `sim dry-run`: --profile NAME
     if given, else ``profile:`` of the flight config file ``config`` (its keys: ``room``);
     ``trained``: the ego policy's training profile; else DEFAULT_PROFILE. Returns (profile name,
     why: the words the banner and the result show)."""
     if profile is None and room and "profile" in room:
-        name, rule = choose_profile(room["profile"], track, ego, obstacles)
+        name, rule = choose_profile(room["profile"], track, ego, obstacles, what=f"{config}: profile:")
         return name, (rule if room["profile"] == TRAINED else f"profile: in {config}")
     if profile is None:
         return DEFAULT_PROFILE, "the default (--profile to change)"
@@ -108,7 +108,7 @@ def choose_profile(profile: str | None, track=None, ego: str | None = None, obst
     if not resolve_named(profile, CALIBRATION_DIR, ".yaml").exists():
         from cfrace.errors import ConfigError
         known = ", ".join(sorted(p.stem for p in CALIBRATION_DIR.glob("*.yaml")))
-        raise ConfigError(f"--profile {profile}: no such drone profile (known: {known}; or '{TRAINED}': the ego "
+        raise ConfigError(f"{what} {profile}: no such drone profile (known: {known}; or '{TRAINED}': the ego "
                           "policy's training profile)")
     return profile, "--profile"
 

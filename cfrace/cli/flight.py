@@ -204,7 +204,7 @@ def register(app: typer.Typer) -> None:
         policies: Optional[str] = typer.Option(None, help="N drones instead of --ego/--opp: P1,...,PN, one per URI."),
         mocap: Optional[str] = typer.Option(None, help="Required: vicon://HOST, optitrack://HOST, qualisys://HOST, "
                                                        "vrpn://HOST, replay://LOG.mcap, sim://HOST:PORT."),
-        bodies: Optional[str] = typer.Option(None, help="Mocap body names ego,opp (default cf1,cf2)."),
+        bodies: Optional[str] = typer.Option(None, help="Mocap body names, one per drone (default cf1,...,cfN)."),
         laps: Optional[int] = typer.Option(None, help="Laps to win (default 3)."),
         profile: Optional[str] = typer.Option(None, help=f"Drone profile of the flown drones (default {DEFAULT_PROFILE}, "
                                                           "as `sim serve` and `sim dry-run`; 'trained': the ego "
@@ -266,12 +266,12 @@ def register(app: typer.Typer) -> None:
                                velocity_alpha=velocity_alpha,
                                latency_comp_s=None if latency_comp_ms is None else latency_comp_ms / 1e3,
                                start=start, landing=landing, pose_stream=pose_stream, estop_watchdog=estop_watchdog)
-        check_writable(cfg.log, "--log")
+        if hover_drones is not None and not hover:
+            raise ConfigError("--hover-drones chooses the drones of a hover test: give --hover too (without it "
+                              "it would be ignored, or a race would fly)")
         if check or hover:
             return first_flight_cmd(cfg, check, hover_list(hover_drones, len(cfg.uris)) if hover else [], json_out)
-        if hover_drones is not None:
-            raise ConfigError("--hover-drones chooses the drones of a hover test: give --hover too (without it "
-                              "this would fly a race)")
+        check_writable(cfg.log, "--log")
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
 

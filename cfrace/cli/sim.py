@@ -111,9 +111,11 @@ def dry_run_cmd(
 
     room = load_flight_file(config) if config else {}
     check_policy_sources(room, config, ego, opp, split_list(policies))
-    if ego is None and opp is None and policies is None:     # the file's drones, as `fly` flies them
-        policies = ",".join(room["policies"]) if room.get("policies") else None
-        ego, opp = (None, None) if policies else (room.get("ego"), room.get("opp"))
+    if policies is None:     # the file's drones where none are typed, as `fly` merges them
+        if ego is None and opp is None and room.get("policies"):
+            policies = ",".join(room["policies"])
+        else:
+            ego, opp = ego or room.get("ego"), opp or room.get("opp")
     specs, the_track = race_policies(ego, opp, policies, drones), load_track(track)
     obstacles, profile, rule = _room(room, config, profile, obstacles, the_track, specs[0])
     cfg = FlightConfig(track=track, ego=specs[0], opp=specs[1], policies=specs if len(specs) > 2 else (), laps=laps,

@@ -126,6 +126,7 @@ class Touchdown:
 
 
 BRAKE, HOLD, APPROACH, DESCEND, DOWN = "brake", "hold", "approach", "descend", "down"
+HARD_TOUCHDOWN_MPS = 0.5   #: m/s down at the floor: above it a touchdown while braking is a crash (docs/flight.md)
 
 
 @dataclass(frozen=True)
@@ -192,7 +193,7 @@ class LandingPilot:
     may_go: object = None
     held_s: float = 0.0               #: s it held before its go-to
     pos: np.ndarray | None = None     #: (3,) m, the newest estimate it was fed
-    hit_floor: bool = False           #: it reached the floor while braking or holding: not a landing
+    hit_floor: bool = False           #: it hit the floor while braking or holding: a crash, not a landing
 
     def step(self, t: float, pos, vel, quat, near=()) -> LandingStep:
         """The drone's estimate at loop time t (near: (pos, vel) of the other flying drones close to it,
@@ -202,7 +203,9 @@ class LandingPilot:
             self.touchdown = Touchdown(self.ground_z)
         pos = self.pos = np.asarray(pos, np.float64)
         if self.touchdown.update(t - self.t_start, pos, vel) and self.phase in (BRAKE, HOLD):
-            self.phase, self.hit_floor = DOWN, True      # on the floor before the firmware took over: stop
+            # on the floor before the firmware took over: stop there; faster than a landing's touchdown
+            # it fell (a drone resting on the floor when its landing began did not)
+            self.phase, self.hit_floor = DOWN, self.touchdown.vz < -HARD_TOUCHDOWN_MPS
             return LandingStep(done=True)
         if self.phase == BRAKE:
             speed = float(np.linalg.norm(vel))

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cfrace.flight.links import check_link
 from cfrace.errors import FlightError
 from cfrace.flight.landing import Touchdown
 from cfrace.flight.spots import LandingConfig
@@ -182,7 +183,7 @@ def first_flight(setup, io, *, check: bool, hover_drones=()) -> dict:
         poses = mocap_poses(mocap)
         poses()
         for i, uri in enumerate(io.uris):
-            links.append(io.open_link(i, uri))
+            links.append(check_link(io.open_link(i, uri), uri))
             links[-1].connect(cfg.connect_timeout_s)
         if check:
             checks = run_checks(links, list(cfg.bodies), setup.profile, poses, wait)

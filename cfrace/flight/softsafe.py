@@ -359,7 +359,7 @@ def land_step(i: int, drones: list, ests: list, t: float, out_commands: list, ti
         d.landing_result.update(td.as_dict() if td is not None else {})
         d.landing_result["down"] = bool(step.done) and not d.landing.hit_floor
         if d.landing.hit_floor:
-            d.landing_result["cut"] = "floor"      # it reached the floor braking: a crash, not a landing
+            d.landing_result["cut"] = "floor_braking"      # it fell on the floor braking: a crash, not a landing
         return None
     if step.rates_dps is None:
         d.counts, d.thrust_n = 0, 0.0
