@@ -122,3 +122,18 @@ def test_a_foxglove_port_in_use_is_refused_before_any_link_opens(tmp_path):
 def test_a_mistyped_profile_names_the_known_ones_and_trained(tmp_path):
     one_line_refusal(run("sim", "dry-run", "--track", "lemniscate", "--ego", "ours", "--opp", "ds", "--lockstep",
                          "--profile", "traned", cwd=tmp_path), "--profile traned", "cf21bl", "'trained'")
+
+
+def test_yaml_merge_keys_load_and_may_be_overridden_while_repeated_keys_are_refused(tmp_path):
+    from cfrace.errors import ConfigError
+    from cfrace.yamlcfg import load_yaml
+
+    f = tmp_path / "m.yaml"
+    f.write_text("base: &b {speed_max_mps: 8, tilt_max_deg: 60}\nsafety:\n  <<: *b\n  speed_max_mps: 9\n",
+                 encoding="utf-8")
+    assert load_yaml(f)["safety"] == {"speed_max_mps": 9, "tilt_max_deg": 60}
+    f.write_text("name: café\n", encoding="utf-8")               # UTF-8 whatever the locale
+    assert load_yaml(f)["name"] == "café"
+    f.write_text("a: 1\nb: 2\na: 3\n")
+    with pytest.raises(ConfigError, match="line 3 invalid YAML: key 'a' is given twice"):
+        load_yaml(f)
