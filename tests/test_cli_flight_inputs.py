@@ -137,3 +137,25 @@ def test_yaml_merge_keys_load_and_may_be_overridden_while_repeated_keys_are_refu
     f.write_text("a: 1\nb: 2\na: 3\n")
     with pytest.raises(ConfigError, match="line 3 invalid YAML: key 'a' is given twice"):
         load_yaml(f)
+
+
+def test_sim_serve_refuses_without_printing_its_banner_first(tmp_path):
+    for args in (["--track", "lemniscat"], ["--track", "lemniscate", "--decks", "lighthose"]):
+        r = run("sim", "serve", *args, cwd=tmp_path)
+        one_line_refusal(r)
+        assert r.stdout == "", r.stdout
+
+
+def test_a_body_that_rises_too_little_in_the_check_points_at_the_profile_too():
+    import numpy as np
+
+    from cfrace.flight.preflight import PreflightConfig, judge_signal
+
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    still = [(np.array([0.0, 0.0, 0.02]), q)] * 5
+    rose = [(np.array([0.0, 0.0, 0.02 + z]), q) for z in (0.0, 0.0005, 0.001, 0.001, 0.0)]
+    body = judge_signal({"cf1": rose, "cf2": still}, "cf1", 0, PreflightConfig())[0]
+    assert not body.ok and "rose 0.1 cm" in body.detail and "--profile" in body.detail
+    swapped = judge_signal({"cf1": still, "cf2": [(p + [0, 0, 0.05], q) for p, q in rose]}, "cf1", 0,
+                           PreflightConfig())[0]
+    assert not swapped.ok and "'cf2' rose most" in swapped.detail and "--profile" not in swapped.detail

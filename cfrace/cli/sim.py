@@ -22,7 +22,7 @@ out = Console()
 @sim_app.command("serve")
 def serve_cmd(
     track: str = typer.Option(..., help="Track name or YAML path."),
-    drones: int = typer.Option(2, help="Number of simulated Crazyflies."),
+    drones: int = typer.Option(2, min=1, help="Number of simulated Crazyflies."),
     port: int = typer.Option(19850, help="UDP port of the first drone (pose stream on port - 1)."),
     profile: Optional[str] = typer.Option(None, help=f"Drone profile (default {DEFAULT_PROFILE}, as `fly` and "
                                                       "`sim dry-run`)."),
@@ -45,11 +45,17 @@ def serve_cmd(
         from cfrace.errors import ConfigError
         raise ConfigError("--profile trained: `sim serve` flies no policy; name the profile (e.g. cf2x_paper)")
     profile, rule = choose_profile(profile)
-    out.print(f"drone profile {profile}: {rule}; obstacles {'on' if obstacles else 'off'} "
-              f"(`cfrace fly` must be given the same: --profile, --obstacles)", highlight=False)
+    first = [f"drone profile {profile}: {rule}; obstacles {'on' if obstacles else 'off'} "
+             f"(`cfrace fly` must be given the same: --profile, --obstacles)"]
+
+    def say(text: str) -> None:     # the profile line with the banner, once the drones are served
+        while first:
+            out.print(first.pop(), highlight=False)
+        out.print(text, highlight=False)
+
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
           decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
-          reset_after_flight=reset_after_flight, out=lambda text: out.print(text, highlight=False))
+          reset_after_flight=reset_after_flight, out=say)
 
 
 @sim_app.command("dry-run")

@@ -111,7 +111,9 @@ def judge_signal(traces: dict[str, list], body: str, drone: int, cfg: PreflightC
     ok = top == body and rise[body] >= cfg.min_rise_m and not others
     detail = (f"body {body!r} rose {100 * rise.get(body, 0.0):.1f} cm"
               + (f"; but {top!r} rose most ({100 * rise[top]:.1f} cm)" if top != body else "")
-              + (f"; {', '.join(sorted(others))} moved too" if others else ""))
+              + (f"; {', '.join(sorted(others))} moved too" if others else "")
+              + ("; too little: is the drone profile (--profile) this drone's? its thrust may be too low"
+                 if not ok and top == body and not others else ""))
     checks = [Check("body", drone, ok, detail)]
     if ok:
         tr = traces[body]
