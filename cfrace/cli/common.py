@@ -137,6 +137,22 @@ def check_writable(path: Path | None, what: str) -> None:
         path.unlink()
 
 
+def check_port(port: int | None, what: str, host: str = "127.0.0.1") -> None:
+    """ConfigError (one line) if nothing could serve on host:port now (in use, not permitted): checked
+    before any link opens, so that a flight is not refused after its drones were connected."""
+    if not port:       # None: no server; 0: a free port is taken
+        return
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)     # as servers bind (TIME_WAIT is no use)
+        try:
+            s.bind((host, int(port)))
+        except (OSError, OverflowError) as exc:
+            raise ConfigError(f"{what} {port}: cannot serve on {host}:{port} "
+                              f"({getattr(exc, 'strerror', None) or exc})") from None
+
+
 def check_folder(path: Path | None, what: str) -> None:
     """ConfigError (one line) unless ``path`` is a folder or can be made one (made here)."""
     if path is None:

@@ -12,7 +12,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.cli.common import (DEFAULT_PROFILE, check_writable, choose_profile, human_console, race_exit_code,
+from cfrace.cli.common import (DEFAULT_PROFILE, check_port, check_writable, choose_profile, human_console, race_exit_code,
                                write_json)
 from cfrace.errors import ConfigError
 
@@ -272,6 +272,7 @@ def register(app: typer.Typer) -> None:
         if check or hover:
             return first_flight_cmd(cfg, check, hover_list(hover_drones, len(cfg.uris)) if hover else [], json_out)
         check_writable(cfg.log, "--log")
+        check_port(cfg.foxglove_port, "--foxglove")
         from cfrace.flight.runner import fly
         from cfrace.flight.setup import resolve_race
 

@@ -9,7 +9,7 @@ from typing import Optional
 import typer
 from rich.console import Console
 
-from cfrace.cli.common import DEFAULT_PROFILE, check_writable, choose_profile, human_console, write_json
+from cfrace.cli.common import DEFAULT_PROFILE, check_port, check_writable, choose_profile, human_console, write_json
 from cfrace.cli.flight import FOXGLOVE_HELP
 from cfrace.flight.faults import KINDS as FAULT_KINDS
 
@@ -132,6 +132,7 @@ def dry_run_cmd(
                        loop_cpu=loop_cpu, latency_comp_s=(mocap_latency_ms if latency_comp_ms is None else latency_comp_ms) / 1e3,
                        start=start, landing=landing, pose_stream=pose_stream)
     check_writable(log, "--log")
+    check_port(foxglove, "--foxglove")
     race_and_report(lambda say: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                                         mocap_latency_s=mocap_latency_ms / 1e3, console=console,
                                         setup=resolve_race(cfg, the_track), announce=say), rule, json_out)

@@ -4,8 +4,7 @@ source and the log it gets from a RaceIO (cfrace.flight.setup) and stops every d
 Order (nothing is sent to a drone before every check passed):
   1. track, drone profile, both policies loaded and checked (cfrace.flight.setup.resolve_race,
      done by the caller: PolicyError / ConfigError);
-  2. the mocap source opened and every body seen (MocapError: unknown body), then the flight log and
-     the Foxglove server opened (LogError / ConfigError: cannot write it, port in use);
+  2. the mocap source opened and every body seen (MocapError: unknown body);
   3. every link connected (LinkError: no answer / no Crazyradio / nothing listening), then the
      poses watched for RaceIO.still_s: they must not move while nothing is armed (MocapError:
      the pose source does not belong to these drones; cfrace.flight.consistency);
@@ -16,7 +15,8 @@ block that stops every drone, closes the links and the mocap source and closes t
 (<= 10 ms); before the race (connecting, setting up) a signal raises KeyboardInterrupt at once
 (the finally still stops every drone); once the loop has ended, signals are only recorded
 (``operator_kill``, the exit code): nothing interrupts the stop sequence and the log's close.
-A flight log that cannot be written refuses the race before any link opens; a write error during the
+A flight log that cannot be written refuses the race before the set-up (its path and the Foxglove
+port are checked at the CLI edge, before anything opens); a write error during the
 flight is the result's ``log_error`` (and the exit code's, EXIT_CODES["log_error"]).
 """
 
@@ -229,19 +229,18 @@ class RaceRun:
         self.mocap = io.open_mocap()
         self.mocap.open(cfg.mocap_timeout_s)
         self._check_separation()
-        # the flight log and/or the live Foxglove server (cfrace.flight.foxglove_scene), before any link
-        # opens: a log that cannot be written or a Foxglove port in use is refused with nothing sent
-        self.log = open_sink(cfg.log, self.meta, self.setup.track, self.setup.fence, list(cfg.bodies), cfg.obstacles,
-                             cfg.foxglove_port, scene=cfg.foxglove_scene)
-        server = getattr(self.log, "server", None)
-        if (error := log_write_error(self.log)) is not None:    # e.g. a full disk: its first write failed
-            raise LogError(f"cannot write flight log {cfg.log}: {error.strerror or error}")
         for i, uri in enumerate(io.uris):
             self.links.append(check_link(io.open_link(i, uri), uri))
         for link in self.links:
             link.connect(cfg.connect_timeout_s)
         if io.still_s > 0:     # before anything is armed: the poses must not move on their own
             check_still(self.mocap, list(cfg.bodies), io.still_s)
+        # the flight log and/or the live Foxglove server (cfrace.flight.foxglove_scene)
+        self.log = open_sink(cfg.log, self.meta, self.setup.track, self.setup.fence, list(cfg.bodies), cfg.obstacles,
+                             cfg.foxglove_port, scene=cfg.foxglove_scene)
+        server = getattr(self.log, "server", None)
+        if (error := log_write_error(self.log)) is not None:    # e.g. a full disk: its first write failed
+            raise LogError(f"cannot write flight log {cfg.log}: {error.strerror or error}")
         if self.announce is not None:
             self.announce(self.meta | {"fence": self.setup.fence, "foxglove": server.url if server else None})
         for link in self.links:
