@@ -31,3 +31,8 @@ class LogError(CfraceError):
 
 class FlightError(CfraceError):
     """A flight procedure that could not be completed (e.g. the drones did not settle at their start)."""
+
+
+class CfraceWarning(RuntimeWarning):
+    """Something works, but not as asked or not as fast (e.g. the simulator's slower fallback);
+    the `cfrace` command prints it as one line ``warning: ...``."""

@@ -146,6 +146,17 @@ def test_sim_serve_refuses_without_printing_its_banner_first(tmp_path):
         assert r.stdout == "", r.stdout
 
 
+@pytest.mark.parametrize("args, words", [
+    (["--drones", "3", "--bodies", "cf1,cf2"], ["--bodies", "need 3 distinct", "got cf1,cf2"]),
+    (["--bodies", "a,a"], ["--bodies", "got a,a"]),
+    (["--decks", "foo"], ["--decks", "unknown deck 'foo'"]),
+    (["--port", "65535", "--drones", "2"], ["--port", "0..65533"])])
+def test_sim_serve_names_the_option_a_bad_value_came_from(tmp_path, args, words):
+    r = run("sim", "serve", "--track", "lemniscate", *args, cwd=tmp_path)
+    one_line_refusal(r, *words)
+    assert "simcf" not in r.stderr
+
+
 def test_a_body_that_rises_too_little_in_the_check_points_at_the_profile_too():
     import numpy as np
 

@@ -433,3 +433,36 @@ def test_the_profile_rule_says_where_the_profile_came_from():
     assert choose_profile(None, room={}, config="room.yaml")[1].startswith("the default")
     name, rule = choose_profile(None, load_track("lemniscate"), "ours", False, {"profile": "trained"}, "room.yaml")
     assert name == "cf2x_paper" and rule == "the ego policy's training profile"
+
+
+def test_cfrace_warnings_are_one_line_and_others_keep_their_form(tmp_path):
+    """A cfrace warning (the simulator's slower fallback for 17 drones) reads `warning: ...` on one
+    line, without Python's file:line prefix; another package's warning keeps Python's format."""
+    code = ("import sys, warnings\n"
+            "from cfrace.cli import main as m\n"
+            "warnings.formatwarning = m.format_warning\n"
+            "from cfrace.sim.simulator import Simulator\n"
+            "from cfrace.track import load_track\n"
+            "from cfrace.drone import load_profile\n"
+            "Simulator(load_track('lemniscate'), load_profile('cf2x_paper'), 1, 17, obstacles=False)\n"
+            "warnings.warn_explicit('other', UserWarning, '/elsewhere/pkg.py', 7)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 0, out.stderr
+    assert lines[0].startswith("warning: simulator: 17 drones per world"), lines
+    assert "RuntimeWarning" not in out.stderr and "race_env.py" not in lines[0]
+    assert "/elsewhere/pkg.py:7: UserWarning: other" in out.stderr
+
+
+def test_main_installs_the_one_line_warning_format():
+    import warnings
+
+    from cfrace.cli import main as m
+
+    before = warnings.formatwarning
+    try:
+        with pytest.raises(SystemExit):
+            main(["--version"])
+        assert warnings.formatwarning is m.format_warning
+    finally:
+        warnings.formatwarning = before

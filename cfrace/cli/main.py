@@ -9,6 +9,7 @@ No command module imports torch, onnxruntime or matplotlib at import time: argum
 from __future__ import annotations
 
 import sys
+import warnings
 
 import typer
 
@@ -20,7 +21,7 @@ except ImportError:                             # older typer: click itself
 import cfrace
 from cfrace.cli.common import json_to_stdout, restore_stdout
 from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
-from cfrace.errors import CfraceError
+from cfrace.errors import CfraceError, CfraceWarning
 
 app = typer.Typer(help="cfrace: multi-agent competitive drone racing for Crazyflies.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
@@ -75,8 +76,20 @@ def _usage_error(exc: cx.UsageError, args: list[str]) -> int:
     return 2
 
 
+_python_format = warnings.formatwarning
+
+
+def format_warning(message, category, filename, lineno, line=None) -> str:
+    """cfrace's own warnings (CfraceWarning, e.g. the simulator's slower fallback) as one line
+    ``warning: ...``; other packages' warnings keep Python's format (file, line, category)."""
+    if issubclass(category, CfraceWarning):
+        return f"warning: {message}\n"
+    return _python_format(message, category, filename, lineno, line)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Entry point: user-facing errors as one line and exit code 2; Ctrl-C exits 130, SIGTERM 143."""
+    warnings.formatwarning = format_warning
     args = fill_optional_values(list(sys.argv[1:] if argv is None else argv))
     json_to_stdout(args)
     try:

@@ -16,6 +16,7 @@ from typing import NamedTuple
 import torch
 
 from cfrace.drone import DroneProfile
+from cfrace.errors import CfraceWarning
 from cfrace.sim import ckernel
 from cfrace.sim import collisions as col
 from cfrace.sim.dynamics import PHYSICS_DT, Constants, DroneParams, DroneState, hover_motor_speed, physics_step, quat_to_rot
@@ -147,12 +148,12 @@ def _step(s, r, thrust, rates, p, g, c, rules, radius, z_rest, arena, outer_half
 
 def _auto_backend(device: torch.device, drones: int) -> str:
     """"c" when the C kernel can take this simulator, else "torch"; on a CPU the fallback is several
-    times slower, so it says why (a RuntimeWarning)."""
+    times slower, so it says why (a CfraceWarning)."""
     fits = device.type == "cpu" and drones <= ckernel.MAX_DRONES and ckernel.available()
     if device.type == "cpu" and not fits:
         why = (f"{drones} drones per world (the C kernel takes at most {ckernel.MAX_DRONES})"
                if drones > ckernel.MAX_DRONES else f"no C kernel ({ckernel.build_error()})")
-        warnings.warn(f"simulator: {why}; falling back to the slower torch path", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"simulator: {why}; falling back to the slower torch path", CfraceWarning, stacklevel=3)
     return "c" if fits else "torch"
 
 

@@ -127,17 +127,17 @@ class SimFleet:
         self.track = load_track(track) if isinstance(track, str) else track
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         if drones < 1:
-            raise ConfigError(f"simcf: need at least one drone, got {drones}")
+            raise ConfigError(f"drones (--drones): need at least one simulated drone, got {drones}")
         self.n = int(drones)
         names = list(body_names) if body_names is not None else [f"cf{i + 1}" for i in range(self.n)]
         if len(names) != self.n or len(set(names)) != self.n:
-            raise ConfigError(f"simcf: body_names must be {self.n} distinct names, got {names}")
+            raise ConfigError(f"bodies (--bodies): need {self.n} distinct mocap body names, one per drone, got {','.join(map(str, names)) or 'none'}")
         self.body_names = names
         self.arming_required = bool(arming_required)
         try:
             self.decks = check_decks(decks)   #: the simulated positioning decks every drone carries
         except ValueError as e:
-            raise ConfigError(f"simcf: {e}") from None
+            raise ConfigError(f"decks (--decks): {e}") from None
         self.battery = battery or BatteryModel()
         self.seed = int(seed)
         floor_z = self.profile.collision_box[2] / 2.0

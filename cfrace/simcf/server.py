@@ -39,7 +39,8 @@ class SimCrazyflieServer:
         if host not in LOOPBACK:
             raise ConfigError(f"simcf: host {host!r} refused, the simulated drones listen on 127.0.0.1 only")
         if not 0 <= base_port <= 65535 - fleet.n:
-            raise ConfigError(f"simcf: base port {base_port} out of range")
+            raise ConfigError(f"port (--port): base port {base_port} out of range 0..{65535 - fleet.n} "
+                              f"(drone i listens on the base port + i; 0 picks free ports)")
         self.fleet = fleet
         self.host = "127.0.0.1"
         self.base_port = int(base_port)
