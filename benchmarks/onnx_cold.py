@@ -3,12 +3,12 @@
     python benchmarks/onnx_cold.py [--calls 300]
 
 The flight loop sleeps most of each 10 ms period; this measures what that costs the next inference
-(docs/benchmarks.md, "Cache warm-up before each tick"). Actor: the hold controller inside an MLP of
+(docs/benchmarks.md, "What each warm-up pays"). Actor: the hold controller inside an MLP of
 the paper's size [512, 512, 256, 128] (cfrace.flight.holdpolicy), run through cfrace.policy.OnnxPolicy
 as the loop runs it. Prints p50 / p90 / p99 in microseconds per sleep length, and the same with a
 warm-up call 1 ms before each timed call (the loop's previous warm-up), with a busy loop instead of
-the sleep, and with the loop's current warm-up window (calls over and over from 3 ms before the
-deadline, then no sleep).
+the sleep, and through the loop's own clock with its warm-up window (cfrace.flight.clock.RealClock:
+calls over and over from 3 ms before the deadline, then no sleep).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cfrace.flight.clock import RealClock
 from cfrace.flight.holdpolicy import make_sized_hold_policy
 from cfrace.policy import OnnxPolicy
 
@@ -27,9 +28,17 @@ from cfrace.policy import OnnxPolicy
 def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0.0, mode: str = "once") -> np.ndarray:
     """Time one call per period. mode: "once" (one warm-up call warm_lead_s before the deadline, then
     sleep), "spin" (no call: a busy loop instead of the sleep for the whole period), "window" (the
-    loop's warm-up window: from warm_lead_s before the deadline call over and over while one more
-    call ends 0.1 ms before it, then sleep(0) in a loop up to it)."""
+    flight loop's own clock, cfrace.flight.clock.RealClock, with its warm-up window of warm_lead_s)."""
     out = []
+    if mode == "window":
+        clock = RealClock(period_s)
+        clock.start()
+        for _ in range(calls):
+            clock.wait_next(before=lambda: policy(obs), lead_s=warm_lead_s)
+            a = time.perf_counter()
+            policy(obs)
+            out.append(time.perf_counter() - a)
+        return np.asarray(out) * 1e6
     t0 = time.perf_counter()
     for k in range(1, calls + 1):
         deadline = t0 + k * period_s
@@ -40,18 +49,7 @@ def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0
             now = time.perf_counter()
             if now < deadline - warm_lead_s:
                 time.sleep(deadline - warm_lead_s - now)
-            if mode == "window":
-                a = time.perf_counter()
-                while True:
-                    policy(obs)
-                    b = time.perf_counter()
-                    if b + (b - a) > deadline - 1e-4:
-                        break
-                    a = b
-                while time.perf_counter() < deadline:
-                    time.sleep(0)
-            else:
-                policy(obs)
+            policy(obs)
         now = time.perf_counter()
         if now < deadline:
             time.sleep(deadline - now)

@@ -10,6 +10,7 @@ import torch
 from cfrace.errors import ConfigError
 from cfrace.export import export_checkpoint
 from cfrace.policy import OnnxPolicy
+from cfrace.rl.checkpoint import load_checkpoint
 from cfrace.rl.config import parse_overrides, preset, std_cap
 from cfrace.rl.models import Actor
 from cfrace.rl.train import TrainConfig, train
@@ -23,7 +24,12 @@ def test_the_exported_policy_records_a_set_discount_action_std_and_schedule(tmp_
                       out=str(tmp_path / "run"), overrides=small + (("init_std", 0.6), ("gamma", 0.995)) + SCHEDULE)
     stds = []
     res = train(cfg, on_iteration=lambda m, info: stds.append(m["std_agent0"]))
-    assert stds == pytest.approx([0.6, 0.5, 0.4], abs=1e-3)          # the cap, 0.6 -> 0.2 over 4 iterations
+    caps = [0.6, 0.5, 0.4]                                           # the cap, 0.6 -> 0.2 over 4 iterations
+    assert [std_cap(preset("cpu", False, cfg.overrides), i) for i in range(3)] == pytest.approx(caps)
+    assert all(s <= c + 1e-6 for s, c in zip(stds, caps))              # it never samples above the cap
+    log_std = load_checkpoint(res.checkpoint)["runner"]["agents"][0]["actor.log_std"]
+    # where the learned parameter lies above the cap the std is the cap; below it, the parameter
+    assert stds[-1] == pytest.approx(float(log_std.exp().clamp(max=caps[-1]).mean()), abs=1e-6)
     _, meta, _ = export_checkpoint(res.checkpoint, tmp_path / "p.onnx")
     onnx_meta = OnnxPolicy(tmp_path / "p.onnx").meta
     assert meta["init_std"] == 0.6 == onnx_meta["init_std"]
