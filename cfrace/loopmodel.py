@@ -170,54 +170,73 @@ class LoopRanges:
 
 @dataclass(frozen=True)
 class DroneRanges:
-    """Drone-model randomisation around the profile a policy trains on (scales of its nominal values,
-    uniform; thrust limits and floors in units of the nominal weight)."""
+    """Drone-model randomisation across drone profiles. Each drone of an episode is one of
+    ``profiles`` (probability ``blend``: a mix of two, weight uniform), its per-profile values
+    (scales of the training profile's, thrust in units of the drone's own weight), then jittered
+    uniformly by the paper's ranges (drag, rate PID) and the ranges below."""
+    profiles: tuple[str, ...] = ()                  #: the profiles spanned, the training profile first
+    tau_m: tuple[float, ...] = (1.0,)               #: per profile: motor time constant, scale
+    thrust_cap_w: tuple[float, ...] = (2.1,)        #: per profile: collective thrust limit, weights
+    thrust_floor_w: tuple[float, ...] = (0.0,)      #: per profile: least collective thrust when armed (idle), weights
+    pid: tuple[float, ...] = (1.0,)                 #: per profile: rate-PID authority (inertia per torque), scale
+    blend: float = 0.2                              #: share of drones mixed between two profiles
     thrust_gain: tuple[float, float] = (0.9, 1.1)   #: thrust delivered per thrust commanded (mass, thrust curve)
-    thrust_cap_w: tuple[float, float] = (1.9, 2.3)  #: collective thrust limit, weights
-    thrust_floor_w: tuple[float, float] = (0.0, 0.0)  #: least collective thrust while armed (idle), weights
-    tau_m: tuple[float, float] = (1.0, 1.0)         #: motor time constant, scale
-    k_aero: tuple[float, float] = (0.5, 2.0)        #: drag, scale
-    kp: tuple[float, float] = (0.85, 1.15)          #: rate PID, scales (inertia enters through them)
+    tau_jitter: tuple[float, float] = (0.8, 1.25)   #: motor time constant, scale on the profile's
+    cap_jitter: tuple[float, float] = (0.93, 1.07)  #: thrust limit, scale on the profile's
+    floor_jitter: tuple[float, float] = (0.8, 1.2)  #: idle floor, scale on the profile's
+    k_aero: tuple[float, float] = (0.5, 2.0)        #: drag, scale (the paper's range)
+    kp: tuple[float, float] = (0.85, 1.15)          #: rate PID, scales on the profile's (the paper's ranges)
     ki: tuple[float, float] = (0.85, 1.15)
     kd: tuple[float, float] = (0.7, 1.2)
-    profiles: tuple[str, ...] = ()                  #: the profiles the ranges span (record)
 
     def __post_init__(self):
-        for f in fields(self):
-            if f.name != "profiles":
-                _range(f.name, getattr(self, f.name), 0.0, 10.0)
+        n = len(self.profiles)
+        for name in _PER_PROFILE:
+            v = getattr(self, name)
+            if len(v) != max(n, 1):
+                raise ConfigError(f"drone_ranges.{name}: one value per profile ({max(n, 1)}), got {len(v)}")
+            for x in v:
+                _range(f"drone_ranges.{name}", (x, x), 0.0, 10.0)
+        _prob("drone_ranges.blend", self.blend)
+        for name in _JITTER:
+            _range(f"drone_ranges.{name}", getattr(self, name), 0.0, 10.0)
+
+    def table(self) -> list[list[float]]:
+        """Per profile: [tau_m, thrust_cap_w, thrust_floor_w, pid], the rows a drone is drawn from."""
+        return [list(r) for r in zip(*(getattr(self, k) for k in _PER_PROFILE))]
 
     def to_meta(self) -> dict:
-        return {k: list(v) for k, v in asdict(self).items()}
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
 
     @classmethod
     def from_meta(cls, meta: dict) -> "DroneRanges":
         names = {f.name for f in fields(cls)}
-        return cls(**{k: tuple(v) for k, v in meta.items() if k in names})
+        return cls(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in meta.items() if k in names})
 
 
-def drone_ranges(base, profiles) -> DroneRanges:
-    """Ranges around ``base`` (the training profile) that span ``profiles`` (DroneProfiles, e.g.
-    cf2x_paper and cf21bl from calibration/): each drone's motor time constant from half the fastest
-    to 1.15 x the slowest; its thrust limit from 0.9 x the lowest to 1.1 x the highest thrust-to-weight;
-    its idle floor from 0 to the highest Brushless idle (IDLE_THRUST_COUNTS through the profile's
-    thrust curve); rate-PID scales widened by the spread of the profiles' inertia per unit of
-    torque authority (arm x max thrust) as the firmware's gains stay fixed; thrust gain +-10 %
-    (mass with battery and markers, thrust-curve fit); drag 0.5-2 x (the paper's range)."""
+_PER_PROFILE = ("tau_m", "thrust_cap_w", "thrust_floor_w", "pid")
+_JITTER = ("thrust_gain", "tau_jitter", "cap_jitter", "floor_jitter", "k_aero", "kp", "ki", "kd")
+
+
+def idle_floor_w(profile) -> float:
+    """A profile's least collective thrust while armed, in its weights (IDLE_THRUST_COUNTS through
+    its thrust curve; 0 for brushed builds)."""
+    counts = IDLE_THRUST_COUNTS.get(profile.name)
+    return 0.0 if counts is None else float(profile.thrust_curve.to_newtons(counts)) / profile.weight
+
+
+def drone_ranges(base, profiles, blend: float = 0.2) -> DroneRanges:
+    """DroneRanges for a policy trained on ``base`` that spans ``profiles`` (DroneProfiles from
+    calibration/, e.g. cf21bl): each profile's motor time constant relative to ``base``'s, its
+    thrust-to-weight (the limit), its idle floor (idle_floor_w) and its rate-PID authority
+    relative to ``base``'s (inertia per unit of torque authority, arm x full thrust, since the
+    firmware's gains stay the same); the training profile itself is the first row."""
     all_p = [base, *[p for p in profiles if p.name != base.name]]
-    taus = [p.tau_m for p in all_p]
-    tw = [p.max_collective_thrust / p.weight for p in all_p]
-    idle = [p.thrust_curve.to_newtons(IDLE_THRUST_COUNTS[p.name]) / p.weight
-            for p in all_p if p.name in IDLE_THRUST_COUNTS]
     auth = [p.inertia[0] / (p.arm_length * p.max_collective_thrust) for p in all_p]
-    spread = max(auth) / min(auth)
     return DroneRanges(
-        thrust_gain=(0.9, 1.1),
-        thrust_cap_w=(round(0.9 * min(tw), 3), round(1.1 * max(tw), 3)),
-        thrust_floor_w=(0.0, round(float(max(idle, default=0.0)), 3)),
-        tau_m=(round(0.5 * min(taus) / base.tau_m, 3), round(1.15 * max(taus) / base.tau_m, 3)),
-        k_aero=(0.5, 2.0),
-        kp=(round(0.85 / spread, 3), round(1.15 * spread, 3)),
-        ki=(round(0.85 / spread, 3), round(1.15 * spread, 3)),
-        kd=(round(0.7 / spread, 3), round(1.2 * spread, 3)),
-        profiles=tuple(p.name for p in all_p))
+        profiles=tuple(p.name for p in all_p),
+        tau_m=tuple(round(p.tau_m / base.tau_m, 4) for p in all_p),
+        thrust_cap_w=tuple(round(p.max_collective_thrust / p.weight, 4) for p in all_p),
+        thrust_floor_w=tuple(round(idle_floor_w(p), 4) for p in all_p),
+        pid=tuple(round(auth[0] / a, 4) for a in auth),
+        blend=blend)

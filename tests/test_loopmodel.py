@@ -110,7 +110,12 @@ def test_training_through_the_loop_draws_what_the_ranges_say_and_resumes_exactly
     assert env.flight_obs and (env.lp_latency >= lo).all() and (env.lp_latency <= hi).all()
     assert 0.1 < env.lp_late.float().mean() < 0.5 and 0.3 < env.lp_comp.float().mean() < 0.7
     tau = env.sim.scales["tau_m"]
-    assert (tau >= dr.tau_m[0]).all() and (tau <= dr.tau_m[1]).all() and tau.max() > 2.0
+    lo, hi = min(dr.tau_m) * dr.tau_jitter[0], max(dr.tau_m) * dr.tau_jitter[1]
+    assert (tau >= lo - 1e-6).all() and (tau <= hi + 1e-6).all()
+    brushless = (tau > 3.0 * dr.tau_jitter[1]).float().mean()     # drawn as cf21bl (tau 4 x), not a mix
+    assert 0.25 < brushless < 0.55, brushless                      # (1 - blend) / 2 = 0.4 expected
+    floor_w = env.dr_floor / prof.weight
+    assert (floor_w <= max(dr.thrust_floor_w) * dr.floor_jitter[1] + 1e-6).all() and (floor_w > 0.15).any()
     gen = torch.Generator().manual_seed(0)
     acts = [torch.rand(64, 2, 4, generator=gen) * 2 - 1 for _ in range(8)]
     for a in acts[:4]:
@@ -127,14 +132,16 @@ def test_drone_ranges_span_the_profiles_in_calibration():
     paper, bl = load_profile("cf2x_paper"), load_profile("cf21bl")
     dr = drone_ranges(paper, [bl])
     assert dr.profiles == ("cf2x_paper", "cf21bl")
-    for p in (paper, bl):
-        assert dr.tau_m[0] * paper.tau_m <= p.tau_m <= dr.tau_m[1] * paper.tau_m
-        assert dr.thrust_cap_w[0] <= p.max_collective_thrust / p.weight <= dr.thrust_cap_w[1]
+    assert dr.tau_m == (1.0, pytest.approx(bl.tau_m / paper.tau_m, abs=1e-3))
+    for p, cap in zip((paper, bl), dr.thrust_cap_w):
+        assert cap == pytest.approx(p.max_collective_thrust / p.weight, abs=1e-3)
     idle = bl.thrust_curve.to_newtons(IDLE_THRUST_COUNTS["cf21bl"]) / bl.weight
-    assert dr.thrust_floor_w[1] == pytest.approx(idle, abs=1e-3) and dr.thrust_floor_w[0] == 0.0
-    assert dr.kp[0] < 0.85 and dr.kp[1] > 1.15
+    assert dr.thrust_floor_w == (0.0, pytest.approx(idle, abs=1e-3))
+    assert dr.pid[0] == 1.0 and dr.pid[1] != 1.0
     assert DroneRanges.from_meta(dr.to_meta()) == dr
-    assert drone_ranges(paper, []).tau_m == (0.5, 1.15)       # only itself: its own neighbourhood
+    assert drone_ranges(paper, []).tau_m == (1.0,)       # only itself: its own neighbourhood
+    with pytest.raises(ConfigError, match="one value per profile"):
+        DroneRanges(profiles=("a", "b"), tau_m=(1.0,), thrust_cap_w=(2.0, 2.0), thrust_floor_w=(0, 0), pid=(1, 1))
 
 
 @pytest.mark.parametrize("given, words", [(dict(latency_s=(-0.001, 0.02)), ["latency", "within"]),
@@ -174,4 +181,4 @@ def test_a_run_through_the_loop_records_its_ranges_in_the_policy(tmp_path):
     meta = OnnxPolicy(tmp_path / "p.onnx").meta
     assert LoopRanges.from_meta(meta["loop"]) == LoopRanges() and meta["flight_obs"] is True
     assert DroneRanges.from_meta(meta["drone_ranges"]).profiles == ("cf2x_paper", "cf21bl")
-    assert math.isclose(meta["drone_ranges"]["tau_m"][1], 4.6)
+    assert math.isclose(meta["drone_ranges"]["tau_m"][1], 4.0)

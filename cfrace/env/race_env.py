@@ -282,13 +282,21 @@ class RaceEnv:
         pos, quat, gate_idx = self.spawn(n)
         self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
         u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
-        if self.drone is not None:
+        if self.drone is not None:   # a profile of the ranges (or a mix of two), jittered
             d, w = self.drone, self.profile.weight
+            table = torch.tensor(d.table(), dtype=torch.float32, device=self.device)
+            k = table.shape[0]
+            i, j = ((self._rand(n, a) * k).long().clamp_max(k - 1) for _ in range(2))
+            mix = torch.where(self._rand(n, a) < d.blend, self._rand(n, a), torch.zeros(n, a, device=self.device))
+            row = table[i] + (table[j] - table[i]) * mix.unsqueeze(-1)
             ur = lambda r, *shape: u(r[0], r[1], *shape)
-            self.sim.set_scales(ids, k_aero=ur(d.k_aero, 3), kp=ur(d.kp, 1).expand(n, a, 3),
-                                ki=ur(d.ki, 1).expand(n, a, 3), kd=ur(d.kd, 1).expand(n, a, 3), tau_m=ur(d.tau_m, 1))
-            self.dr_gain[ids], self.dr_cap[ids], self.dr_floor[ids] = (
-                ur(d.thrust_gain), ur(d.thrust_cap_w) * w, ur(d.thrust_floor_w) * w)
+            pid = row[..., 3:4]
+            self.sim.set_scales(ids, k_aero=ur(d.k_aero, 3), kp=(pid * ur(d.kp, 1)).expand(n, a, 3),
+                                ki=(pid * ur(d.ki, 1)).expand(n, a, 3), kd=(pid * ur(d.kd, 1)).expand(n, a, 3),
+                                tau_m=row[..., 0:1] * ur(d.tau_jitter, 1))
+            self.dr_gain[ids] = ur(d.thrust_gain)
+            self.dr_cap[ids] = row[..., 1] * ur(d.cap_jitter) * w
+            self.dr_floor[ids] = row[..., 2] * ur(d.floor_jitter) * w
         elif self.randomize:
             scales = dict(k_aero=u(0.5, 2.0, 3), kp=u(0.85, 1.15, 1).expand(n, a, 3),
                           ki=u(0.85, 1.15, 1).expand(n, a, 3), kd=u(0.7, 1.2, 1).expand(n, a, 3))
