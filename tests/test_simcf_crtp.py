@@ -115,7 +115,7 @@ def test_log_toc_blocks_and_data(ep, fleet):
 
 
 def test_mem_count_and_supervisor(ep, fleet):
-    assert one(ep.handle(packet(crtp.MEM, 0, b"\x01")))[2] == bytes([1, 0])
+    assert one(ep.handle(packet(crtp.MEM, 0, b"\x01")))[2] == bytes([1, 3])     # trajectory, tester, deck memory
     _, ch, data = one(ep.handle(packet(crtp.SUPERVISOR, 1, bytes([1, 1]))))
     assert ch == 1 and data == bytes([0x81, 1, 1]) and fleet.status(0)["armed"]
     _, ch, data = one(ep.handle(packet(crtp.SUPERVISOR, 0, bytes([0x0C]))))
@@ -173,7 +173,14 @@ def test_high_level_packets_decode_as_cflib_packs_them():
     assert cmd == "go_to" and args["relative"] and args["linear"] and args["duration"] == 4.0
     assert crtp.decode_high_level(struct.pack("<BBBfffff", 4, 0, 0, 1.0, 2.0, 0.5, 0.0, 4.0))[2]["x"] == 1.0
     assert crtp.decode_high_level(struct.pack("<BB", 3, 0)) == ("stop", 0, {})
-    assert crtp.decode_high_level(struct.pack("<BBBBBf", 5, 0, 0, 0, 1, 1.0)) is None        # trajectories
+    assert crtp.decode_high_level(struct.pack("<BBBBBf", 5, 2, 1, 1, 7, 0.5)) == ("start_trajectory", 2, {
+        "trajectory_id": 7, "timescale": 0.5, "relative_position": True, "relative_yaw": False, "reversed": True})
+    assert crtp.decode_high_level(struct.pack("<BBBBBBf", 13, 0, 0, 1, 0, 3, 1.0))[2]["relative_yaw"]
+    assert crtp.decode_high_level(struct.pack("<BBBBIB", 6, 4, 1, 1, 264, 5)) == ("define_trajectory", 0, {
+        "trajectory_id": 4, "location": 1, "kind": 1, "offset": 264, "n_pieces": 5})
+    cmd, mask, args = crtp.decode_high_level(struct.pack("<BBBBfffff", 11, 1, 0, 1, 3.0, 0.5, 0.2, 0.1, 4.0))
+    assert cmd == "spiral" and mask == 1 and args["clockwise"] and not args["sideways"] and args["rf"] == pytest.approx(0.2)
+    assert crtp.decode_high_level(struct.pack("<BBfBff", 9, 0, 1.0, 0, 0.0, 0.5)) is None      # with velocity
 
 
 def test_non_finite_setpoints_are_dropped(ep, fleet):

@@ -10,7 +10,8 @@ from cfrace.errors import ConfigError
 from cfrace.simcf.controller import ABS, VELOCITY, Setpoint
 from cfrace.simcf.estimator import PositionEstimator
 from cfrace.simcf.firmware import SimFleet, quat_to_euler
-from cfrace.simcf.planner import Planner, _eval, _poly7
+from cfrace.simcf.planner import Planner, in_group
+from cfrace.simcf.trajectory import poly7_nojerk, polyval
 
 
 def fleet(profile="cf2x_paper", decks=("lighthouse",), drones=1):
@@ -81,9 +82,9 @@ def test_kalman_reset_param_and_decks():
 
 
 def test_poly7_meets_its_boundary_conditions():
-    c = _poly7(1.0, 0.5, -0.2, 3.0, 0.0, 0.0, 2.0)
-    assert [_eval(c, 0.0, d) for d in range(4)] == pytest.approx([1.0, 0.5, -0.2, 0.0], abs=1e-9)
-    assert [_eval(c, 2.0, d) for d in range(4)] == pytest.approx([3.0, 0.0, 0.0, 0.0], abs=1e-9)
+    c = poly7_nojerk(1.0, 0.5, -0.2, 3.0, 0.0, 0.0, 2.0)
+    assert [polyval(c, 0.0, d) for d in range(4)] == pytest.approx([1.0, 0.5, -0.2, 0.0], abs=1e-9)
+    assert [polyval(c, 2.0, d) for d in range(4)] == pytest.approx([3.0, 0.0, 0.0, 0.0], abs=1e-9)
 
 
 def test_planner_rules():
@@ -102,8 +103,7 @@ def test_planner_rules():
     end = p.evaluate(11.0)
     assert end.pos == pytest.approx([2.0, 1.0, 1.0]) and math.remainder(end.yaw - (math.pi + 0.1), 2 * math.pi) \
         == pytest.approx(0.0, abs=1e-9)                                  # yaw the short way, across +-pi
-    p.group_mask = 0b10
-    assert p.in_group(0) and p.in_group(0b110) and not p.in_group(0b01)
+    assert in_group(0, 0b10) and in_group(0b110, 0b10) and not in_group(0b01, 0b10) and not in_group(0b01, 0)
 
 
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])

@@ -30,8 +30,9 @@ def serve_cmd(
                                                                              "(off by default, as in `fly`)."),
     bodies: Optional[str] = typer.Option(None, help="Body names (default cf1,cf2,...)."),
     seed: int = typer.Option(0, help="Seed of the simulated drones' noise and start positions."),
-    decks: str = typer.Option("lighthouse", help="Positioning decks each drone carries: lighthouse, flow, "
-                                                 "both comma-separated, or none (external position only)."),
+    decks: str = typer.Option("lighthouse", help="Decks each drone carries: lighthouse, flow (positioning), "
+                                                 "ledring (its memories), comma-separated, or none (external "
+                                                 "position only)."),
     reset_after_flight: bool = typer.Option(False, "--reset-after-flight",
                                             help="Put every drone back on the start grid once a flight is over "
                                                  "(motors off, no packet for 1 s). Off: they stay where they "

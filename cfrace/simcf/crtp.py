@@ -3,7 +3,7 @@
 Wire format of cflib's UDP driver (cflib/crtp/udpdriver.py, 0.1.34): one datagram = one CRTP
 packet, byte 0 = (port << 4) | 0b1100 | channel, then up to 30 payload bytes; no first special
 datagram. Replies follow the firmware's formats (read from crazyflie-firmware: crtpservice.c,
-platformservice.c, param_logic.c, log.c, crtp_supervisor.c, mem.c) for what cflib's connect
+platformservice.c, param_logic.c, log.c, crtp_supervisor.c, crtp_mem.c) for what cflib's connect
 sequence uses: link source ("Bitcraze Crazyflie"), protocol version, log reset + log TOC (v2),
 memory count, param TOC (v2) and the read of every parameter, and echo pings every 100 ms.
 """
@@ -16,6 +16,7 @@ import struct
 import threading
 import zlib
 
+from cfrace.simcf import memory
 from cfrace.simcf.firmware import SimFleet
 from cfrace.simcf.packets import (EXT_POSE, GENERIC_TYPES, LOG_TYPES, LOG_VARS, LogBlock,  # noqa: F401
                                   pack_value, decode_generic, decode_high_level)
@@ -268,9 +269,14 @@ class CrtpEndpoint:
         return errno.ENOEXEC
 
     def _mem(self, channel: int, payload: bytes) -> list[bytes]:
-        if channel == 0 and payload and payload[0] == 1:   # number of memories: none
-            return [packet(MEM, 0, bytes([1, 0]))]
-        return []
+        """The memory subsystem (simcf/memory.py); a malformed request: one console line per kind."""
+        with self.fleet.lock:
+            answers, line = memory.handle(self.fleet.memories(self.index), channel, payload)
+        out = []
+        if line and line not in self.warned:
+            self.warned.add(line)
+            out = console_packets(line + "\n")
+        return out + [packet(MEM, ch, p) for ch, p in answers]
 
     def _commander(self, channel: int, payload: bytes) -> list[bytes]:
         if channel == 0 and len(payload) >= 14:
@@ -307,19 +313,21 @@ class CrtpEndpoint:
         return []
 
     def _high_level(self, channel: int, payload: bytes) -> list[bytes]:
+        """Every command is answered as crtp_commander_high_level.c's task does: the packet's first three
+        bytes and the command's return code (commands the simulator drops: ENOEXEC)."""
         if channel != 0 or not payload:
             return []
+        answer = lambda ret: [packet(HL_COMMANDER, 0, payload[:3].ljust(3, b"\0") + bytes([ret & 0xFF]))]  # noqa: E731
         try:
             decoded = decode_high_level(payload)
         except struct.error:
-            return self._warn_once(f"a high-level command {payload[0]} with a bad length (dropped)")
+            return self._warn_once(f"a high-level command {payload[0]} with a bad length (dropped)") + answer(errno.ENOEXEC)
         if decoded is None:
-            return self._warn_once(f"high-level command {payload[0]} (trajectories, spiral)")
+            return self._warn_once(f"high-level command {payload[0]}") + answer(errno.ENOEXEC)
         command, mask, args = decoded
         if not all(math.isfinite(v) for v in args.values() if isinstance(v, float)):
-            return self._warn_once("a high-level command with NaN/inf values (dropped)")
-        self.fleet.high_level(self.index, command, mask, **args)
-        return []
+            return self._warn_once("a high-level command with NaN/inf values (dropped)") + answer(errno.ENOEXEC)
+        return answer(self.fleet.high_level(self.index, command, mask, **args))
 
     def _supervisor(self, channel: int, payload: bytes) -> list[bytes]:
         if not payload:

@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-DECKS = ("lighthouse", "flow")
-DECK_PARAMS = {"lighthouse": "deck.bcLighthouse4", "flow": "deck.bcFlow2"}
+DECKS = ("lighthouse", "flow", "ledring")   #: ledring: no measurements, its memories (simcf/memory.py)
+DECK_PARAMS = {"lighthouse": "deck.bcLighthouse4", "flow": "deck.bcFlow2", "ledring": "deck.bcLedRing"}
 LIGHTHOUSE_PERIOD = 0.02   #: s between Lighthouse position measurements
 LIGHTHOUSE_STD = 0.002     #: m, per axis
 FLOW_PERIOD = 0.01         #: s between Flow deck measurements

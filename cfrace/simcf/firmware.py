@@ -44,6 +44,7 @@ from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
+from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.track import Track, ground_start_positions, load_track
@@ -293,13 +294,16 @@ class SimFleet:
     def high_level(self, i: int, command: str, group_mask: int = 0, **args) -> int:
         """A high-level commander command: takeoff (height m, yaw rad or None, duration s), land (same),
         go_to (x, y, z m, yaw rad, duration s, relative, linear), stop, set_group_mask (mask in
-        group_mask). Returns 0, 1 (refused by the planner) or errno EBUSY (the drone cannot fly)."""
+        group_mask), define_trajectory and start_trajectory, spiral (simcf/planner.py). Returns 0,
+        1 (refused by the planner), errno EBUSY (the drone cannot fly) or ENOEXEC (see the planner)."""
         with self.lock:
             fw = self._fw[self._check(i)]
             if command == "set_group_mask":
-                fw.planner.group_mask = int(group_mask)
+                fw.params["hlCommander.groupmask"] = int(group_mask) & 0xFF
                 return 0
-            if not fw.planner.in_group(group_mask):
+            if command == "define_trajectory":           # no group mask, allowed while the drone cannot fly
+                return fw.planner.define_trajectory(**args)
+            if not hl.in_group(group_mask, fw.params["hlCommander.groupmask"]):
                 return 0
             if command == "stop":
                 fw.planner.stop()
@@ -317,6 +321,9 @@ class SimFleet:
                 goal = (float(args["x"]), float(args["y"]), float(args["z"]))
                 return fw.planner.go_to(est, bool(args.get("relative")), bool(args.get("linear")), goal,
                                         float(args["yaw"]), float(args["duration"]), t)
+            if command in ("start_trajectory", "spiral"):   # from the last setpoint (simcf/planner.py)
+                fn = fw.planner.start_trajectory if command == "start_trajectory" else fw.planner.spiral
+                return fn(fw.planner.current(t, est), t=t, **args)
             raise ValueError(f"simcf: unknown high-level command {command!r}")
 
     def _estimate_goal(self, i: int) -> hl.Goal:
@@ -351,6 +358,11 @@ class SimFleet:
         with self.lock:
             fw = self._fw[self._check(i)]
             fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
+
+    def memories(self, i: int) -> list:
+        """Drone i's memories (simcf/memory.py: list index = memory id), its RAM cleared by a reboot."""
+        with self.lock:
+            return memories_of(self._fw[self._check(i)].planner, self.decks)
 
     def set_battery(self, i: int, charge: float) -> None:
         """Set drone i's battery state of charge (0-1), e.g. to test a low-battery landing."""
@@ -654,5 +666,5 @@ class SimFleet:
         """Console lines produced by drone i since the last call (the server prints them)."""
         with self.lock:
             fw = self._fw[self._check(i)]
-            out, fw.events = fw.events, []
+            out, fw.events = fw.events + fw.planner.drain(), []
             return out

@@ -108,6 +108,23 @@ def decode_high_level(payload: bytes) -> tuple[str, int, dict] | None:
             mask, relative, linear, x, y, z, yaw, duration = struct.unpack_from("<BBBfffff", payload, 1)
         return "go_to", mask, {"x": x, "y": y, "z": z, "yaw": yaw, "duration": duration,
                                "relative": bool(relative), "linear": bool(linear)}
+    if cmd in (5, 13):                                      # start trajectory (v1 / v2 with relative yaw)
+        if cmd == 5:
+            mask, relative, reversed_, ident, timescale = struct.unpack_from("<BBBBf", payload, 1)
+            relative_yaw = 0
+        else:
+            mask, relative, relative_yaw, reversed_, ident, timescale = struct.unpack_from("<BBBBBf", payload, 1)
+        return "start_trajectory", mask, {"trajectory_id": ident, "timescale": timescale,
+                                          "relative_position": bool(relative), "relative_yaw": bool(relative_yaw),
+                                          "reversed": bool(reversed_)}
+    if cmd == 6:                                            # define trajectory: no group mask
+        ident, location, kind, offset, n_pieces = struct.unpack_from("<BBBIB", payload, 1)
+        return "define_trajectory", 0, {"trajectory_id": ident, "location": location, "kind": kind,
+                                        "offset": offset, "n_pieces": n_pieces}
+    if cmd == 11:                                           # spiral
+        mask, sideways, clockwise, angle, r0, rf, ascent, duration = struct.unpack_from("<BBBfffff", payload, 1)
+        return "spiral", mask, {"sideways": bool(sideways), "clockwise": bool(clockwise), "angle": angle, "r0": r0,
+                                "rf": rf, "ascent": ascent, "duration": duration}
     return None
 
 

@@ -82,9 +82,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     *_group("locSrv", "float", (("extPosStdDev", 0.01), ("extQuatStdDev", 4.5e-3)),
             doc="std dev of external position (m) and attitude (rad) measurements"),
     *_group("hlCommander", "float", (("vtoff", 0.5), ("vland", 0.2)), doc="m/s, default take-off / landing speed"),
+    ParamSpec("hlCommander.groupmask", "uint8_t", 0,
+              doc="the groups (bits) of this drone for the high-level commander's group masks; 0: none"),
     ParamSpec("pm.lowVoltage", "float", 3.2, doc="V, below: pm.state low power"),
-    *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0)), readonly=True,
-            doc="deck: 1 if the simulated drone carries this positioning deck"),
+    *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0), ("bcLedRing", 0)), readonly=True,
+            doc="deck: 1 if the simulated drone carries this deck"),
 )
 PARAM_BY_NAME = {p.name: p for p in PARAMS}
 
