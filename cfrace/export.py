@@ -184,6 +184,10 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["flight_obs"] = True
     if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
         meta["ground_start_prob"] = float(meta0["ground_start_prob"])
+    if meta0.get("loop"):  # trained through the lab loop's model (--lab-loop, cfrace/loopmodel.py)
+        meta["loop"] = dict(meta0["loop"])
+    if meta0.get("drone_ranges"):  # drone-model ranges spanning other profiles (--span-profiles)
+        meta["drone_ranges"] = dict(meta0["drone_ranges"])
     meta.update(training_meta(ippo, int(meta0.get("num_agents", n)) >= 2))
     if meta0.get("obstacle_curriculum"):  # obstacles grown over the first iterations (--obstacle-curriculum)
         meta["obstacle_curriculum"] = int(meta0["obstacle_curriculum"])

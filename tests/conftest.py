@@ -67,3 +67,27 @@ def ppo_batch():
         return model, batch
 
     return make
+
+
+@pytest.fixture
+def spot_work(monkeypatch):
+    """The work of cfrace.flight.spots' landing-spot choice, counted (what bounds its CPU time in the
+    tick, the same on every machine): {"path_rule": candidates the rule on other drones' paths looked
+    at, "paths_clear": candidates checked for a straight clear way}."""
+    import cfrace.flight.spots as ld
+
+    work = {"path_rule": 0, "paths_clear": 0}
+    apart, paths_clear = ld._apart, ld.paths_clear
+
+    def counted_apart(start, ends, paths, still, separation):
+        if paths:
+            work["path_rule"] += len(ends)
+        return apart(start, ends, paths, still, separation)
+
+    def counted_paths_clear(track, start, ends, clearance):
+        work["paths_clear"] += len(ends)
+        return paths_clear(track, start, ends, clearance)
+
+    monkeypatch.setattr(ld, "_apart", counted_apart)
+    monkeypatch.setattr(ld, "paths_clear", counted_paths_clear)
+    return work

@@ -271,7 +271,7 @@ def test_silent_bus_fails_before_the_drone_is_touched(patient_sensor):
     t0 = time.monotonic()
     with pytest.raises(StandError, match=r"no frame from the sensor \(ids 0x1A0, 0x1A1\) within 1 s"):
         run_stand("udp://127.0.0.1:9", sensor, bus, SAFETY_PLAN, confirmed=True)
-    assert time.monotonic() - t0 < 3.0
+    assert time.monotonic() - t0 < 10.0           # gave up at its 1 s time-out (a loose bound: a loaded VM)
 
 
 def test_unplugged_crazyflie_one_line(patient_sensor):

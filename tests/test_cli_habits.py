@@ -9,7 +9,6 @@ import re
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -183,7 +182,9 @@ def test_unreachable_mocap_system_says_what_to_check(tmp_path):
 
 _MODULES = """
 import atexit, sys
-atexit.register(lambda: print("HEAVY=" + ",".join(m for m in ("torch", "onnxruntime", "matplotlib")
+atexit.register(lambda: print("HEAVY=" + ",".join(m for m in ("torch", "onnxruntime", "onnx", "matplotlib",
+                                                               "tensorboard", "ray", "gymnasium", "pettingzoo",
+                                                               "skrl", "motioncapture", "cflib", "mcap", "can")
                                                      if m in sys.modules), file=sys.stderr))
 from cfrace.cli.main import main
 main()
@@ -194,11 +195,11 @@ main()
                                   ["bench", "sim", "--help"], ["log", "info"], ["reproduce", "--bogus"],
                                   ["fly", *RACE, "--uris", "udp://127.0.0.1:9,udp://127.0.0.1:10"]])
 def test_argument_errors_and_help_import_nothing_heavy(args):
-    t0 = time.perf_counter()
+    """Asserted by what is imported (every heavy or optional dependency), not by a wall-clock figure of
+    this machine (about half a second on a quiet one): a shared CI VM's speed is no guarantee."""
     r = subprocess.run([sys.executable, "-c", _MODULES, *args], capture_output=True, text=True, timeout=60)
     assert r.returncode in (0, 2), r.stderr
     assert "HEAVY=\n" in r.stderr, r.stderr[-300:]
-    assert time.perf_counter() - t0 < 10    # about half a second on a quiet machine
 
 
 def test_fly_imports_no_torch():

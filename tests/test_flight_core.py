@@ -164,7 +164,7 @@ def test_cflib_link_times_out_on_silence():
         t0 = time.monotonic()
         with pytest.raises(LinkError, match=r"no answer within 0.5 s$"):
             open_link(uri).connect(0.5)
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < 10.0       # gave up at its 0.5 s time-out (a loose bound: a loaded VM)
 
 
 def test_cflib_detects_link_loss_by_silence(udp_fleet):

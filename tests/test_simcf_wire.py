@@ -47,7 +47,7 @@ def test_connect_params_and_log(served):
     fleet, server = served
     t0 = time.monotonic()
     with connect(server.uris[1]) as scf:
-        assert time.monotonic() - t0 < 3.0
+        assert time.monotonic() - t0 < 10.0       # answered, no retry (a loose bound: a loaded VM)
         scf.wait_for_params()
         cf = scf.cf
         assert cf.platform.get_protocol_version() == 12

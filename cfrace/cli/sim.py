@@ -214,3 +214,58 @@ def replay_cmd(
 def register(app: typer.Typer) -> None:
     """Add `cfrace sim ...` to the top-level app."""
     app.add_typer(sim_app, name="sim")
+
+
+def _numbers(option: str, text: str, kind=float) -> tuple:
+    from cfrace.errors import ConfigError
+    try:
+        values = tuple(kind(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ConfigError(f"{option}: comma-separated numbers, got {text!r}") from None
+    if not values:
+        raise ConfigError(f"{option}: at least one value")
+    return values
+
+
+@sim_app.command("robustness")
+def robustness_cmd(
+    track: str = typer.Option("lemniscate", help="Track name or YAML path."),
+    ego: str = typer.Option("ours", help="First policy: ours/ds/ss/dm or an .onnx path."),
+    opp: str = typer.Option("ds", help="Second policy."),
+    latencies_ms: str = typer.Option("0,10,20,30", "--latencies-ms", help="Mocap latencies (ms), comma-separated."),
+    profiles: str = typer.Option("cf2x_paper,cf21bl", help="Drone profiles flown, comma-separated."),
+    noise_mm: str = typer.Option("1,3", "--noise-mm", help="Mocap position noise std (mm), comma-separated."),
+    seeds: str = typer.Option("1,2,3", help="Seeds per cell, comma-separated."),
+    laps: int = typer.Option(2, help="Laps per run."),
+    duels: int = typer.Option(2, help="Head-to-head races per seed and cell (slots swapped every other); 0: none."),
+    alone: bool = typer.Option(True, "--alone/--no-alone", help="Also fly each policy alone (the other stopped)."),
+    comp_ms: Optional[float] = typer.Option(None, "--comp-ms", help="Latency compensation of the estimator (ms); "
+                                                                     "default: as much as the latency (the dry-run's)."),
+    out_dir: Path = typer.Option(Path("robustness"), "--out", help="Folder of robustness.json / .md / .png."),
+    quick: bool = typer.Option(False, "--quick", help="A small grid: latencies 0,20, noise 1 mm, seed 1, 1 lap, "
+                                                      "1 race (CI size)."),
+):
+    """Fly two policies through the lockstep flight stack over a grid of latency x drone profile x mocap
+    noise x seeds: alone (laps flown, failures by cause, lap time) and head to head; table and heat map."""
+    from cfrace.evaluate.robustness import Grid, run_grid, write
+    from cfrace.policy import resolve_policy
+
+    from cfrace.errors import ConfigError, PolicyError
+    from cfrace.track import load_track
+
+    the_track = load_track(track)
+    for option, p in (("--ego", ego), ("--opp", opp)):
+        try:
+            resolve_policy(p, the_track.name, False)
+        except PolicyError as exc:
+            raise ConfigError(f"{option}: {exc}") from None
+    kw = dict(latencies_ms=_numbers("--latencies-ms", latencies_ms), profiles=tuple(x.strip() for x in profiles.split(",") if x.strip()),
+              noise_mm=_numbers("--noise-mm", noise_mm), seeds=_numbers("--seeds", seeds, int), laps=laps, duels=duels)
+    if quick:
+        kw.update(latencies_ms=(0.0, 20.0), noise_mm=(1.0,), seeds=(1,), laps=1, duels=1)
+    grid = Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, **kw).check()
+    check_writable(out_dir / "robustness.json", "--out")
+    result = run_grid(grid, on_progress=lambda t: console.print(t, highlight=False))
+    files = write(result, out_dir)
+    out.print(files["md"].read_text(), highlight=False, soft_wrap=True)
+    out.print(f"wrote {files['json']}, {files['md']}, {files['png']} ({result['wall_s']:.0f} s)", highlight=False)

@@ -136,6 +136,19 @@ def train_cmd(
     flight_obs: bool = typer.Option(False, "--flight-obs",
                                     help="observe velocity as the flight stack estimates it (10-ms pose "
                                          "difference) and keep thrust above the firmware's least command"),
+    lab_loop: bool = typer.Option(False, "--lab-loop",
+                                  help="train through a lab's loop (cfrace.loopmodel; implies --flight-obs): "
+                                       "pose age, jitter, mocap noise, dropped frames, late setpoints, the "
+                                       "estimator's forward prediction in part of the episodes"),
+    loop_latency_ms: Optional[str] = typer.Option(None, "--loop-latency-ms", metavar="LO,HI",
+                                                  help="with --lab-loop: per-episode pose age range, ms (default 0,30)"),
+    loop_noise_mm: Optional[str] = typer.Option(None, "--loop-noise-mm", metavar="LO,HI",
+                                                help="with --lab-loop: per-episode mocap position noise std range, "
+                                                     "mm (default 0.5,3)"),
+    span_profiles: Optional[str] = typer.Option(None, "--span-profiles", metavar="A,B",
+                                                help="randomise the drone model to span these drone profiles "
+                                                     "as well as --profile (e.g. cf21bl): thrust, motor time "
+                                                     "constant, thrust limit and idle, drag, rate gains"),
 ) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG. Ctrl-C
     (or SIGTERM) finishes the iteration, checkpoints and exits 130."""
@@ -189,11 +202,43 @@ def train_cmd(
         raise typer.Exit(130)      # as every command after Ctrl-C (the checkpoint is written)
 
 
+def _range_option(option: str, text: str, unit: float, hi: float) -> tuple[float, float]:
+    """'LO,HI' in the option's unit -> (lo, hi) in SI; ConfigError naming the option."""
+    from cfrace.errors import ConfigError
+    from cfrace.loopmodel import _range
+    parts = text.split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise ConfigError(f"{option}: two numbers LO,HI, got {text!r}") from None
+    if len(values) != 2:
+        raise ConfigError(f"{option}: two numbers LO,HI, got {text!r}")
+    lo, hi_ = _range(option, values, 0.0, hi)
+    return lo * unit, hi_ * unit
+
+
+def loop_option(lab_loop: bool, latency_ms: str | None, noise_mm: str | None) -> dict | None:
+    """--lab-loop and its ranges -> TrainConfig.loop (LoopRanges fields as plain data)."""
+    from cfrace.errors import ConfigError
+    from cfrace.loopmodel import MAX_LATENCY_S, LoopRanges
+    if not lab_loop:
+        if latency_ms is not None or noise_mm is not None:
+            raise ConfigError("--loop-latency-ms / --loop-noise-mm: only with --lab-loop")
+        return None
+    given = {}
+    if latency_ms is not None:
+        given["latency_s"] = _range_option("--loop-latency-ms", latency_ms, 1e-3, MAX_LATENCY_S * 1e3)
+    if noise_mm is not None:
+        given["noise_m"] = _range_option("--loop-noise-mm", noise_mm, 1e-3, 50.0)
+    return LoopRanges(**given).to_meta()
+
+
 def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, seed, out, resume, device, profile,
                    threads, checkpoint_min, set_, reward, init_from, episode_s, critic_warmup, random_phase,
                    fixed_opponent, fixed_opponent_frac, fixed_opponent_drones, init_critic, critic_warmup_lr,
                    precision, ground_start_prob, keep_checkpoints, drones, opponent_rule, obstacle_curriculum,
-                   update_workers, compile_, flight_obs, sources: bool = True):
+                   update_workers, compile_, flight_obs, lab_loop=False, loop_latency_ms=None, loop_noise_mm=None,
+                   span_profiles=None, sources: bool = True):
     """The TrainConfig of `cfrace train`'s options (its parameters), checked as the command checks it
     before its banner (cfrace.rl.inputs.check_inputs; ``sources``: also load the files it names);
     ConfigError (one line) else. `cfrace sweep` checks its runs with it (check_train_argv)."""
@@ -233,7 +278,9 @@ def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, se
                           ground_start_prob=ground_start_prob, drones=drones,
                           update_workers=update_workers, compile=compile_,
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
-                          obstacle_curriculum=obstacle_curriculum, rewards=rewards)
+                          obstacle_curriculum=obstacle_curriculum, rewards=rewards,
+                          loop=loop_option(lab_loop, loop_latency_ms, loop_noise_mm),
+                          span_profiles=tuple(x.strip() for x in (span_profiles or "").split(",") if x.strip()))
     from cfrace.rl.inputs import check_inputs
     check_inputs(cfg, sources=sources, warm_start=resume is None)
     return cfg

@@ -21,6 +21,9 @@ from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, buil
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.errors import ConfigError
+from cfrace.loopmodel import (MOCAP_PERIOD_S, DroneRanges, LoopRanges, body_rates, frame_age, interpolate_pose,
+                              perturb_pose, rotate_body)
+from cfrace.sim.dynamics import quat_to_rot
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 
@@ -28,6 +31,8 @@ SPAWN_REDRAWS = 50   #: draws of the starts that left the arena before giving up
 
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
+HISTORY = 8   #: 100 Hz poses kept for the loop model's delayed frames (70 ms back)
+assert abs(MOCAP_DT - MOCAP_PERIOD_S) < 1e-9
 
 
 @dataclass
@@ -48,7 +53,8 @@ class RaceEnv:
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
                  rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False,
-                 drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE):
+                 drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE,
+                 loop: LoopRanges | None = None, drone: DroneRanges | None = None):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
         if drones is not None and (drones < 2 or not MULTI_AGENT[method]):
@@ -67,7 +73,11 @@ class RaceEnv:
         # flight_obs: the observation and command path of the flight stack (docs/training.md, "Flight
         # observations"): velocity = the last 10 ms pose difference, as the flight loop's estimator
         # computes it from 100 Hz mocap; thrust at least the firmware's least non-zero command
-        self.flight_obs = bool(flight_obs)
+        # loop: the lab's loop (cfrace.loopmodel): delayed, noisy, dropped mocap frames read through the
+        # flight estimator's rules, late setpoints; implies flight_obs. drone: drone-model randomisation
+        # (replaces the paper's ranges)
+        self.loop, self.drone = loop, drone
+        self.flight_obs = bool(flight_obs) or loop is not None
         self.min_thrust_n = float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
         self.max_steps = int(round(episode_s / POLICY_DT))
         self.sim = Simulator(track, profile, num_envs, self.num_agents, obstacles=self.obstacles, device=self.device,
@@ -90,6 +100,18 @@ class RaceEnv:
         self.ep_lead = torch.zeros(e, a, device=dev)
         self.ep_first_lap = torch.full((e, a), -1.0, device=dev)
         self._stats: dict[str, list] = {}
+        self._extra: tuple[str, ...] = ()
+        if loop is not None:
+            z = lambda *shape: torch.zeros(e, a, *shape, device=dev)
+            self.hist_pos, self.hist_quat = z(HISTORY, 3), z(HISTORY, 4)   #: newest first, 10 ms apart
+            self.lp_latency, self.lp_noise, self.lp_att, self.lp_drop = z(), z(), z(), z()
+            self.lp_late, self.lp_comp, self.lp_fresh = (torch.zeros(e, a, dtype=torch.bool, device=dev) for _ in range(3))
+            self.prev_thrust, self.prev_rates = z(), z(3)
+            self._extra += ("hist_pos", "hist_quat", "lp_latency", "lp_noise", "lp_att", "lp_drop", "lp_late",
+                            "lp_comp", "lp_fresh", "prev_thrust", "prev_rates")
+        if drone is not None:
+            self.dr_gain, self.dr_cap, self.dr_floor = (torch.zeros(e, a, device=dev) for _ in range(3))
+            self._extra += ("dr_gain", "dr_cap", "dr_floor")
 
     # ------------------------------------------------------------------ helpers
     def set_obstacle_scale(self, scale: float) -> None:
@@ -103,6 +125,57 @@ class RaceEnv:
     def _rand(self, *shape) -> torch.Tensor:
         return torch.rand(*shape, generator=self.gen).to(self.device)
 
+    def _randn(self, *shape) -> torch.Tensor:
+        return torch.randn(*shape, generator=self.gen).to(self.device)
+
+    def _frame_at(self, age: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, A) pose ages -> the poses then, between the 100 Hz samples of the history
+        (interpolate_pose), with this frame's mocap noise (perturb_pose)."""
+        k = (age / MOCAP_DT).clamp(0.0, HISTORY - 1.001)
+        i0 = k.floor()
+        w = (k - i0).unsqueeze(-1)
+        i0 = i0.long().unsqueeze(-1).unsqueeze(-1)
+        take = lambda h, i: torch.gather(h, 2, i.expand(*i.shape[:-1], h.shape[-1])).squeeze(2)
+        hp, hq = self.hist_pos, self.hist_quat
+        pos, quat = interpolate_pose(take(hp, i0), take(hq, i0), take(hp, i0 + 1), take(hq, i0 + 1), w)
+        e, a = age.shape
+        att = self._randn(e, a, 3) if self.loop.att_noise_rad[1] > 0 else None
+        return perturb_pose(pos, quat, self._randn(e, a, 3), self.lp_noise.unsqueeze(-1), att,
+                            self.lp_att.unsqueeze(-1))
+
+    def _loop_observe(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """pos, vel, quat as the flight stack's estimator (cfrace.flight.estimator.PoseEstimator,
+        velocity_alpha 1) reports them from the loop model's frames: the frame of this tick (age =
+        latency + jitter) and the two before it, each noisy and maybe dropped; velocity the
+        difference of the last two frames it got, position predicted forward by the age of its
+        last frame plus the latency compensation, attitude turned forward by the compensation
+        (episodes with it) at the body rates of the last two frames."""
+        e, a = self.num_envs, self.num_agents
+        age = frame_age(self.lp_latency, self.loop.jitter_s, self._rand(e, a))
+        (p0, q0), (p1, q1), (p2, q2) = (self._frame_at(age + i * MOCAP_DT) for i in range(3))
+        d0 = self._rand(e, a) < self.lp_drop                   # this tick's frame lost: hold the last one
+        d1 = (self._rand(e, a) < self.lp_drop) & ~d0           # the one before lost: a 20 ms difference
+        x0 = lambda m: m.unsqueeze(-1)
+        base = torch.where(x0(d0), p1, p0)
+        older = torch.where(x0(d0 | d1), p2, p1)
+        span = torch.where(d1, 2 * MOCAP_DT, MOCAP_DT)
+        vel = (base - older) / x0(span)
+        q = torch.where(x0(d0), q1, q0)
+        q_prev = torch.where(x0(d0 | d1), q2, q1)
+        comp = torch.where(self.lp_comp, self.lp_latency, torch.zeros_like(self.lp_latency))
+        h = comp + torch.where(d0, MOCAP_DT, 0.0)
+        pos = base + vel * x0(h)
+        q_prev = q_prev * x0(1.0 - 2.0 * ((q * q_prev).sum(-1) < 0).float())
+        turned = rotate_body(q, body_rates(q_prev, q, x0(span)), x0(h))
+        quat = torch.where(x0(comp > 0), turned, q)
+        return pos, vel, quat
+
+    def _push_pose(self) -> None:
+        """This instant's poses into the 100 Hz history (newest first)."""
+        s = self.sim
+        self.hist_pos = torch.cat([s.pos.unsqueeze(2), self.hist_pos[:, :, :-1]], 2)
+        self.hist_quat = torch.cat([s.quat.unsqueeze(2), self.hist_quat[:, :, :-1]], 2)
+
     def track_position(self) -> torch.Tensor:
         """(E, A) m flown along the gate polyline since the start gate (p of the overtaking term)."""
         r = self.sim.race
@@ -115,12 +188,17 @@ class RaceEnv:
 
     def observe(self) -> tuple[torch.Tensor, torch.Tensor]:
         s = self.sim
-        vel = (s.pos - self.mid_pos) / MOCAP_DT if self.flight_obs else s.vel
+        if self.loop is not None:
+            pos, vel, quat = self._loop_observe()
+            rot = quat_to_rot(quat)
+        else:
+            pos, rot = s.pos, s.rot()
+            vel = (s.pos - self.mid_pos) / MOCAP_DT if self.flight_obs else s.vel
         if self.num_agents > 2:
-            opp = choose_opponents(s.pos, self.track_position(), ~s.race.crashed, self.opponent_rule)
-            obs = build_observations(s.pos, vel, s.rot(), s.race.target, s.gate_corners, self.layout, opp)
+            opp = choose_opponents(pos, self.track_position(), ~s.race.crashed, self.opponent_rule)
+            obs = build_observations(pos, vel, rot, s.race.target, s.gate_corners, self.layout, opp)
             return obs, critic_observations(obs, opp)
-        obs = build_observations(s.pos, vel, s.rot(), s.race.target, s.gate_corners, self.layout)
+        obs = build_observations(pos, vel, rot, s.race.target, s.gate_corners, self.layout)
         critic = critic_observations(obs) if self.num_agents == 2 else obs
         return obs, critic
 
@@ -203,13 +281,31 @@ class RaceEnv:
             return
         pos, quat, gate_idx = self.spawn(n)
         self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
-        if self.randomize:
-            u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
+        u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
+        if self.drone is not None:
+            d, w = self.drone, self.profile.weight
+            ur = lambda r, *shape: u(r[0], r[1], *shape)
+            self.sim.set_scales(ids, k_aero=ur(d.k_aero, 3), kp=ur(d.kp, 1).expand(n, a, 3),
+                                ki=ur(d.ki, 1).expand(n, a, 3), kd=ur(d.kd, 1).expand(n, a, 3), tau_m=ur(d.tau_m, 1))
+            self.dr_gain[ids], self.dr_cap[ids], self.dr_floor[ids] = (
+                ur(d.thrust_gain), ur(d.thrust_cap_w) * w, ur(d.thrust_floor_w) * w)
+        elif self.randomize:
             scales = dict(k_aero=u(0.5, 2.0, 3), kp=u(0.85, 1.15, 1).expand(n, a, 3),
                           ki=u(0.85, 1.15, 1).expand(n, a, 3), kd=u(0.7, 1.2, 1).expand(n, a, 3))
             if a == 1:
                 scales["tau_m"] = u(0.2, 2.0, 1)
             self.sim.set_scales(ids, **scales)
+        if self.loop is not None:
+            lp = self.loop
+            self.hist_pos[ids] = self.sim.pos[ids].unsqueeze(2).expand(n, a, HISTORY, 3)
+            self.hist_quat[ids] = self.sim.quat[ids].unsqueeze(2).expand(n, a, HISTORY, 4)
+            self.lp_latency[ids] = u(*lp.latency_s)
+            self.lp_noise[ids] = u(*lp.noise_m)
+            self.lp_att[ids] = u(*lp.att_noise_rad)
+            self.lp_drop[ids] = u(*lp.drop)
+            self.lp_late[ids] = self._rand(n, a) < lp.late
+            self.lp_comp[ids] = self._rand(n, a) < lp.comp
+            self.lp_fresh[ids] = True
         self.steps[ids] = 0
         self.start_gate[ids] = gate_idx
         self.laps_paid[ids] = 0
@@ -230,10 +326,22 @@ class RaceEnv:
         laps_before = sim.race.laps.clone()
         if self.flight_obs:
             thrust = thrust.clamp_min(self.min_thrust_n)
+        if self.drone is not None:   # the thrust this drone delivers for the command
+            thrust = torch.minimum(torch.maximum(thrust * self.dr_gain, self.dr_floor), self.dr_cap)
+        if self.flight_obs:
             half = SUBSTEPS // 2
-            e1 = sim.step(thrust, rates, half)
+            if self.loop is not None:    # late setpoints: the command before for the first tick
+                late = self.lp_late & ~self.lp_fresh
+                e1 = sim.step(torch.where(late, self.prev_thrust, thrust),
+                              torch.where(late.unsqueeze(-1), self.prev_rates, rates), half)
+                self.prev_thrust, self.prev_rates, self.lp_fresh = thrust, rates, torch.zeros_like(self.lp_fresh)
+                self._push_pose()
+            else:
+                e1 = sim.step(thrust, rates, half)
             self.mid_pos = sim.pos.clone()
             e2 = sim.step(thrust, rates, SUBSTEPS - half)
+            if self.loop is not None:
+                self._push_pose()
             ev = StepEvents(e1.gates + e2.gates, e1.laps + e2.laps, e1.crashed_now | e2.crashed_now,
                             e1.contact | e2.contact, torch.where(e1.crashed_now, e1.reason, e2.reason))
         else:
@@ -282,7 +390,7 @@ class RaceEnv:
         s = self.sim
         return {"drone": [t.clone() for t in s.state], "race": [t.clone() for t in s.race],
                 "scales": {k: v.clone() for k, v in s.scales.items()},
-                "counters": {k: getattr(self, k).clone() for k in self._COUNTERS},
+                "counters": {k: getattr(self, k).clone() for k in self._COUNTERS + self._extra},
                 "gen": self.gen.get_state(), "sim_gen": s.generator.get_state()}
 
     def load_state_dict(self, state: dict) -> None:

@@ -9,9 +9,11 @@ import numpy as np
 
 from cfrace.errors import MocapError
 from cfrace.flight.mocap_base import MocapFrame, SourceBase, finite_pose
+from cfrace.loopmodel import interpolate_pose, perturb_pose
 
 class SimSource(SourceBase):
-    """Poses from a simulator's .poses() with Gaussian position noise, latency and body dropout."""
+    """Poses from a simulator's .poses() with Gaussian position noise, latency and body dropout:
+    the lab-loop rules training uses (cfrace.loopmodel: interpolate_pose, perturb_pose)."""
 
     def __init__(self, sim, bodies: list[str], noise_m: float, latency_s: float, dropout: float,
                  seed: int):
@@ -109,13 +111,7 @@ class SimSource(SourceBase):
         if j + 1 < len(buf) and target > t0 + 1e-9:
             t1, b = buf[j + 1]
             w = (target - t0) / (t1 - t0)
-            raw = {}
-            for body in a.keys() & b.keys():
-                (pa, qa), (pb, qb) = a[body], b[body]
-                if float(np.dot(qa, qb)) < 0.0:
-                    qb = -qb
-                q = (1.0 - w) * qa + w * qb
-                raw[body] = ((1.0 - w) * pa + w * pb, q / np.linalg.norm(q))
+            raw = {body: interpolate_pose(*a[body], *b[body], w) for body in a.keys() & b.keys()}
             t0, a = target, raw
         if t0 <= self._delivered_t + 1e-9:
             return None
@@ -131,7 +127,7 @@ class SimSource(SourceBase):
             pos, quat = raw[body]
             drop = self.dropout > 0 and self._rng.random() < self.dropout
             if self.noise_m > 0:
-                pos = pos + self._rng.normal(0.0, self.noise_m, 3)
+                pos, quat = perturb_pose(pos, quat, self._rng.standard_normal(3), self.noise_m)
             pose = finite_pose(pos, quat)
             if not drop and pose is not None:
                 poses[body] = pose

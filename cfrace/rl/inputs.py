@@ -46,6 +46,14 @@ def check_inputs(cfg, sources: bool = True, warm_start: bool = True) -> tuple:
     multi = cfg.method in MULTI_AGENT_METHODS
     check_fixed_opponent(cfg, (cfg.drones or 2) if multi else 1)
     track, profile = load_track(cfg.track), load_profile(cfg.profile)
+    for name in getattr(cfg, "span_profiles", ()):
+        try:
+            load_profile(name)
+        except ConfigError as exc:
+            raise ConfigError(f"--span-profiles: {exc}") from None
+    if getattr(cfg, "loop", None) is not None:
+        from cfrace.loopmodel import LoopRanges
+        LoopRanges.from_meta(cfg.loop)
     obstacles = bool(cfg.obstacles and track.obstacles)     # as RaceEnv: a track without obstacles drops them
     layout = layout_for(multi, obstacles).name
     init_from = cfg.init_from if warm_start else None

@@ -68,6 +68,8 @@ class TrainConfig:
     opponent_rule: str = DEFAULT_OPPONENT_RULE  #: which drone each one observes when drones > 2
     obstacle_curriculum: int = 0    #: iterations over which the obstacles grow to full size (0: full from the start)
     rewards: tuple = ()             #: ((RewardScales field, value), ...) over the paper's reward weights (--reward)
+    loop: dict | None = None        #: the lab's loop in training: cfrace.loopmodel.LoopRanges fields (--lab-loop)
+    span_profiles: tuple = ()       #: drone-model randomisation spanning these profiles too (--span-profiles)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -112,13 +114,23 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     from cfrace.env.rewards import reward_scales
     from cfrace.rl.inputs import check_inputs
     track, profile = check_inputs(cfg, sources=False)
+    loop, drone = loop_and_drone(cfg, profile)
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         track = replace(track, spawn=replace(track.spawn, ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
-                  opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards))
+                  opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards), loop=loop, drone=drone)
     return env, env_meta(cfg, env, track.name, profile)
+
+
+def loop_and_drone(cfg: TrainConfig, profile):
+    """The run's LoopRanges and DroneRanges (cfrace.loopmodel), None where it has none."""
+    from cfrace.drone import load_profile
+    from cfrace.loopmodel import LoopRanges, drone_ranges
+    loop = LoopRanges.from_meta(cfg.loop) if cfg.loop is not None else None
+    drone = drone_ranges(profile, [load_profile(p) for p in cfg.span_profiles]) if cfg.span_profiles else None
+    return loop, drone
 
 
 def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
@@ -132,7 +144,9 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
             **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {}),
-            **({"rewards": {str(k): float(v) for k, v in cfg.rewards}} if cfg.rewards else {})}
+            **({"rewards": {str(k): float(v) for k, v in cfg.rewards}} if cfg.rewards else {}),
+            **({"loop": env.loop.to_meta()} if getattr(env, "loop", None) is not None else {}),
+            **({"drone_ranges": env.drone.to_meta()} if getattr(env, "drone", None) is not None else {})}
 
 
 def resume_config(resume: str | Path, **given) -> TrainConfig:

@@ -1,0 +1,177 @@
+"""The lab-loop model (cfrace.loopmodel) that training and the dry-run's simulated mocap share: its
+rules, the env's reading of frames through the flight estimator's rules (checked against the
+estimator itself), the drone ranges drawn from calibration/, and bad input to the new options."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from cfrace.drone import load_profile
+from cfrace.errors import ConfigError
+from cfrace.flight.estimator import PoseEstimator
+from cfrace.flight.mocap_base import MocapFrame, Pose
+from cfrace.loopmodel import (IDLE_THRUST_COUNTS, MOCAP_PERIOD_S, DroneRanges, LoopRanges, drone_ranges, frame_age,
+                              interpolate_pose, perturb_pose, rotate_body)
+from cfrace.track import load_track
+
+CFRACE = Path(sys.executable).with_name("cfrace")
+
+
+def _unit(q):
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def test_the_rules_agree_on_numpy_and_torch_and_keep_unit_quaternions():
+    rng = np.random.default_rng(0)
+    pa, pb = rng.normal(size=(5, 3)), rng.normal(size=(5, 3))
+    qa, qb = _unit(rng.normal(size=(5, 4))), _unit(rng.normal(size=(5, 4)))
+    w = rng.random((5, 1))
+    p_np, q_np = interpolate_pose(pa, qa, pb, qb, w)
+    p_t, q_t = interpolate_pose(*(torch.tensor(x) for x in (pa, qa, pb, qb, w)))
+    assert np.allclose(p_np, p_t.numpy()) and np.allclose(q_np, q_t.numpy())
+    assert np.allclose(np.linalg.norm(q_np, axis=-1), 1.0)
+    # the ends are the samples themselves (qb up to its sign: the blend takes qa's hemisphere)
+    p0, q0 = interpolate_pose(pa, qa, pb, qb, 0.0)
+    p1, q1 = interpolate_pose(pa, qa, pb, qb, 1.0)
+    assert np.allclose(p0, pa) and np.allclose(q0, qa) and np.allclose(p1, pb)
+    assert np.allclose(np.abs((q1 * qb).sum(-1)), 1.0)
+    pos, quat = perturb_pose(pa, qa, rng.normal(size=(5, 3)), 0.002, rng.normal(size=(5, 3)), 0.01)
+    assert np.allclose(np.linalg.norm(quat, axis=-1), 1.0)
+    angle = 2 * np.arccos(np.clip(np.abs((quat * qa).sum(-1)), 0, 1))
+    assert (angle < 0.1).all() and (angle > 0).all()
+    assert perturb_pose(pa, qa, np.zeros((5, 3)), 0.002)[1] is qa       # no attitude noise: untouched
+    ages = frame_age(np.full(1000, 0.001), 0.002, rng.random(1000))
+    assert ages.min() >= 0.0 and ages.max() <= 0.003
+
+
+def test_rotate_body_is_the_estimators_prediction():
+    from cfrace.flight.estimator import _rotate_body
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        q, omega, h = _unit(rng.normal(size=4)), rng.normal(size=3) * 5, float(rng.random() * 0.03)
+        assert np.allclose(rotate_body(q, omega, h), _rotate_body(tuple(q), tuple(omega), h), atol=1e-12)
+    assert np.allclose(rotate_body(q, np.zeros(3), 0.01), q)
+
+
+@pytest.mark.parametrize("comp, drop", [(0.0, 0), (1.0, 0), (1.0, 1), (0.0, 2)])
+def test_the_env_reads_frames_as_the_flight_estimator_does(comp, drop):
+    """Training's delayed observation against the flight stack's PoseEstimator fed the same frames:
+    the frame of this tick and the two before it (pose age 17 ms, between two 100 Hz samples), with
+    latency compensation on or off, this tick's frame (drop 1) or the one before (drop 2) lost."""
+    from cfrace.env.race_env import RaceEnv
+    latency = 0.017
+    loop = LoopRanges(latency_s=(latency, latency), jitter_s=0.0, noise_m=(0.0, 0.0), att_noise_rad=(0.0, 0.0),
+                      drop=(0.0, 0.0), late=0.0, comp=comp)
+    env = RaceEnv(load_track("lemniscate"), load_profile("cf2x_paper"), num_envs=3, method="ds", obstacles=False,
+                  seed=4, loop=loop)
+    env.reset()
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(6):      # fly a little: the drones move and turn
+        env.step(torch.rand(3, 1, 4, generator=gen) * 2 - 1)
+    hp, hq = env.hist_pos.double().numpy(), env.hist_quat.double().numpy()      # (E, A, K, .) newest first
+    drops = {0: (False, False), 1: (True, False), 2: (False, True)}[drop]
+    env.lp_drop[:] = 0.5     # draws below it lose the frame: 0 loses it, 1 keeps it
+    draws = iter([torch.full((3, 1), 0.5)] + [torch.full((3, 1), 0.0 if d else 1.0) for d in drops])
+    env._rand = lambda *shape: next(draws)     # _loop_observe's draws: jitter, this frame lost, the one before
+    pos, vel, quat = (x.double().numpy() for x in env._loop_observe())
+    k, w = divmod(latency / MOCAP_PERIOD_S, 1.0)
+    for e in range(3):
+        est = PoseEstimator(["cf1"], alpha=1.0, lead_s=latency if comp else 0.0)
+        # the frames of the ticks 2, 1, 0 before now (age latency), oldest first; a lost one is absent
+        for tick in (2, 1, 0):
+            i = int(k) + tick
+            p, q = interpolate_pose(hp[e, 0, i], hq[e, 0, i], hp[e, 0, i + 1], hq[e, 0, i + 1], w)
+            lost = (tick == 0 and drops[0]) or (tick == 1 and drops[1])
+            t = -tick * MOCAP_PERIOD_S - latency
+            poses = {} if lost else {"cf1": Pose(pos=p, quat=q)}
+            got = est.update(MocapFrame(t=t, poses=poses, seq=3 - tick), now=-tick * MOCAP_PERIOD_S)
+        ref = got["cf1"]
+        assert np.allclose(pos[e, 0], ref.pos, atol=2e-5), (pos[e, 0], ref.pos)
+        assert np.allclose(vel[e, 0], ref.vel, atol=5e-3), (vel[e, 0], ref.vel)
+        assert np.allclose(np.abs((quat[e, 0] * ref.quat).sum()), 1.0, atol=1e-5)
+
+
+def test_training_through_the_loop_draws_what_the_ranges_say_and_resumes_exactly():
+    from cfrace.env.race_env import RaceEnv
+    prof = load_profile("cf2x_paper")
+    dr = drone_ranges(prof, [load_profile("cf21bl")])
+    env = RaceEnv(load_track("lemniscate"), prof, num_envs=64, method="ours", obstacles=False, seed=2,
+                  loop=LoopRanges(), drone=dr)
+    env.reset()
+    lo, hi = LoopRanges().latency_s
+    assert env.flight_obs and (env.lp_latency >= lo).all() and (env.lp_latency <= hi).all()
+    assert 0.1 < env.lp_late.float().mean() < 0.5 and 0.3 < env.lp_comp.float().mean() < 0.7
+    tau = env.sim.scales["tau_m"]
+    assert (tau >= dr.tau_m[0]).all() and (tau <= dr.tau_m[1]).all() and tau.max() > 2.0
+    gen = torch.Generator().manual_seed(0)
+    acts = [torch.rand(64, 2, 4, generator=gen) * 2 - 1 for _ in range(8)]
+    for a in acts[:4]:
+        env.step(a)
+    state = env.state_dict()
+    first = [env.step(a).obs for a in acts[4:]]
+    env.load_state_dict(state)
+    again = [env.step(a).obs for a in acts[4:]]
+    assert all(torch.equal(x, y) for x, y in zip(first, again))
+    assert all(torch.isfinite(x).all() for x in first)
+
+
+def test_drone_ranges_span_the_profiles_in_calibration():
+    paper, bl = load_profile("cf2x_paper"), load_profile("cf21bl")
+    dr = drone_ranges(paper, [bl])
+    assert dr.profiles == ("cf2x_paper", "cf21bl")
+    for p in (paper, bl):
+        assert dr.tau_m[0] * paper.tau_m <= p.tau_m <= dr.tau_m[1] * paper.tau_m
+        assert dr.thrust_cap_w[0] <= p.max_collective_thrust / p.weight <= dr.thrust_cap_w[1]
+    idle = bl.thrust_curve.to_newtons(IDLE_THRUST_COUNTS["cf21bl"]) / bl.weight
+    assert dr.thrust_floor_w[1] == pytest.approx(idle, abs=1e-3) and dr.thrust_floor_w[0] == 0.0
+    assert dr.kp[0] < 0.85 and dr.kp[1] > 1.15
+    assert DroneRanges.from_meta(dr.to_meta()) == dr
+    assert drone_ranges(paper, []).tau_m == (0.5, 1.15)       # only itself: its own neighbourhood
+
+
+@pytest.mark.parametrize("given, words", [(dict(latency_s=(-0.001, 0.02)), ["latency", "within"]),
+                                          (dict(noise_m=(0.003, 0.001)), ["upside down"]),
+                                          (dict(late=1.5), ["late setpoints", "probability"])])
+def test_bad_ranges_are_one_line(given, words):
+    with pytest.raises(ConfigError) as exc:
+        LoopRanges(**given)
+    assert all(w in str(exc.value) for w in words) and "\n" not in str(exc.value)
+
+
+def test_the_train_options_refuse_bad_input_in_one_line(tmp_path):
+    env = dict(os.environ, COLUMNS="200")
+    cases = [(["--lab-loop", "--loop-latency-ms", "-5,30"], "--loop-latency-ms"),
+             (["--lab-loop", "--loop-noise-mm", "3,1"], "upside down"),
+             (["--span-profiles", "cf99"], "--span-profiles"),
+             (["--loop-latency-ms", "0,20"], "only with --lab-loop")]
+    for extra, word in cases:
+        r = subprocess.run([str(CFRACE), "train", "--method", "ds", "--track", "lemniscate", "--steps", "10",
+                            "--out", str(tmp_path / "run"), *extra], capture_output=True, text=True, env=env,
+                           timeout=240, cwd=tmp_path)
+        assert r.returncode == 2 and "Traceback" not in r.stderr and r.stderr.count("\n") == 1, r.stderr
+        assert word in r.stderr, r.stderr
+        assert not (tmp_path / "run").exists()
+
+
+def test_a_run_through_the_loop_records_its_ranges_in_the_policy(tmp_path):
+    from cfrace.export import export_checkpoint
+    from cfrace.policy import OnnxPolicy
+    from cfrace.rl.train import TrainConfig, train
+    small = (("actor_hidden", (16, 16)), ("critic_hidden", (16,)))
+    cfg = TrainConfig("ds", "lemniscate", num_envs=8, steps=8 * 24, device="cpu", threads=1, seed=3,
+                      out=str(tmp_path / "run"), overrides=small, loop=LoopRanges().to_meta(),
+                      span_profiles=("cf21bl",))
+    res = train(cfg)
+    export_checkpoint(res.checkpoint, tmp_path / "p.onnx")
+    meta = OnnxPolicy(tmp_path / "p.onnx").meta
+    assert LoopRanges.from_meta(meta["loop"]) == LoopRanges() and meta["flight_obs"] is True
+    assert DroneRanges.from_meta(meta["drone_ranges"]).profiles == ("cf2x_paper", "cf21bl")
+    assert math.isclose(meta["drone_ranges"]["tau_m"][1], 4.6)
