@@ -144,11 +144,28 @@ def test_watchdog_levels_out_then_shuts_down_and_locks():
     f.handle_setpoint(0, 0, 0, 0, 50000)          # still locked
     f.advance(0.01)
     assert last_cmd(f)[0] == 0.0 and f.status(0)["watchdog"] == "ok"
-    f.handle_setpoint(0, 0, 0, 0, 0)              # re-unlock
+    f.handle_setpoint(0, 0, 0, 0, 0)              # in flight the supervisor locked: no unlock
+    f.handle_setpoint(0, 0, 0, 0, 50000)
+    f.advance(0.01)
+    assert last_cmd(f)[0] == 0.0 and f.status(0)["emergency_stopped"]
+    assert any("500 ms" in e for e in f.drain_events(0))
+    f.reboot(0)                                   # reboot required (supervisor_state_machine.c)
+    f.handle_setpoint(0, 0, 0, 0, 0)
     f.handle_setpoint(0, 0, 0, 0, 50000)
     f.advance(0.01)
     assert last_cmd(f)[0] > 0.0
-    assert any("500 ms" in e for e in f.drain_events(0))
+
+
+def test_watchdog_on_the_ground_keeps_the_zero_thrust_unlock():
+    f = make()
+    f.handle_setpoint(0, 0, 0, 0, 0)              # unlocked, motors off: not flying
+    f.advance(2.1)
+    st = f.status(0)
+    assert st["watchdog"] == "shutdown" and st["locked"] and not st["emergency_stopped"]
+    f.handle_setpoint(0, 0, 0, 0, 0)
+    f.handle_setpoint(0, 0, 0, 0, 50000)
+    f.advance(0.01)
+    assert last_cmd(f)[0] > 0.0
 
 
 def test_watchdog_boundaries_are_exact_within_one_step():

@@ -147,11 +147,11 @@ def test_watchdog_over_the_wire(served):
         time.sleep(max(0.0, t_last + 2.2 - time.monotonic()))
         st = fleet.status(0)
         assert st["watchdog"] == "shutdown" and st["locked"] and st["thrust"] == 0.0
-        send_for(cf, 0.1, thrust=counts(fleet, 1.2))
-        assert fleet.status(0)["thrust"] == 0.0                        # still locked
+        assert st["emergency_stopped"]                                 # in flight: locked (supervisor)
         cf.commander.send_setpoint(0, 0, 0, 0)
         send_for(cf, 0.1, thrust=counts(fleet, 1.2))
-        assert fleet.status(0)["thrust"] > 0.0
+        assert fleet.status(0)["thrust"] == 0.0                        # reboot required
+        assert fleet.supervisor_bitfield(0) & (1 << 6)
 
 
 def test_emergency_stop_over_the_wire(served):

@@ -14,8 +14,9 @@ and cflib 0.1.34 (commander.py):
 * Thrust: locked at boot and after the watchdog shut down; a packet with thrust == 0 unlocks it.
   Locked or below 1000 counts -> 0; above 60000 counts -> 60000. Counts -> newtons through the
   drone profile's thrust curve (collective).
-* Watchdog (simulated time): no setpoint for 500 ms -> level attitude (angle mode 0/0, yaw rate
-  0) with the last thrust; 2 s -> motors off and thrust locked until a zero-thrust setpoint.
+* Watchdog (simulated time, supervisor.c): no setpoint for 500 ms -> level out (x, y disabled,
+  roll/pitch 0 in angle mode, yaw rate 0, z kept); 2 s -> motors off; in flight the supervisor
+  locks (reboot required), on the ground the thrust stays locked until a zero-thrust setpoint.
 * Arming (the 2.1 Brushless): motors only run when armed (option ``arming_required``).
 * Emergency stop (supervisor command, legacy localization packet, ``stabilizer.stop``, or the
   emergency-stop watchdog): motors off, locked until ``reboot``.
@@ -90,6 +91,7 @@ class DroneFirmware:
     setpoint: Setpoint | None = None
     last_setpoint_time: float | None = None
     watchdog: str = "idle"           #: idle (no setpoint yet) | ok | level | shutdown
+    flying_at_level: bool = False    #: motors were running when the level-out began (-> lock at 2 s)
     estop_watchdog_time: float | None = None
     setpoints_received: int = 0
     packets_received: int = 0
@@ -434,11 +436,20 @@ class SimFleet:
             return
         age = t - fw.last_setpoint_time
         if age > WDT_SHUTDOWN + 1e-9:
+            # supervisor_state_machine.c (transitionsFlying, transitionsWarningLevelOut): the commander
+            # watchdog's timeout in flight -> ExceptFreeFall -> Locked, reboot required. On the ground
+            # (not flying) the motors stop and the legacy thrust lock holds until a zero-thrust setpoint.
+            flying = fw.watchdog == "level" and fw.flying_at_level
             fw.watchdog = "shutdown"
             fw.thrust_locked = True
-            fw.events.append("CMD: no setpoint for 2 s, motors off, thrust locked")
+            if flying:
+                self._emergency(fw, "commander watchdog timeout in flight")
+            else:
+                fw.events.append("CMD: no setpoint for 2 s, motors off, thrust locked")
         elif age > WDT_LEVEL + 1e-9 and fw.watchdog == "ok":
             fw.watchdog = "level"
+            fw.flying_at_level = bool(fw.armed and not fw.emergency and not self._gated(fw)
+                                      and not fw.setpoint.is_stop)
             fw.events.append("CMD: no setpoint for 500 ms, levelling out")
 
     def _next_deadline(self, t: float) -> float:
@@ -469,8 +480,11 @@ class SimFleet:
 
     @staticmethod
     def _levelled(sp: Setpoint) -> Setpoint:
-        """The commander's watchdog after 500 ms without setpoints: roll, pitch 0, yaw rate 0."""
+        """The supervisor's level-out after 500 ms without setpoints (crazyflie-firmware
+        src/modules/src/supervisor.c, supervisorOverrideSetpoint, state WarningLevelOut): x and y
+        disabled, roll and pitch absolute 0, yaw rate 0; z (position, velocity or thrust) kept."""
         out = Setpoint(**{**sp.__dict__, "attitude": sp.attitude.copy(), "rates": sp.rates.copy()})
+        out.mode_x = out.mode_y = DISABLE
         out.mode_roll = out.mode_pitch = ABS
         out.attitude[:2] = 0.0
         out.mode_yaw, out.rates[2] = VELOCITY, 0.0
