@@ -240,3 +240,12 @@ def drone_ranges(base, profiles, blend: float = 0.2) -> DroneRanges:
         thrust_floor_w=tuple(round(idle_floor_w(p), 4) for p in all_p),
         pid=tuple(round(auth[0] / a, 4) for a in auth),
         blend=blend)
+
+
+def training_ranges(loop: dict | None, span_profiles, profile):
+    """A training run's LoopRanges (from TrainConfig.loop, plain data) and DroneRanges (around
+    ``profile``, spanning the profiles named), None where it has none."""
+    from cfrace.drone import load_profile
+    ranges = LoopRanges.from_meta(loop) if loop is not None else None
+    drone = drone_ranges(profile, [load_profile(p) for p in span_profiles]) if span_profiles else None
+    return ranges, drone

@@ -182,3 +182,25 @@ def test_a_run_through_the_loop_records_its_ranges_in_the_policy(tmp_path):
     assert LoopRanges.from_meta(meta["loop"]) == LoopRanges() and meta["flight_obs"] is True
     assert DroneRanges.from_meta(meta["drone_ranges"]).profiles == ("cf2x_paper", "cf21bl")
     assert math.isclose(meta["drone_ranges"]["tau_m"][1], 4.0)
+
+
+def test_the_robustness_grid_flies_through_the_lockstep_stack_and_writes_its_table_and_figure(tmp_path):
+    """`cfrace sim robustness --quick`: every cell flown (alone for each policy, one duel), the rows
+    add up to the cells, and the three files exist; a bad option is one line and exit 2."""
+    import json
+    run = lambda *a: subprocess.run([sys.executable, "-m", "cfrace", "sim", "robustness", *a],
+                                    capture_output=True, text=True, timeout=300)
+    r = run("--quick", "--out", str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads((tmp_path / "robustness.json").read_text())
+    assert (tmp_path / "robustness.png").stat().st_size > 1000 and (tmp_path / "robustness.md").exists()
+    cells = got["cells"]
+    assert {(c["latency_ms"], c["profile"]) for c in cells} == {(a, p) for a in (0.0, 20.0) for p in ("cf2x_paper", "cf21bl")}
+    alone = [row for row in got["rows"] if row["kind"] == "alone"]
+    assert len(alone) == 2 * len(cells)                      # ours and ds, one seed, per cell
+    assert all(0 <= row["laps"] <= 1 for row in alone)
+    assert all((row["end"] == "finished") == row["finished"] for row in alone)
+    for bad, word in ((["--quick", "--latencies-ms", "20,-5"], "--latencies-ms"), (["--profiles", "cf9"], "--profiles")):
+        r = run(*bad, "--out", str(tmp_path / "bad"))
+        assert r.returncode == 2 and word in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert not (tmp_path / "bad" / "robustness.json").exists()

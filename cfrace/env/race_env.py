@@ -21,8 +21,8 @@ from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, buil
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.errors import ConfigError
-from cfrace.loopmodel import (MOCAP_PERIOD_S, DroneRanges, LoopRanges, body_rates, frame_age, interpolate_pose,
-                              perturb_pose, rotate_body)
+from cfrace.env.labloop import LabLoop
+from cfrace.loopmodel import MOCAP_PERIOD_S, DroneRanges, LoopRanges
 from cfrace.sim.dynamics import quat_to_rot
 from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
@@ -31,7 +31,6 @@ SPAWN_REDRAWS = 50   #: draws of the starts that left the arena before giving up
 
 SUBSTEPS = 10
 MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
-HISTORY = 8   #: 100 Hz poses kept for the loop model's delayed frames (70 ms back)
 assert abs(MOCAP_DT - MOCAP_PERIOD_S) < 1e-9
 
 
@@ -48,7 +47,7 @@ class StepResult:
     stats: dict[str, float] = field(default_factory=dict)
 
 
-class RaceEnv:
+class RaceEnv(LabLoop):
     def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
@@ -101,17 +100,7 @@ class RaceEnv:
         self.ep_first_lap = torch.full((e, a), -1.0, device=dev)
         self._stats: dict[str, list] = {}
         self._extra: tuple[str, ...] = ()
-        if loop is not None:
-            z = lambda *shape: torch.zeros(e, a, *shape, device=dev)
-            self.hist_pos, self.hist_quat = z(HISTORY, 3), z(HISTORY, 4)   #: newest first, 10 ms apart
-            self.lp_latency, self.lp_noise, self.lp_att, self.lp_drop = z(), z(), z(), z()
-            self.lp_late, self.lp_comp, self.lp_fresh = (torch.zeros(e, a, dtype=torch.bool, device=dev) for _ in range(3))
-            self.prev_thrust, self.prev_rates = z(), z(3)
-            self._extra += ("hist_pos", "hist_quat", "lp_latency", "lp_noise", "lp_att", "lp_drop", "lp_late",
-                            "lp_comp", "lp_fresh", "prev_thrust", "prev_rates")
-        if drone is not None:
-            self.dr_gain, self.dr_cap, self.dr_floor = (torch.zeros(e, a, device=dev) for _ in range(3))
-            self._extra += ("dr_gain", "dr_cap", "dr_floor")
+        self._init_lab(e, a, dev)
 
     # ------------------------------------------------------------------ helpers
     def set_obstacle_scale(self, scale: float) -> None:
@@ -127,54 +116,6 @@ class RaceEnv:
 
     def _randn(self, *shape) -> torch.Tensor:
         return torch.randn(*shape, generator=self.gen).to(self.device)
-
-    def _frame_at(self, age: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(E, A) pose ages -> the poses then, between the 100 Hz samples of the history
-        (interpolate_pose), with this frame's mocap noise (perturb_pose)."""
-        k = (age / MOCAP_DT).clamp(0.0, HISTORY - 1.001)
-        i0 = k.floor()
-        w = (k - i0).unsqueeze(-1)
-        i0 = i0.long().unsqueeze(-1).unsqueeze(-1)
-        take = lambda h, i: torch.gather(h, 2, i.expand(*i.shape[:-1], h.shape[-1])).squeeze(2)
-        hp, hq = self.hist_pos, self.hist_quat
-        pos, quat = interpolate_pose(take(hp, i0), take(hq, i0), take(hp, i0 + 1), take(hq, i0 + 1), w)
-        e, a = age.shape
-        att = self._randn(e, a, 3) if self.loop.att_noise_rad[1] > 0 else None
-        return perturb_pose(pos, quat, self._randn(e, a, 3), self.lp_noise.unsqueeze(-1), att,
-                            self.lp_att.unsqueeze(-1))
-
-    def _loop_observe(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """pos, vel, quat as the flight stack's estimator (cfrace.flight.estimator.PoseEstimator,
-        velocity_alpha 1) reports them from the loop model's frames: the frame of this tick (age =
-        latency + jitter) and the two before it, each noisy and maybe dropped; velocity the
-        difference of the last two frames it got, position predicted forward by the age of its
-        last frame plus the latency compensation, attitude turned forward by the compensation
-        (episodes with it) at the body rates of the last two frames."""
-        e, a = self.num_envs, self.num_agents
-        age = frame_age(self.lp_latency, self.loop.jitter_s, self._rand(e, a))
-        (p0, q0), (p1, q1), (p2, q2) = (self._frame_at(age + i * MOCAP_DT) for i in range(3))
-        d0 = self._rand(e, a) < self.lp_drop                   # this tick's frame lost: hold the last one
-        d1 = (self._rand(e, a) < self.lp_drop) & ~d0           # the one before lost: a 20 ms difference
-        x0 = lambda m: m.unsqueeze(-1)
-        base = torch.where(x0(d0), p1, p0)
-        older = torch.where(x0(d0 | d1), p2, p1)
-        span = torch.where(d1, 2 * MOCAP_DT, MOCAP_DT)
-        vel = (base - older) / x0(span)
-        q = torch.where(x0(d0), q1, q0)
-        q_prev = torch.where(x0(d0 | d1), q2, q1)
-        comp = torch.where(self.lp_comp, self.lp_latency, torch.zeros_like(self.lp_latency))
-        h = comp + torch.where(d0, MOCAP_DT, 0.0)
-        pos = base + vel * x0(h)
-        q_prev = q_prev * x0(1.0 - 2.0 * ((q * q_prev).sum(-1) < 0).float())
-        turned = rotate_body(q, body_rates(q_prev, q, x0(span)), x0(h))
-        quat = torch.where(x0(comp > 0), turned, q)
-        return pos, vel, quat
-
-    def _push_pose(self) -> None:
-        """This instant's poses into the 100 Hz history (newest first)."""
-        s = self.sim
-        self.hist_pos = torch.cat([s.pos.unsqueeze(2), self.hist_pos[:, :, :-1]], 2)
-        self.hist_quat = torch.cat([s.quat.unsqueeze(2), self.hist_quat[:, :, :-1]], 2)
 
     def track_position(self) -> torch.Tensor:
         """(E, A) m flown along the gate polyline since the start gate (p of the overtaking term)."""
@@ -282,21 +223,8 @@ class RaceEnv:
         pos, quat, gate_idx = self.spawn(n)
         self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
         u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
-        if self.drone is not None:   # a profile of the ranges (or a mix of two), jittered
-            d, w = self.drone, self.profile.weight
-            table = torch.tensor(d.table(), dtype=torch.float32, device=self.device)
-            k = table.shape[0]
-            i, j = ((self._rand(n, a) * k).long().clamp_max(k - 1) for _ in range(2))
-            mix = torch.where(self._rand(n, a) < d.blend, self._rand(n, a), torch.zeros(n, a, device=self.device))
-            row = table[i] + (table[j] - table[i]) * mix.unsqueeze(-1)
-            ur = lambda r, *shape: u(r[0], r[1], *shape)
-            pid = row[..., 3:4]
-            self.sim.set_scales(ids, k_aero=ur(d.k_aero, 3), kp=(pid * ur(d.kp, 1)).expand(n, a, 3),
-                                ki=(pid * ur(d.ki, 1)).expand(n, a, 3), kd=(pid * ur(d.kd, 1)).expand(n, a, 3),
-                                tau_m=row[..., 0:1] * ur(d.tau_jitter, 1))
-            self.dr_gain[ids] = ur(d.thrust_gain)
-            self.dr_cap[ids] = row[..., 1] * ur(d.cap_jitter) * w
-            self.dr_floor[ids] = row[..., 2] * ur(d.floor_jitter) * w
+        if self.drone is not None:
+            self._reset_drone(ids, u)
         elif self.randomize:
             scales = dict(k_aero=u(0.5, 2.0, 3), kp=u(0.85, 1.15, 1).expand(n, a, 3),
                           ki=u(0.85, 1.15, 1).expand(n, a, 3), kd=u(0.7, 1.2, 1).expand(n, a, 3))
@@ -304,16 +232,7 @@ class RaceEnv:
                 scales["tau_m"] = u(0.2, 2.0, 1)
             self.sim.set_scales(ids, **scales)
         if self.loop is not None:
-            lp = self.loop
-            self.hist_pos[ids] = self.sim.pos[ids].unsqueeze(2).expand(n, a, HISTORY, 3)
-            self.hist_quat[ids] = self.sim.quat[ids].unsqueeze(2).expand(n, a, HISTORY, 4)
-            self.lp_latency[ids] = u(*lp.latency_s)
-            self.lp_noise[ids] = u(*lp.noise_m)
-            self.lp_att[ids] = u(*lp.att_noise_rad)
-            self.lp_drop[ids] = u(*lp.drop)
-            self.lp_late[ids] = self._rand(n, a) < lp.late
-            self.lp_comp[ids] = self._rand(n, a) < lp.comp
-            self.lp_fresh[ids] = True
+            self._reset_loop(ids, u)
         self.steps[ids] = 0
         self.start_gate[ids] = gate_idx
         self.laps_paid[ids] = 0
@@ -335,17 +254,10 @@ class RaceEnv:
         if self.flight_obs:
             thrust = thrust.clamp_min(self.min_thrust_n)
         if self.drone is not None:   # the thrust this drone delivers for the command
-            thrust = torch.minimum(torch.maximum(thrust * self.dr_gain, self.dr_floor), self.dr_cap)
+            thrust = self._delivered(thrust)
         if self.flight_obs:
             half = SUBSTEPS // 2
-            if self.loop is not None:    # late setpoints: the command before for the first tick
-                late = self.lp_late & ~self.lp_fresh
-                e1 = sim.step(torch.where(late, self.prev_thrust, thrust),
-                              torch.where(late.unsqueeze(-1), self.prev_rates, rates), half)
-                self.prev_thrust, self.prev_rates, self.lp_fresh = thrust, rates, torch.zeros_like(self.lp_fresh)
-                self._push_pose()
-            else:
-                e1 = sim.step(thrust, rates, half)
+            e1 = self._late_first_half(thrust, rates, half) if self.loop is not None else sim.step(thrust, rates, half)
             self.mid_pos = sim.pos.clone()
             e2 = sim.step(thrust, rates, SUBSTEPS - half)
             if self.loop is not None:

@@ -114,7 +114,8 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     from cfrace.env.rewards import reward_scales
     from cfrace.rl.inputs import check_inputs
     track, profile = check_inputs(cfg, sources=False)
-    loop, drone = loop_and_drone(cfg, profile)
+    from cfrace.loopmodel import training_ranges
+    loop, drone = training_ranges(cfg.loop, cfg.span_profiles, profile)
     if cfg.ground_start_prob is not None:  # a curriculum knob: same track, another start mix
         track = replace(track, spawn=replace(track.spawn, ground_start_prob=cfg.ground_start_prob))
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
@@ -122,15 +123,6 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
                   opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards), loop=loop, drone=drone)
     return env, env_meta(cfg, env, track.name, profile)
-
-
-def loop_and_drone(cfg: TrainConfig, profile):
-    """The run's LoopRanges and DroneRanges (cfrace.loopmodel), None where it has none."""
-    from cfrace.drone import load_profile
-    from cfrace.loopmodel import LoopRanges, drone_ranges
-    loop = LoopRanges.from_meta(cfg.loop) if cfg.loop is not None else None
-    drone = drone_ranges(profile, [load_profile(p) for p in cfg.span_profiles]) if cfg.span_profiles else None
-    return loop, drone
 
 
 def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
