@@ -185,51 +185,38 @@ def test_cflib_figure8_example_flies_its_polynomial():
     assert fleet.state(0)["pos"][2] < 0.05 and not fleet.status(0)["crashed"]
 
 
-def mem_read(cf, mem, addr, n, timeout=2.0):
+def _mem_answer(mem, ok_caller, failed_caller, send, ok_value, timeout=2.0):
+    """Send a memory request and wait for cflib's success or failure callback of this memory:
+    ok_value(args) on success, None (read) / False (write) on failure."""
+    done, out = threading.Event(), {}
+
+    def answer(value):
+        def cb(m, *args):
+            if m.id == mem.id:
+                out["v"] = value(args) if callable(value) else value
+                done.set()
+        return cb
+    ok, failed = answer(ok_value), answer(None if ok_value is not True else False)
+    ok_caller.add_callback(ok)
+    failed_caller.add_callback(failed)
+    try:
+        send()
+        assert done.wait(timeout), "no answer from the memory"
+        return out["v"]
+    finally:
+        ok_caller.remove_callback(ok)
+        failed_caller.remove_callback(failed)
+
+
+def mem_read(cf, mem, addr, n):
     """Raw read through cflib's memory handler: the data, or None when the drone answered a failure."""
-    done, out = threading.Event(), {}
-
-    def ok(m, a, data):
-        if m.id == mem.id:
-            out["data"] = bytes(data)
-            done.set()
-
-    def failed(m, a, data):
-        if m.id == mem.id:
-            out["data"] = None
-            done.set()
-    cf.mem.mem_read_cb.add_callback(ok)
-    cf.mem.mem_read_failed_cb.add_callback(failed)
-    try:
-        cf.mem.read(mem, addr, n)
-        assert done.wait(timeout), "no answer to the read"
-        return out["data"]
-    finally:
-        cf.mem.mem_read_cb.remove_callback(ok)
-        cf.mem.mem_read_failed_cb.remove_callback(failed)
+    return _mem_answer(mem, cf.mem.mem_read_cb, cf.mem.mem_read_failed_cb, lambda: cf.mem.read(mem, addr, n),
+                       lambda args: bytes(args[1]))
 
 
-def mem_write(cf, mem, addr, data, timeout=2.0) -> bool:
-    done, out = threading.Event(), {}
-
-    def ok(m, a):
-        if m.id == mem.id:
-            out["ok"] = True
-            done.set()
-
-    def failed(m, a):
-        if m.id == mem.id:
-            out["ok"] = False
-            done.set()
-    cf.mem.mem_write_cb.add_callback(ok)
-    cf.mem.mem_write_failed_cb.add_callback(failed)
-    try:
-        cf.mem.write(mem, addr, bytearray(data), flush_queue=True)
-        assert done.wait(timeout), "no answer to the write"
-        return out["ok"]
-    finally:
-        cf.mem.mem_write_cb.remove_callback(ok)
-        cf.mem.mem_write_failed_cb.remove_callback(failed)
+def mem_write(cf, mem, addr, data) -> bool:
+    return _mem_answer(mem, cf.mem.mem_write_cb, cf.mem.mem_write_failed_cb,
+                       lambda: cf.mem.write(mem, addr, bytearray(data), flush_queue=True), True)
 
 
 def test_memories_list_info_read_write_and_bounds():
