@@ -24,7 +24,7 @@ from cfrace.errors import ConfigError
 from cfrace.env.labloop import LabLoop
 from cfrace.loopmodel import MOCAP_PERIOD_S, DroneRanges, LoopRanges
 from cfrace.sim.dynamics import quat_to_rot
-from cfrace.sim.simulator import CrashRules, Simulator, StepEvents
+from cfrace.sim.simulator import CrashRules, Simulator
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 
 SPAWN_REDRAWS = 50   #: draws of the starts that left the arena before giving up (cfrace.env.RaceEnv.spawn)
@@ -262,8 +262,7 @@ class RaceEnv(LabLoop):
             e2 = sim.step(thrust, rates, SUBSTEPS - half)
             if self.loop is not None:
                 self._push_pose()
-            ev = StepEvents(e1.gates + e2.gates, e1.laps + e2.laps, e1.crashed_now | e2.crashed_now,
-                            e1.contact | e2.contact, torch.where(e1.crashed_now, e1.reason, e2.reason))
+            ev = e1.then(e2)
         else:
             ev = sim.step(thrust, rates, SUBSTEPS)
         self.steps += 1

@@ -24,9 +24,9 @@ import torch
 
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
-from cfrace.env.actions import action_to_command
+from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.env.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
-from cfrace.env.race_env import RaceEnv
+from cfrace.env.race_env import MOCAP_DT, RaceEnv
 from cfrace.sim.collisions import CONTACT_MARGIN
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant
@@ -140,6 +140,9 @@ class _Setup:
     rec_ids: torch.Tensor      # (K,) recorded worlds
     touch: float               # m, drone-drone contact distance
     eye: torch.Tensor          # (D, D) bool, a drone with itself
+    flight: bool               # an entrant trained on the flight stack's path (metadata flight_obs): each
+                               # step is flown in two halves for the 10 ms pose difference it observes
+    min_thrust: float          # N, the firmware's least non-zero command (the floor of flight_obs entrants)
 
 
 def _setup(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[Entrant], assign: np.ndarray,
@@ -159,7 +162,9 @@ def _setup(track: Track, profile: DroneProfile, sim: Simulator, entrants: list[E
                                       profile.max_rates_deg)
     return _Setup(groups, rules, opponent_rule, gates, cum, lap_len, starts.target[:, 0].to(torch.int64),
                   parked_opponents(track, profile, starts), off_thrust, profile, torch.as_tensor(record, dtype=torch.int64),
-                  2.0 * (sim.radius + CONTACT_MARGIN), torch.eye(d, dtype=torch.bool))
+                  2.0 * (sim.radius + CONTACT_MARGIN), torch.eye(d, dtype=torch.bool),
+                  any(bool(e.meta.get("flight_obs")) for e, *_ in groups),
+                  float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS)))
 
 
 def _new_recording(n_steps: int, w: int, d: int, record: tuple[int, ...], laps: int) -> Recording:
@@ -172,18 +177,25 @@ def _new_recording(n_steps: int, w: int, d: int, record: tuple[int, ...], laps: 
                      pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
 
 
-def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray,
+              mid_pos: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Every slot's command for the next step: thrust (W, D) N, body rates (W, D, 3) deg/s; one
     onnxruntime call per policy for all its slots; non-finite actions become motors off (counted in
-    ``nan_actions`` (W, D))."""
+    ``nan_actions`` (W, D)). An entrant trained on the flight stack's path (metadata flight_obs) sees
+    velocities as the pose difference since ``mid_pos`` (10 ms ago) and its thrust floored at the
+    firmware's least non-zero command, as RaceEnv gave them in its training."""
     w, d = sim.pos.shape[:2]
     off = np.asarray(OFF_ACTION, np.float32)
     thrust = np.full((w, d), f.off_thrust, np.float32)
     rates = np.zeros((w, d, 3), np.float32)
-    pos, vel, rot, target = sim.pos, sim.vel, sim.rot(), sim.race.target
+    pos, rot, target = sim.pos, sim.rot(), sim.race.target
+    vel_exact = sim.vel
+    vel_flight = (pos - mid_pos) / MOCAP_DT if mid_pos is not None else vel_exact
     tpos = track_position(f.gates, f.cum, f.lap_len, f.start_gate, sim.race.gates_passed, target, pos)
     opp = {rule: choose_opponents(pos, tpos, ~sim.race.crashed, rule) for rule in f.rules}
     for e, iw, idr, tw, td in f.groups:
+        flight = bool(e.meta.get("flight_obs"))
+        vel = vel_flight if flight else vel_exact
         opp_pos = opp_vel = None
         if e.layout.opponent:
             if d > 2:
@@ -201,6 +213,8 @@ def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray) -> tuple[torch
             act[bad] = off
             np.add.at(nan_actions, (iw[bad], idr[bad]), 1)
         th, rt = action_to_command(act, f.profile.mass, e.meta["max_thrust_weights"], e.meta["max_rates_deg"])
+        if flight:   # motors off (a non-finite action) stays off
+            th = np.where(bad, th, np.maximum(th, f.min_thrust))
         thrust[iw, idr], rates[iw, idr] = th, rt
     return torch.from_numpy(thrust), torch.from_numpy(rates)
 
@@ -253,12 +267,19 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     prev_pairs = torch.zeros(w, d, d, dtype=torch.bool)
     finished = torch.zeros(w, d, dtype=torch.bool)
     over = torch.zeros(w, dtype=torch.bool)
+    mid_pos = sim.pos.clone() if f.flight else None   # the pose 10 ms before the step's end (flight_obs)
     t0 = time.perf_counter()
     step = 0
     with torch.no_grad():
         for step in range(n_steps):
             active = ~sim.race.crashed & ~finished & ~over.unsqueeze(-1)
-            ev = sim.step(*_commands(f, sim, r.nan_actions), SUBSTEPS)
+            cmd = _commands(f, sim, r.nan_actions, mid_pos)
+            if f.flight:   # RaceEnv.step's two halves
+                first = sim.step(*cmd, SUBSTEPS // 2)
+                mid_pos = sim.pos.clone()
+                ev = first.then(sim.step(*cmd, SUBSTEPS - SUBSTEPS // 2))
+            else:
+                ev = sim.step(*cmd, SUBSTEPS)
             prev_pairs = _record(r, step, f, sim, ev, active, prev_pairs)
             race = sim.race
             finished |= (race.laps >= laps) & active

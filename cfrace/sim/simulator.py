@@ -57,6 +57,12 @@ class StepEvents(NamedTuple):
     contact: torch.Tensor      # (W, D) bool, any contact during the step
     reason: torch.Tensor       # (W, D) int64 crash reason (0 if none)
 
+    def then(self, later: "StepEvents") -> "StepEvents":
+        """The events of one policy step flown as two simulator calls, this one first (the flight
+        observations' mid-step pose sample): counts add, flags or, the first crash's reason stays."""
+        return StepEvents(self.gates + later.gates, self.laps + later.laps, self.crashed_now | later.crashed_now,
+                          self.contact | later.contact, torch.where(self.crashed_now, self.reason, later.reason))
+
 
 class Geometry(NamedTuple):
     gates: torch.Tensor        # (G, 4) [x, y, z, yaw]
