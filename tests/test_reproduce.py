@@ -49,6 +49,12 @@ def test_reproduce_quick_on_the_shipped_policies(tmp_path):
     lem = [t for t in rep["transfer"] if t["track"] == "lemniscate"]
     assert {t["policy"] for t in lem} == {"ours", "ds"} and all(t["profile_flown"] == "cf21bl" for t in lem)
     assert all(t["stack_speed_mps"] and t["sim_speed_mps"] for t in lem) and "## Transfer through the flight stack" in md
+    # the robustness grid at CI size: latencies 0 and 20 ms on both profiles, each policy alone and one duel
+    rob = rep["robustness"]
+    cells = {(c["latency_ms"], c["profile"]) for c in rob["cells"]}
+    assert cells == {(lat, p) for lat in (0.0, 20.0) for p in ("cf2x_paper", "cf21bl")}
+    assert all(set(c["alone"]) == {"ours", "ds"} and c["duel"]["races"] == 1 for c in rob["cells"])
+    assert (out / rob["png"]).stat().st_size > 1000 and "## Robustness through the flight stack" in md
 
 
 def test_claims_say_when_a_trend_does_not_hold():

@@ -262,10 +262,9 @@ def robustness_cmd(
             raise ConfigError(f"{option}: {exc}") from None
     kw = dict(latencies_ms=_numbers("--latencies-ms", latencies_ms), profiles=tuple(x.strip() for x in profiles.split(",") if x.strip()),
               noise_mm=_numbers("--noise-mm", noise_mm), seeds=_numbers("--seeds", seeds, int), laps=laps, duels=duels)
-    Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, **kw).check()   # what was typed, --quick or not
+    grid = Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, **kw).check()   # what was typed
     if quick:
-        kw.update(latencies_ms=(0.0, 20.0), noise_mm=(1.0,), seeds=(1,), laps=1, duels=1)
-    grid = Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, **kw).check()
+        grid = grid.quick().check()
     check_writable(out_dir / "robustness.json", "--out")
     result = run_grid(grid, on_progress=lambda t: console.print(t, highlight=False))
     files = write(result, out_dir)

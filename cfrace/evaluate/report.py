@@ -175,6 +175,21 @@ def _md_transfer(report: dict) -> list[str]:
     return lines
 
 
+def _md_robustness(report: dict) -> list[str]:
+    """The robustness grid (`cfrace sim robustness`): its table and heat map."""
+    from cfrace.evaluate.robustness import markdown_table
+    lines = ["", "## Robustness through the flight stack (latency x drone profile x mocap noise)", ""]
+    rob = report.get("robustness")
+    if not rob:
+        return lines + ["No shipped lemniscate ours and DS."]
+    g = rob["grid"]
+    lines += [f"{g['ego']} and {g['opp']} on the {g['track']}, each alone ({g['laps']} laps, the other stopped at "
+              f"once) and head to head ({g['duels']} races per seed), lockstep dry-runs on seeds "
+              f"{', '.join(str(s) for s in g['seeds'])}; latency compensated as the dry-run does by default "
+              "(docs/robustness.md).", "", markdown_table(rob).rstrip("\n"), "", f"![robustness]({rob['png']})"]
+    return lines
+
+
 def _md_curves(report: dict) -> list[str]:
     """The training curves' PNGs."""
     lines: list[str] = []
@@ -189,5 +204,5 @@ def _md_curves(report: dict) -> list[str]:
 
 def markdown(report: dict) -> str:
     """The report as markdown (tables beside the paper's figures, images by relative path)."""
-    parts = (_md_head, _md_table_i, _md_matrices, _md_competition, _md_transfer, _md_curves)
+    parts = (_md_head, _md_table_i, _md_matrices, _md_competition, _md_transfer, _md_robustness, _md_curves)
     return "\n".join(line for part in parts for line in part(report)) + "\n"

@@ -227,6 +227,20 @@ def curves(cfg: ReproduceConfig) -> list[dict]:
 
 # ------------------------------------------------------------------------------------ report
 
+def robustness(cfg: ReproduceConfig) -> dict | None:
+    """The shipped lemniscate ours and DS over the robustness grid (cfrace.evaluate.robustness,
+    `cfrace sim robustness`) on the fresh seeds, its CI size with --quick; table and heat map in
+    OUT/robustness/. None when either policy is not shipped."""
+    from cfrace.evaluate.robustness import Grid, run_grid, write
+    if not {"ours", "ds"} <= set(shipped("lemniscate", False)):
+        return None
+    grid = Grid(seeds=cfg.test_seeds)
+    result = run_grid(grid.quick() if cfg.quick else grid)
+    files = write(result, cfg.out / "robustness")
+    return {"grid": result["grid"], "cells": result["cells"], "wall_s": result["wall_s"],
+            "png": str(files["png"].relative_to(cfg.out))}
+
+
 def _commit() -> str:
     try:
         return subprocess.run(["git", "-C", str(POLICIES_DIR.parent), "rev-parse", "--short", "HEAD"],
@@ -259,6 +273,8 @@ def reproduce(cfg: ReproduceConfig, on_progress=None) -> dict:
     say("transfer through the flight stack (lockstep dry-runs on another drone profile)")
     report["transfer"] = transfer(cfg)
     report["transfer_setup"] = {"profile": TRANSFER_PROFILE, "noise_m": TRANSFER_NOISE_M, "latency_s": TRANSFER_LATENCY_S}
+    say("robustness: latency x drone profile x mocap noise through the flight stack")
+    report["robustness"] = robustness(cfg)
     say("training curves")
     report["curves"] = curves(cfg)
     report["claims"] = claims(report)

@@ -18,12 +18,13 @@ from __future__ import annotations
 import itertools
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from cfrace.errors import ConfigError
 
 STOP_AT_ONCE = "nan_policy@0.02:opp"   #: the alone runs' fault: the opponent's policy fails at 20 ms
+QUICK = dict(latencies_ms=(0.0, 20.0), noise_mm=(1.0,), seeds=(1,), laps=1, duels=1)   #: the CI-size grid
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,10 @@ class Grid:
                 raise ConfigError(f"--profiles: {exc}") from None
         load_track(self.track)
         return self
+
+    def quick(self) -> "Grid":
+        """The same grid at CI size (`--quick`): latencies 0 and 20 ms, 1 mm noise, one seed, one lap, one race."""
+        return replace(self, **QUICK)
 
     @property
     def cells(self):
