@@ -125,8 +125,8 @@ def test_real_time_race_lands_through_the_link_keeper(tmp_path):
 
 
 def test_a_field_lands_at_the_race_end():
-    """Four drones on the lemniscate, the race ended at 2 s (a clean end of the scan of
-    studies/race_end_landings.py in docs/flight.md, "Race ends in a field"): every drone lands,
+    """Four drones on the lemniscate, the race ended at 2 s (a clean end of the race-end scan in
+    docs/flight.md, "Race ends in a field"): every drone lands,
     none crashed and no safety event acted after the end."""
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours", "ds"),
                        profile="cf2x_paper", laps=3, quiet=True, timeout_s=2.0)

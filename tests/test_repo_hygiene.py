@@ -1,4 +1,5 @@
-"""The repository cites only what it holds or names a primary source: no pointers to files outside it."""
+"""The repository's hygiene: no pointers to files outside it, no test that imports a benchmark script
+or a study, and every result file in git cited by a doc."""
 
 from __future__ import annotations
 
@@ -58,3 +59,19 @@ def test_every_result_file_is_cited_by_a_doc():
                if p.suffix in RESULT_SUFFIXES and p.is_file()]
     uncited = [str(p.relative_to(REPO)) for p in results if not any(fnmatch(p.name, pat) for pat in patterns)]
     assert not uncited, "result files no doc cites:\n" + "\n".join(sorted(uncited))
+
+
+IMPORTS_A_SCRIPT = re.compile(
+    r"spec_from_file_location|exec_module|runpy|import_module"           # loading a file as a module
+    r"|sys\.path\.(?:insert|append)\(.*(?:benchmarks|studies|parents)"     # putting the scripts on the path
+    r"|^\s*(?:from|import)\s+(?:benchmarks|studies)\b"                     # importing them as packages
+    r"|[\"']studies[\"']", re.MULTILINE)                                    # a path into studies/
+
+
+def test_no_test_imports_a_benchmark_script_or_a_study():
+    """Tests call what they check in cfrace/; a maintained tool may be run as a user runs it (a subprocess),
+    a study not at all."""
+    this = Path(__file__).resolve()
+    found = [f"{p.relative_to(REPO)}: {m.group(0).strip()}" for p in (REPO / "tests").rglob("*.py")
+             if p.resolve() != this for m in IMPORTS_A_SCRIPT.finditer(p.read_text())]
+    assert not found, "tests that import scripts:\n" + "\n".join(found)
