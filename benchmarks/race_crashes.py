@@ -19,22 +19,7 @@ from collections import Counter
 import numpy as np
 import torch
 
-
-def race_crashes(ego: str, opp: str, track_name: str, obstacles: bool, races: int, seed: int) -> list[dict]:
-    from cfrace.evaluate.race import race
-    from cfrace.sim.simulator import REASONS
-
-    rec = race(track_name, ego, opp, obstacles, races, 3, seed, threads=1, record_all=True).recording
-    out = []
-    for w in range(races):
-        steps = np.nonzero(rec.crashed_now[:, w, 0] & rec.active[:, w, 0])[0]
-        if len(steps):
-            k = steps[0]
-            out.append({"race": w, "t_s": float(rec.t[k]), "reason": REASONS[int(rec.reason[k, w, 0])],
-                        "opp_dist_m": float(np.linalg.norm(rec.pos[k, w, 0] - rec.pos[k, w, 1])),
-                        "lead_m": float(rec.track_pos[k, w, 0] - rec.track_pos[k, w, 1]),
-                        "opp_racing": bool(rec.active[k, w, 1]), "track_pos_m": float(rec.track_pos[k, w, 0])})
-    return out
+from cfrace.evaluate.race import race_crashes
 
 
 def main() -> None:

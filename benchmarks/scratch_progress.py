@@ -19,34 +19,12 @@ flown figures at the checkpoints.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 from pathlib import Path
 
 import torch
 
-
-def training_figures(run: Path) -> list[dict]:
-    """RUN/metrics.csv rows as floats (iteration, env_steps, wall_s, gates/s, lap share)."""
-    with (run / "metrics.csv").open() as fh:
-        rows = list(csv.DictReader(fh))
-    keys = {"iteration": "iteration", "env_steps": "env_steps", "wall_s": "wall_s",
-            "gates_per_s": "stat_gates_per_s", "lap_share": "stat_success", "std": "std_agent0"}
-    out = []
-    for r in rows:
-        try:
-            row = {k: float(r[v]) for k, v in keys.items()}
-            row["std1"] = float(r.get("std_agent1") or row["std"])   # agent 1's (a single-agent run: agent 0's)
-        except (KeyError, ValueError):
-            continue
-        out.append(row)
-    return out
-
-
-def near(rows: list[dict], iteration: int, key: str, n: int = 5) -> float:
-    """Mean of ``key`` over the n logged iterations up to ``iteration``."""
-    mine = [r[key] for r in rows if r["iteration"] <= iteration][-n:]
-    return sum(mine) / len(mine) if mine else float("nan")
+from cfrace.rl.curves import near, training_figures
 
 
 def spaced(ckpts: list[Path], rows: list[dict], every_s: float) -> list[Path]:

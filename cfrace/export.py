@@ -131,7 +131,7 @@ def _source_name(path: str) -> str:
 
 def training_meta(ippo: IPPOConfig, multi_agent: bool) -> dict:
     """What a run set away from its preset that changes what it learns (docs/training.md, "Sparse
-    from scratch: what holds it back"): the discount (--set gamma), the actor's initial action std
+    from scratch"): the discount (--set gamma), the actor's initial action std
     and the schedule of its cap (--set init_std / std_final, config.std_cap); nothing for the defaults."""
     out = {"init_std": float(ippo.init_std)} if ippo.init_std != IPPOConfig.init_std else {}
     if ippo.std_final is not None:

@@ -1,7 +1,8 @@
 """Race tracks: gates in race order, gate geometry, obstacles, arena and spawn parameters.
 
 Pure geometry on numpy arrays; the simulator and the flight stack convert to torch as needed.
-Conventions (the authors' training code): a gate pose is [x, y, z, yaw]; the gate normal is
+Conventions (the authors' training code, Jirl-upenn/AgileFlight_MultiAgent
+ma_quadcopter_env.py): a gate pose is [x, y, z, yaw]; the gate normal is
 n = (cos yaw, sin yaw, 0); a gate is passed flying from the +n side to the -n side.
 """
 

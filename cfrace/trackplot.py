@@ -2,7 +2,8 @@
 
 ``draw_track(ax, track, obstacles, view)`` draws one view of a track on a matplotlib axes (the
 evaluation plots draw trajectories on top of it); ``plot_track`` writes the two-view PNG
-(top view and side view). Conventions (the authors' training code): gate normal n = (cos yaw, sin yaw, 0); a gate is
+(top view and side view). Conventions (the authors' training code, Jirl-upenn/AgileFlight_MultiAgent
+ma_quadcopter_env.py): gate normal n = (cos yaw, sin yaw, 0); a gate is
 passed flying along -n (green arrows). Gate openings are red, frames grey, obstacles transparent blue.
 matplotlib is imported lazily and always with the Agg backend (no display needed).
 """

@@ -20,21 +20,6 @@ def signal_handlers_back():
 
 
 @pytest.fixture
-def bench_script():
-    """load(name) -> the module benchmarks/NAME.py (the scripts are not a package)."""
-    import importlib.util
-    from pathlib import Path
-
-    def load(name: str):
-        path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-        spec = importlib.util.spec_from_file_location(name, path)
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod
-    return load
-
-
-@pytest.fixture
 def one_torch_thread():
     """Shared 2-core machine: one intra-op thread avoids oversubscription (10x slower otherwise)."""
     before = torch.get_num_threads()

@@ -124,10 +124,15 @@ def test_real_time_race_lands_through_the_link_keeper(tmp_path):
     assert result["loop"]["poses_sent"] > 300
 
 
-def test_the_race_end_scan_takes_a_field(bench_script):
-    """benchmarks/race_end_landings.py with --policies: four drones on the lemniscate, the race ended at
-    2 s (a clean end of the scan in docs/flight.md, "Race ends in a field"): every drone lands."""
-    scan = bench_script("race_end_landings")
-    row = scan.race_end("ours", "ds", "cf2x_paper", 2.0, "lemniscate", ("ours", "ds", "ours", "ds"))
-    assert row["end"] == "timeout" and not row["crashed"] and not row["acted"], row
-    assert [kind for kind, _ in row["landings"].values()] == ["landed"] * 4 and row["max_tick_cpu_ms"] > 0.0
+def test_a_field_lands_at_the_race_end():
+    """Four drones on the lemniscate, the race ended at 2 s (a clean end of the race-end scan in
+    docs/flight.md, "Race ends in a field"): every drone lands,
+    none crashed and no safety event acted after the end."""
+    cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours", "ds"),
+                       profile="cf2x_paper", laps=3, quiet=True, timeout_s=2.0)
+    r = dry_run(cfg, lockstep=True).to_json()
+    assert r["end"] == "timeout"
+    assert not [f["body"] for f in r["drones_final"] if f["crashed"]]
+    assert not [e for e in r["safety_events"] if e["action"] != "none" and e["t"] >= 2.0]
+    assert [d["stop_kind"] for d in r["drones"]] == ["landed"] * 4
+    assert r["loop"]["compute_cpu_ms"]["max"] > 0.0

@@ -1,11 +1,11 @@
-"""benchmarks/race_crashes.py: every crash of the ego in real rollouts of shipped policies, as `cfrace race` counts them."""
+"""cfrace.evaluate.race.race_crashes (benchmarks/race_crashes.py prints it): every crash of the ego in real rollouts of shipped policies, as `cfrace race` counts them."""
 
-from cfrace.evaluate.race import race
+from cfrace.evaluate.race import race, race_crashes
 from cfrace.sim.simulator import REASONS
 
 
-def test_crashes_match_the_race_and_name_the_opponent(bench_script):
-    rows = bench_script("race_crashes").race_crashes("ours", "ds", "complex", True, 6, 0)
+def test_crashes_match_the_race_and_name_the_opponent():
+    rows = race_crashes("ours", "ds", "complex", True, 6, 0)
     r = race("complex", "ours", "ds", obstacles=True, races=6, seed=0)
     assert len(rows) == r.ego_stats["crashes"] > 0          # the same races: the same crashes
     assert r.recording.pos.shape[1] == 0                    # positions only with record_all (or plots)

@@ -25,7 +25,8 @@ from cfrace.drone import GRAVITY
 
 THRUST_MAX_COUNTS = 65535  #: uint16 thrust of the CRTP setpoint packet
 #: thrust counts below which the Crazyflie firmware's legacy RPYT commander commands zero thrust
-#: (MIN_THRUST, crtp_commander_rpyt.c); at zero thrust its controller resets (no rate control)
+#: (MIN_THRUST, bitcraze/crazyflie-firmware src/modules/src/crtp_commander_rpyt.c); at zero thrust
+#: its controller resets (no rate control)
 FIRMWARE_MIN_THRUST_COUNTS = 1000
 
 

@@ -1,6 +1,7 @@
 """Observations, shared by the environment and the flight loop (one function, no skew).
 
-Layout (paper Sec. III-B and the authors' code), each drone from its own body frame:
+Layout (the paper, Sec. III-B, and the authors' code,
+Jirl-upenn/AgileFlight_MultiAgent ma_quadcopter_env.py), each drone from its own body frame:
     [world position (3), only with obstacles]
     linear velocity in body frame (3)
     rotation matrix world-from-body, row-major (9)

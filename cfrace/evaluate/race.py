@@ -23,6 +23,7 @@ from cfrace.evaluate.entrants import Entrant, common_profile, load_entrants, loa
 from cfrace.evaluate.metrics import RunSummary, finish_speed, race_outcomes, race_rates, solo_metrics, speed_stats
 from cfrace.evaluate.plots import plot_heatmap, race_plots
 from cfrace.evaluate.rollout import LAP_TIME_LIMIT_S, RacesRun, Recording, Starts, rollout, start_poses
+from cfrace.sim.simulator import REASONS
 
 PLOT_RACES = 4        #: races whose positions are recorded for the plots
 CRASHED_OPP_RACES = 10  #: extra worlds (with --plot) where the opponent drops at the start
@@ -216,3 +217,20 @@ def tournament(policies: list[str], track_name: str, obstacles: bool = False, ra
         result.plots = [plot_heatmap(heatmap, result.policies, win, draw, title)]
     result.wall_s = time.perf_counter() - t0
     return result
+
+
+def race_crashes(ego: str, opp: str, track_name: str, obstacles: bool, races: int, seed: int) -> list[dict]:
+    """Every race of `race(track_name, ego, opp, ...)` (3 laps) EGO crashes in: the race, the time, the crash
+    reason (cfrace.sim.simulator.REASONS), the distance to the opponent, EGO's lead along the race line,
+    whether the opponent was racing and EGO's track position at that step."""
+    rec = race(track_name, ego, opp, obstacles, races, 3, seed, threads=1, record_all=True).recording
+    out = []
+    for w in range(races):
+        steps = np.nonzero(rec.crashed_now[:, w, 0] & rec.active[:, w, 0])[0]
+        if len(steps):
+            k = steps[0]
+            out.append({"race": w, "t_s": float(rec.t[k]), "reason": REASONS[int(rec.reason[k, w, 0])],
+                        "opp_dist_m": float(np.linalg.norm(rec.pos[k, w, 0] - rec.pos[k, w, 1])),
+                        "lead_m": float(rec.track_pos[k, w, 0] - rec.track_pos[k, w, 1]),
+                        "opp_racing": bool(rec.active[k, w, 1]), "track_pos_m": float(rec.track_pos[k, w, 0])})
+    return out

@@ -146,7 +146,7 @@ def std_cap(cfg: IPPOConfig, iteration: int) -> float | None:
     """The cap on the actors' action std in ``iteration`` (0-based): None without a schedule; else
     linear from init_std at iteration 0 to std_final at std_anneal_iters, then std_final. The
     learned std may fall below it; it never samples above it (docs/training.md, "Sparse from
-    scratch: what holds it back")."""
+    scratch")."""
     if cfg.std_final is None:
         return None
     frac = min(1.0, iteration / max(cfg.std_anneal_iters, 1))

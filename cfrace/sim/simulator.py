@@ -3,7 +3,8 @@
 State is float32 tensors shaped (W worlds, D drones, ...) on one device. ``step`` holds one
 command (collective thrust N, body rates rad/s) for ``substeps`` physics steps of 2 ms (10 = one
 50 Hz policy step). Crashed drones are frozen until their world is reset.
-Crash rules (the authors' training code): gate-frame hit, leaving the arena, z above the ceiling, z below 0.1 m after
+Crash rules (the authors' training code, Jirl-upenn/AgileFlight_MultiAgent
+ma_quadcopter_env.py): gate-frame hit, leaving the arena, z above the ceiling, z below 0.1 m after
 the first 1.0 s, hitting the floor fast, contact longer than ``long_contact_s``.
 """
 
