@@ -10,11 +10,11 @@ import pytest
 
 from cfrace.drone import load_profile
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.landing import LandingSetup
-from cfrace.flight.safety import Fence
-from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState, brakes_out_of_fence
-from cfrace.flight.spots import (LandingConfig, _segments_cross, candidate_spots, choose_landing_spots, race_line,
+from cfrace.rehearsal.dryrun import dry_run
+from cfrace.flight.landing.descent import LandingSetup
+from cfrace.flight.safety.check import Fence
+from cfrace.flight.safety.failsafe import FLY_THROUGH_MAX_S, SoftState, brakes_out_of_fence
+from cfrace.flight.landing.spots import (LandingConfig, _segments_cross, candidate_spots, choose_landing_spots, race_line,
                                  race_line_dist)
 from cfrace.track import load_track
 
@@ -43,8 +43,8 @@ def test_the_braking_distance_bounds_the_simulated_brake_from_a_racing_attitude(
     where braking is safe)."""
     import math
 
-    from cfrace.flight.link import packet_values
-    from cfrace.flight.softsafe import braking_distance
+    from cfrace.flight.link.protocol import packet_values
+    from cfrace.flight.safety.failsafe import braking_distance
     from cfrace.simcf.firmware import SimFleet
     track = load_track("lemniscate")
     for speed in (3.0, 5.0, 7.0):

@@ -7,7 +7,7 @@ from cfrace.track import load_track
 
 def test_a_revision_against_itself_gives_the_same_spots(bench_script):
     ab = bench_script("landing_spots_ab")
-    import cfrace.flight.spots as new
+    import cfrace.flight.landing.spots as new
 
     old = ab.load_revision("HEAD")
     assert old is not new and old.choose_landing_spots is not new.choose_landing_spots

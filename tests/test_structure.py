@@ -70,7 +70,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_the_import_graph_sees_function_level_and_relative_imports():
     graph = import_graph()
-    assert "cfrace.flight.link_cflib" in graph["cfrace.flight.links"]   # imported inside open_link
+    assert "cfrace.flight.link.crazyflie" in graph["cfrace.flight.link.opener"]   # imported inside open_link
     assert "cfrace.contract" in graph["cfrace.policy"]
 
 
@@ -87,7 +87,7 @@ LAYERS = [
     ("environment and policy files", ["cfrace.env", "cfrace.env.race_env", "cfrace.env.rewards", "cfrace.policy",
                                       "cfrace.policygraph"]),
     ("applications", ["cfrace.rl", "cfrace.evaluate", "cfrace.sweep", "cfrace.env.adapters", "cfrace.flight",
-                      "cfrace.simcf", "cfrace.calibrate", "cfrace.export", "cfrace.trackplot"]),
+                      "cfrace.simcf", "cfrace.calibrate", "cfrace.export", "cfrace.trackplot", "cfrace.rehearsal"]),
     ("CLI", ["cfrace.cli", "cfrace.__main__"]),
 ]
 #: imports up the layers, each with its reason
@@ -125,9 +125,9 @@ def _modules_loaded_by(code: str) -> set[str]:
     return set(out.split())
 
 
-FLY_PATH = ["cfrace.cli.flight", "cfrace.flight.loop", "cfrace.flight.runner", "cfrace.flight.links",
-            "cfrace.flight.link_cflib", "cfrace.flight.mocap", "cfrace.flight.estimator", "cfrace.flight.safety",
-            "cfrace.flight.progress", "cfrace.flight.flightlog", "cfrace.flight.config", "cfrace.policy",
+FLY_PATH = ["cfrace.cli.flight", "cfrace.flight.loop.flight_loop", "cfrace.flight.loop.race", "cfrace.flight.link.opener",
+            "cfrace.flight.link.crazyflie", "cfrace.flight.mocap.sources", "cfrace.flight.mocap.estimation", "cfrace.flight.safety.check",
+            "cfrace.flight.loop.gate_progress", "cfrace.flight.log.writer", "cfrace.flight.config", "cfrace.policy",
             "cfrace.contract", "cfrace.env.observations", "cfrace.env.actions"]
 
 

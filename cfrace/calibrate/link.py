@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from cfrace.errors import LinkError
-from cfrace.flight.link_cflib import CflibLink
+from cfrace.flight.link.crazyflie import CflibLink
 
 from cflib.crazyflie.log import LogConfig  # noqa: E402
 

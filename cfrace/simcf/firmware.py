@@ -40,7 +40,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY, DroneProfile, load_profile
 from cfrace.errors import ConfigError
-from cfrace.flight.estimator import quat_to_rot
+from cfrace.flight.mocap.estimation import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
