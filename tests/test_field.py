@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cfrace.drone import DEFAULT_PROFILE, load_profile
-from cfrace.env.observations import (OPPONENT_RULES, build_observation, build_observations, choose_opponents,
+from cfrace.contract.observations import (OPPONENT_RULES, build_observation, build_observations, choose_opponents,
                                      critic_observations, layout_for)
 from cfrace.env.rewards import leading, overtaking
 from cfrace.evaluate.rating import expected_score, fit_ratings, pairwise, placings, winners

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from cfrace.env.actions import thrust_to_counts
+from cfrace.contract.actions import thrust_to_counts
 from cfrace.errors import LinkError
 from cfrace.flight.loop.clock import LockstepClock, RealClock
 from cfrace.flight.link.protocol import DirectSimLink, RecordingLink, cflib_setpoint_args, packet_values
@@ -321,7 +321,7 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     state) and in the flight loop (ObservationBuilder on estimates); with zero-noise mocap through
     the estimator, positions/attitude/gates agree to float32 and velocity to the filter's lag."""
     from cfrace.drone import load_profile
-    from cfrace.env.observations import LAYOUTS, build_observations
+    from cfrace.contract.observations import LAYOUTS, build_observations
     from cfrace.flight.mocap.estimation import Estimate, PoseEstimator
     from cfrace.flight.loop.flight_loop import ObservationBuilder
     from cfrace.flight.mocap.sources import MocapFrame, Pose
@@ -341,7 +341,7 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     builder = ObservationBuilder(track.gate_corners())
     est = PoseEstimator(["cf1", "cf2"], stale_after_s=0.15)
     progress = FastRaceProgress(track.gate_array(), 2)
-    from cfrace.env.actions import action_to_command
+    from cfrace.contract.actions import action_to_command
 
     worst = np.zeros(3)
     for k in range(200):                  # 2 s at 100 Hz (gate 0 is passed at ~1.2 s)
@@ -404,7 +404,7 @@ class CountingPolicy:
 
 def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
     from cfrace.drone import load_profile
-    from cfrace.env.observations import LAYOUTS
+    from cfrace.contract.observations import LAYOUTS
     from cfrace.flight.config import SafetyConfig
     from cfrace.flight.mocap.estimation import PoseEstimator
     from cfrace.flight.loop.flight_loop import Drone, FlightLoop, ObservationBuilder
@@ -609,7 +609,7 @@ def test_live_view_renders_every_drone(track):
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibration_curve(profile):
     from cfrace.drone import load_profile
-    from cfrace.env.actions import SetpointMap, action_to_command
+    from cfrace.contract.actions import SetpointMap, action_to_command
 
     prof = load_profile(profile)
     m = SetpointMap(prof.mass, prof.max_thrust_weights, prof.max_rates_deg, prof.thrust_curve)

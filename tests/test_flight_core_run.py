@@ -319,8 +319,8 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     import torch
 
     from cfrace.drone import load_profile
-    from cfrace.env.actions import action_to_command
-    from cfrace.env.observations import LAYOUTS, build_observations
+    from cfrace.contract.actions import action_to_command
+    from cfrace.contract.observations import LAYOUTS, build_observations
     from cfrace.rehearsal.dryrun import sim_race
     from cfrace.flight.setup import resolve_race
     from cfrace.policy import OnnxPolicy
@@ -385,7 +385,7 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
     from cfrace.drone import load_profile
     from cfrace.rehearsal.dryrun import dry_run
     from cfrace.flight.log.writer import read_log
-    from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+    from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS
     from cfrace.sim.simulator import CrashRules, Simulator
     from cfrace.track import load_track
 

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from cfrace.flight.mocap.estimation import PoseEstimator, estimates_to_msg, quat_to_rot
+from cfrace.flight.mocap.estimation import PoseEstimator, estimates_to_msg
+from cfrace.rotations import quat_to_rot
 from cfrace.flight.mocap.sources import MocapFrame, Pose
 
 Q0 = np.array([1.0, 0.0, 0.0, 0.0])

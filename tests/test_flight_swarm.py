@@ -196,7 +196,7 @@ def test_the_drones_of_one_policy_are_observed_in_one_call_bit_for_bit(layout_na
 
     from scipy.spatial.transform import Rotation
 
-    from cfrace.env.observations import LAYOUTS
+    from cfrace.contract.observations import LAYOUTS
     from cfrace.flight.loop.state import ObservationBuilder
     from cfrace.track import load_track
 

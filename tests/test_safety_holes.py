@@ -90,7 +90,7 @@ def test_the_safety_check_judges_the_setpoint_that_is_sent(tmp_path):
     from test_flight_core import gate_path, make_loop
 
     from cfrace.drone import load_profile
-    from cfrace.env.actions import SetpointMap
+    from cfrace.contract.actions import SetpointMap
     from cfrace.flight.safety.check import CommandLimits
     from cfrace.track import load_track
 

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Callable
 
 from cfrace.drone import DroneProfile, load_profile
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import LAYOUTS, ObsLayout
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
 from cfrace.flight.loop.clock import RealClock
 from cfrace.flight.config import FlightConfig

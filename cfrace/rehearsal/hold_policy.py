@@ -20,14 +20,14 @@ import onnx
 
 from cfrace import __version__
 from cfrace.drone import GRAVITY, load_profile
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import LAYOUTS
 from cfrace.policygraph import build_model
 
 
 def hold_policy_layers(layout, max_thrust_weights: float, max_rates_deg, *, seek: float = 0.0,
                        height_offset: float = 0.0, through: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """(W (4, D), b (4,)) of the linear controller for ``layout`` (cfrace.env.observations.ObsLayout).
+    """(W (4, D), b (4,)) of the linear controller for ``layout`` (cfrace.contract.observations.ObsLayout).
 
     With seek > 0 the horizontal target is the point ``through`` m beyond the target gate's centre
     along -n (n from the corners: y_gate = c0 - c1 for a 1 m opening, n = y_gate x z, z ~ body z),

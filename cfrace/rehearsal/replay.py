@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cfrace.drone import DroneProfile, load_profile
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.observations import LAYOUTS
 from cfrace.errors import LogError
 from cfrace.flight.loop.clock import Tick
 from cfrace.flight.config import SafetyConfig

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cfrace.drone import GRAVITY
-from cfrace.flight.mocap.estimation import quat_to_rot
+from cfrace.rotations import quat_to_rot
 from cfrace.flight.landing.spots import LandingConfig, candidate_spots
 
 

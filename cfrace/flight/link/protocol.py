@@ -3,7 +3,7 @@
 Units at this boundary (design rule 10: conversions happen only here):
 ``send(roll_rate_dps, pitch_rate_dps, yaw_rate_dps, thrust_counts)`` takes the BODY rates the
 drone must fly, right-handed, x forward, y left, z up (pitch + = nose down), in deg/s, and the
-collective thrust in CRTP counts (cfrace.env.actions.SetpointMap: the calibration curve).
+collective thrust in CRTP counts (cfrace.contract.actions.SetpointMap: the calibration curve).
 
 The legacy CRTP setpoint (port 3, ``<fffH``) does not carry those values as they are:
 cflib's ``send_setpoint`` negates pitch, and the firmware negates the yaw rate of this packet

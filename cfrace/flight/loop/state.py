@@ -7,8 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cfrace.env.actions import SetpointMap
-from cfrace.env.observations import ObsLayout, build_observation
+from cfrace.contract.actions import SetpointMap
+from cfrace.contract.observations import ObsLayout, build_observation
 
 
 class KillSwitch:
@@ -65,7 +65,7 @@ class Drone:
 
 
 class ObservationBuilder:
-    """The training observation (cfrace.env.observations.build_observation, the same function)
+    """The training observation (cfrace.contract.observations.build_observation, the same function)
     from estimates, on float32 numpy arrays: no torch dispatch in the tick. Bit-identical to the
     env's torch observations on the same states (tests/test_flight_core.py); 87 us instead of 428 us
     per call on one-drone torch tensors (p50 in the real-time loop, docs/benchmarks.md)."""

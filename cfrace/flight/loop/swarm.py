@@ -1,7 +1,7 @@
 """The tick's parts for more than two drones: who observes whom, and one inference call per policy.
 
 OpponentPicker: a drone flying a multi-agent policy observes one opponent, the one its opponent
-rule picks (its metadata's ``opponent_rule``, else cfrace.env.observations.DEFAULT_OPPONENT_RULE)
+rule picks (its metadata's ``opponent_rule``, else cfrace.contract.observations.DEFAULT_OPPONENT_RULE)
 from the estimates and the race progress, on the training's race line (choose_opponents,
 polyline, track_position: one definition for training, evaluation and flight). Two drones: the
 other one, as always (the tick does not ask).
@@ -17,10 +17,10 @@ import time
 
 import numpy as np
 
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
+from cfrace.contract.observations import DEFAULT_OPPONENT_RULE, choose_opponents, polyline, track_position
 from cfrace.errors import ConfigError
 from cfrace.flight.safety import check as sf
-from cfrace.flight.mocap.estimation import quat_to_rot
+from cfrace.rotations import quat_to_rot
 from cfrace.track import HEADING_JITTER_RAD, ground_start_positions
 
 

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.flight.landing import descent as ld
 from cfrace.flight.safety import check as sf
 from cfrace.flight.mocap.consistency import ConsistencyMonitor

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfrace.flight.mocap.sources import MocapFrame
+from cfrace.rotations import rot_wxyz
 
 COUNTERS = ("frames", "occluded", "outliers", "invalid", "stale", "reacquired")
 
@@ -39,21 +40,6 @@ class Estimate:
     t: float            #: s, frame-clock time of the last accepted pose (nan if none yet)
     age_s: float        #: s, caller-clock time since the last accepted pose (inf if none yet)
     valid: bool         #: a pose was accepted within stale_after_s
-
-
-def quat_to_rot(q) -> np.ndarray:
-    """Unit quaternion (4,) w, x, y, z -> rotation matrix (3, 3) (same frames as the quaternion)."""
-    w, x, y, z = (float(v) for v in q)
-    return _rot(w, x, y, z)
-
-
-def _rot(w: float, x: float, y: float, z: float) -> np.ndarray:
-    """The rotation matrix (3, 3) of a unit quaternion, from one flat list (a third of the cost of nested rows)."""
-    return np.array([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]).reshape(3, 3)
 
 
 def _rotate_body(q: tuple, omega: tuple, h: float) -> tuple:
@@ -239,7 +225,7 @@ class PoseEstimator:
             h += self.lead_s
             quat = _rotate_body(quat, tr.omega, h)
         return Estimate(pos=np.array((x + vx * h, y + vy * h, z + vz * h)), vel=np.array(tr.vel),
-                        rot=_rot(*quat), quat=np.array(quat), t=tr.t, age_s=age,
+                        rot=rot_wxyz(*quat), quat=np.array(quat), t=tr.t, age_s=age,
                         valid=valid)
 
 

@@ -49,7 +49,7 @@ itself is unhealthy (overrun, operator) stop every drone.
 
 A swarm (N drones) keeps the same rule, written down (docs/flight.md, "Swarm safety"): a drone that
 breaches the fence, loses its link or crashes is stopped alone, the others race on (their
-policies see it only as long as no live drone is nearer, cfrace.env.observations); loop and
+policies see it only as long as no live drone is nearer, cfrace.contract.observations); loop and
 operator events stop all. Separation (``too_close``, SafetyConfig.min_separation_m): before
 take-off the runner refuses to start when two drones stand closer than that on the first mocap
 frame (nothing is sent to any drone), and when the loop ends (after the landings) it records the
@@ -64,7 +64,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cfrace.env.actions import THRUST_MAX_COUNTS
+from cfrace.contract.actions import THRUST_MAX_COUNTS
 from cfrace.flight.config import SafetyConfig
 
 STOP_DRONE, STOP_ALL, NONE = "stop_drone", "stop_all", "none"

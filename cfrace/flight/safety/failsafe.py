@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
+from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS, thrust_to_counts
 from cfrace.flight.landing import descent as ld
 from cfrace.flight.landing import spots
 from cfrace.sim.gates import to_gate_frame

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cfrace.drone import GRAVITY
-from cfrace.flight.mocap.estimation import quat_to_rot
+from cfrace.rotations import quat_to_rot
 
 #: the signal: (duration s, roll rate, pitch rate, yaw rate deg/s, thrust in weights), then DESCENT
 #: until every body is back within LANDED_M of its start height (at most DESCENT_MAX_S), then off

@@ -16,7 +16,7 @@ import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from cfrace.env.adapters import final_observations, make_race_env, require_single_agent, reseed, spaces
+from cfrace.rl.adapters import final_observations, make_race_env, require_single_agent, reseed, spaces
 
 
 def _np(t: torch.Tensor) -> np.ndarray:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import math
 
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.observations import LAYOUTS
 from cfrace.errors import PolicyError
 
 SCHEMA_VERSION = 2    #: the metadata schema this cfrace writes (and the newest it reads)

@@ -28,7 +28,7 @@ def calibrate_thrust(out_path: Path, spec: SensorSpec, plan: Plan, base: DronePr
         f"{plan.duration():.0f} s")
     t0 = time.monotonic()
     if simulate is not None:
-        from cfrace.simcf.stand import SimStand   # the simulated drone and stand: only when asked for
+        from cfrace.rehearsal.thrust_stand import SimStand   # the simulated drone and stand: only when asked for
 
         bus = bus or "can://virtual/stand"
         with SimStand(profile=truth, sensor=spec, bus=bus, seed=seed) as stand:

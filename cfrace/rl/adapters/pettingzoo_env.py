@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from pettingzoo import ParallelEnv
 
-from cfrace.env.adapters import AGENT_PREFIX, final_observations, make_race_env, reseed, spaces
+from cfrace.rl.adapters import AGENT_PREFIX, final_observations, make_race_env, reseed, spaces
 
 
 class _RaceAgents:
