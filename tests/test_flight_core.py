@@ -407,7 +407,7 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
     from cfrace.contract.observations import LAYOUTS
     from cfrace.flight.config import SafetyConfig
     from cfrace.flight.mocap.estimation import PoseEstimator
-    from cfrace.flight.loop.flight_loop import Drone, FlightLoop, ObservationBuilder
+    from cfrace.flight.loop.flight_loop import FlownDrone, FlightLoop, ObservationBuilder
     from cfrace.flight.safety.check import Fence
 
     clock = clock or LockstepClock(0.01)
@@ -418,7 +418,7 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
         link = RecordingLink(f"null://{name}", clock=clock.now)
         link.connect()
         meta = {"max_thrust_weights": 3.15, "max_rates_deg": [100.0, 100.0, 200.0], "method": name}
-        drones.append(Drone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
+        drones.append(FlownDrone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
                             prof.thrust_curve, decimation=2, phase=phase))
     mocap = ScriptedMocap(paths, clock)
     loop = FlightLoop(drones=drones, mocap=mocap, estimator=PoseEstimator(["cf1", "cf2"], max_speed_mps=50.0),

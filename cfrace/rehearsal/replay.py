@@ -25,7 +25,7 @@ from cfrace.flight.config import SafetyConfig
 from cfrace.flight.mocap.estimation import PoseEstimator
 from cfrace.flight.log.writer import read_log
 from cfrace.flight.link.protocol import RecordingLink
-from cfrace.flight.loop.flight_loop import Drone, FlightLoop, ObservationBuilder
+from cfrace.flight.loop.flight_loop import FlownDrone, FlightLoop, ObservationBuilder
 from cfrace.flight.loop.state import inference_phases
 from cfrace.flight.mocap.sources import frame_from_msg, open_mocap
 from cfrace.flight.loop.gate_progress import FastRaceProgress
@@ -155,7 +155,7 @@ def _read(path: str | Path, data) -> _Logged:
 def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightLoop:
     """The flight loop of the logged flight, with the replay's clock, frames and links."""
     meta, track, profile, safety, pols, bodies = lg.meta, lg.track, lg.profile, lg.safety, lg.policies, lg.bodies
-    drones = [Drone(name=n, body=bodies[i], policy=pols[i], layout=LAYOUTS[pols[i].meta["obs_layout"]], link=links[i],
+    drones = [FlownDrone(name=n, body=bodies[i], policy=pols[i], layout=LAYOUTS[pols[i].meta["obs_layout"]], link=links[i],
                     meta=pols[i].meta, mass=profile.mass, thrust_curve=profile.thrust_curve,
                     decimation=int(round(lg.rate_hz / pols[i].meta["policy_hz"])), phase=phase)
               for i, (n, phase) in enumerate(zip(meta["policies"], inference_phases(pols)))]

@@ -1,6 +1,6 @@
 """CflibLink: the real Crazyflie link through cflib (radio:// and udp://).
 
-This and cfrace/calibrate/link.py (the stand's log API) are the only modules of cfrace that import
+This and cfrace/calibrate/stand_link.py (the stand's log API) are the only modules of cfrace that import
 cflib (GPL-3.0; we call it, we never copy it).
 One Crazyflie object per drone; one Crazyradio per drone is the documented setup (two drones
 at 100 Hz are ~220-420 packets/s, too many for one radio; docs/flight.md).

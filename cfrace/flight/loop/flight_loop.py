@@ -40,10 +40,10 @@ import time
 import numpy as np
 
 from cfrace.flight.safety import check as sf
-from cfrace.flight.loop.state import Drone, KillSwitch, LoopResult, ObservationBuilder, TickTimes
+from cfrace.flight.loop.state import FlownDrone, KillSwitch, LoopResult, ObservationBuilder, TickTimes
 from cfrace.flight.loop.tick import FLYING_MIN_COUNTS, LinkInputs, TickCore, TickIn
 
-__all__ = ["FlightLoop", "Drone", "KillSwitch", "LoopResult", "ObservationBuilder", "FLYING_MIN_COUNTS"]
+__all__ = ["FlightLoop", "FlownDrone", "KillSwitch", "LoopResult", "ObservationBuilder", "FLYING_MIN_COUNTS"]
 
 PRE_RACE_WARM_CALLS = 20   #: policy calls per drone before the clock starts (FlightLoop.warm_policies)
 
@@ -66,7 +66,7 @@ def collect_garbage() -> None:
 class FlightLoop:
     """Runs one race. Construct with ready (connected, set up) links and an opened mocap source."""
 
-    def __init__(self, *, drones: list[Drone], mocap, estimator, progress, obs_builder: ObservationBuilder,
+    def __init__(self, *, drones: list[FlownDrone], mocap, estimator, progress, obs_builder: ObservationBuilder,
                  clock, fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, log=None, view=None,
                  faults=None, kill: KillSwitch | None = None, link_log_every: int = 10, link_clock=None,
                  prewarm_s: float = 0.0, limits: sf.CommandLimits | None = None, landing=None,

@@ -41,7 +41,7 @@ from cfrace.flight.mocap.estimation import PoseEstimator
 from cfrace.flight.log.foxglove_scene import log_write_error, open_sink
 from cfrace.flight.landing.descent import LandingSetup
 from cfrace.flight.log.timing import loop_figures
-from cfrace.flight.loop.flight_loop import Drone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
+from cfrace.flight.loop.flight_loop import FlownDrone, FlightLoop, KillSwitch, LoopResult, ObservationBuilder
 from cfrace.flight.loop.state import RaceResult, inference_phases
 from cfrace.flight.landing.procedures import hover_start, hover_start_positions
 from cfrace.flight.loop.gate_progress import FastRaceProgress
@@ -253,9 +253,9 @@ class RaceRun:
         """The take-off rules (swarm.check_take_off: separation, start grid); nothing was sent yet."""
         self.mocap = check_take_off(self.mocap, self.setup.cfg, self.io.clock.realtime, self.setup.track)
 
-    def _drones(self) -> list[Drone]:
+    def _drones(self) -> list[FlownDrone]:
         s = self.setup
-        return [Drone(name=name, body=s.cfg.bodies[i], policy=p.policy, layout=p.layout,
+        return [FlownDrone(name=name, body=s.cfg.bodies[i], policy=p.policy, layout=p.layout,
                       link=self.links[i], meta=dict(p.policy.meta, path=str(p.path)), mass=s.profile.mass,
                       thrust_curve=s.profile.thrust_curve, decimation=p.decimation, phase=phase)
                 for i, (name, p, phase) in enumerate(zip(s.cfg.names, s.policies, inference_phases(s.policies)))]

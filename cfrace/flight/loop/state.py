@@ -28,7 +28,7 @@ class KillSwitch:
 
 
 @dataclass
-class Drone:
+class FlownDrone:
     """One racing drone in the loop (mutable runtime state)."""
 
     name: str                  #: "ego" / "opp"

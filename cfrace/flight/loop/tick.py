@@ -23,7 +23,7 @@ from cfrace.flight.safety import check as sf
 from cfrace.flight.mocap.consistency import ConsistencyMonitor
 from cfrace.flight.safety.failsafe import SoftState, blocked_by, land_step
 from cfrace.flight.loop.swarm import OpponentPicker, batched_step, due_groups
-from cfrace.flight.loop.state import Drone, ObservationBuilder
+from cfrace.flight.loop.state import FlownDrone, ObservationBuilder
 from cfrace.flight.mocap.sources import frame_to_msg
 
 #: thrust counts sent at least while a drone races: the Crazyflie firmware turns a legacy setpoint
@@ -70,7 +70,7 @@ class TickOut:
 class TickCore:
     """The race state and the pure tick over it (module doc)."""
 
-    def __init__(self, *, drones: list[Drone], estimator, progress, obs_builder: ObservationBuilder,
+    def __init__(self, *, drones: list[FlownDrone], estimator, progress, obs_builder: ObservationBuilder,
                  fence: sf.Fence, safety_cfg, laps: int, timeout_s: float, dt: float, filters=None,
                  limits: sf.CommandLimits | None = None, landing: ld.LandingSetup | None = None,
                  hover_start: bool = False, consistency: bool = True):
@@ -110,7 +110,7 @@ class TickCore:
         return True
 
     @staticmethod
-    def due(d: Drone, k: int) -> bool:
+    def due(d: FlownDrone, k: int) -> bool:
         """Drone d infers on tick k (its policy rate, staggered by its phase); not while it lands."""
         return not d.stopped and d.landing is None and k % d.decimation == d.phase % d.decimation
 

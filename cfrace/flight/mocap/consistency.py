@@ -129,7 +129,7 @@ class ConsistencyMonitor:
         return self.hist[i].residuals(self.dt)
 
     def update_all(self, drones, ests) -> list[str | None]:
-        """update() for every drone of the tick (cfrace.flight.loop.state.Drone): judged while it flies
+        """update() for every drone of the tick (cfrace.flight.loop.state.FlownDrone): judged while it flies
         on body rates, racing or braking (and holding) before a landing (the high-level commander's moves are not)."""
         on_rates = [d.action is not None if d.landing is None else d.landing.phase in (BRAKE, HOLD) for d in drones]
         return [self.update(i, e, d.rates_dps, d.thrust_n, not d.stopped and r)
