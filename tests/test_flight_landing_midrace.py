@@ -1,5 +1,5 @@
 """A drone that lands mid-race while the others race on: a low battery does not make it brake into
-the fence or a gate (softsafe.may_start_landing: it flies on for up to FLY_THROUGH_MAX_S until
+the fence or a gate (failsafe.may_start_landing: it flies on for up to FLY_THROUGH_MAX_S until
 braking is safe), and its spot keeps off the race line (spots.candidate_spots off_line), where it
 would lie in the others' way and make them land too (opponent_down)."""
 
@@ -36,7 +36,7 @@ def test_braking_towards_a_near_wall_would_leave_the_fence(setup):
 
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_the_braking_distance_bounds_the_simulated_brake_from_a_racing_attitude(profile):
-    """softsafe.braking_distance, the one estimate behind brakes_out_of_fence and brakes_into_gate,
+    """failsafe.braking_distance, the one estimate behind brakes_out_of_fence and brakes_into_gate,
     against the brake flown on the simulated firmware from race speed, the drone pitched 45 deg
     forward (accelerating, the worst attitude to brake from): it never stops farther than estimated,
     and the estimate is no more than twice the distance (a wider one would make drones fly on

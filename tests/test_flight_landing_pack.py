@@ -1,6 +1,6 @@
 """Drones that raced close together land apart: a braking drone keeps away from the other flying
 drones (landing.separation_accel), and a drone just ahead of one that flies on through its gate after
-the race's end flies on with it (softsafe.fly_on_together) instead of braking in front of it."""
+the race's end flies on with it (failsafe.fly_on_together) instead of braking in front of it."""
 
 import math
 from types import SimpleNamespace

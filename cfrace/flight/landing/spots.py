@@ -276,7 +276,7 @@ def _choose(track, stops, others, cfg: LandingConfig, paths, everything: np.ndar
         # a spot whose path keeps clear of the other drones' paths, among the NEAR_CANDIDATES nearest
         # (a drone hemmed in by other paths would make this rule walk the whole arena: 25-100 ms of CPU
         # in the tick); else straight down where the drone stops if that is clear of them; else clear of
-        # the drones that stay; else merely free (its go-to then waits for the others: softsafe._may_go)
+        # the drones that stay; else merely free (its go-to then waits for the others: failsafe._may_go)
         chosen = nearest(lambda cand: _apart(stop, cand, paths, still, cfg.path_separation_m), far=False)
         sep = cfg.path_separation_m
         if chosen is None and paths and all(_seg_point_dist(a, b, stop[None])[0] >= sep for a, b in paths) \

@@ -1,6 +1,6 @@
 """The loop's end of the link keeper (cfrace.flight.link.keeper: the drones' links in a process of
 their own): ``LinkKeeper`` spawns the keeper and talks to it through a socket pair, ``KeptLink`` is
-one drone's Link (cfrace.flight.link.protocol) through it. The messages are linkproc's."""
+one drone's Link (cfrace.flight.link.protocol) through it. The messages are cfrace.flight.link.keeper's."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ CFLIB_SCHEMES = ("radio://", "udp://", "usb://")
 
 
 def open_link(uri: str, *, clock=time.monotonic) -> Link:
-    """A Link for ``uri`` in this process: radio:// and udp:// go through cflib (link_cflib.py);
+    """A Link for ``uri`` in this process: radio:// and udp:// go through cflib (crazyflie.py);
     null:// records only. sim://N (a drone of an in-process simulator) is made by
     cfrace.rehearsal.dryrun, which has it. Races hold their cflib links in the link keeper
     (``link_factory``); this in-process form is for tools and tests."""

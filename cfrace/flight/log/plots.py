@@ -54,7 +54,7 @@ def _first(msg: dict, keys: tuple[str, ...]):
 
 def timing_series(data: FlightLogData) -> dict[str, np.ndarray]:
     """{"t", "period_s", "compute_s", "late_s"} arrays (N,) from /timing; NaN where missing. t is
-    each tick's start on the loop clock, the period the spacing of the starts (loopfigures.periods)."""
+    each tick's start on the loop clock, the period the spacing of the starts (timing.periods)."""
     msgs = data.messages("/timing")
     t = np.array([m[0] for m in msgs], dtype=float)
 
@@ -255,7 +255,7 @@ def _speed_figure(plt, trajs: dict, colors: dict, title: str, until: dict):
 
 def _timing_figure(plt, data: FlightLogData, ts: dict, loop: dict, title: str):
     """The loop's period, compute and lateness per tick, and their histogram; the legend's
-    figures are ``loop``'s (loopfigures.loop_figures, as `log info` prints them)."""
+    figures are ``loop``'s (timing.loop_figures, as `log info` prints them)."""
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [2, 1]})
     both = np.concatenate([ts["period_s"], ts["compute_s"]]) * 1e3
     top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
