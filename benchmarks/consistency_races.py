@@ -1,4 +1,4 @@
-"""The pose/command consistency check (cfrace/flight/consistency.py) on races of the shipped policies:
+"""The pose/command consistency check (cfrace/flight/mocap/consistency.py) on races of the shipped policies:
 false stops and the largest residuals, lockstep dry-runs through the whole flight stack.
 
     python benchmarks/consistency_races.py [--races 50] [--pairs lemniscate:ours:ds,complex:ours:ds]
@@ -16,8 +16,8 @@ import json
 from pathlib import Path
 
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.consistency import RATE_LIMIT_DPS
-from cfrace.flight.dryrun import dry_run
+from cfrace.flight.mocap.consistency import RATE_LIMIT_DPS
+from cfrace.rehearsal.dryrun import dry_run
 from cfrace.flight.setup import training_profile
 from cfrace.track import load_track
 

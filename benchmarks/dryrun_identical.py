@@ -61,7 +61,7 @@ def _result(path: Path) -> dict:
 
 
 def _messages(path: Path) -> dict[str, list]:
-    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.log.writer import read_log
 
     data = read_log(path)
     out = {}

@@ -7,7 +7,7 @@ Runs each command once as a subprocess (the installed `cfrace` of this interpret
 "library", the time inside evaluate / race / tournament (`wall_s` of the command's --json: loading
 the policies, spawning, flying, metrics); "CLI", the whole command's wall time (Python start-up and
 imports included); "CPU", the command's user + system CPU time. The worst case: paper-size actors
-([512, 512, 256, 128], cfrace.flight.holdpolicy.make_sized_hold_policy) that hold their height
+([512, 512, 256, 128], cfrace.rehearsal.hold_policy.make_sized_hold_policy) that hold their height
 and never finish nor crash, so every world flies to the time limit. Say what else ran.
 """
 
@@ -44,7 +44,7 @@ def timed(args: list[str], out: Path) -> dict:
 
 
 def commands(tmp: Path) -> list[tuple[str, str, list[str]]]:
-    from cfrace.flight.holdpolicy import make_sized_hold_policy
+    from cfrace.rehearsal.hold_policy import make_sized_hold_policy
 
     solo = [str(make_sized_hold_policy(tmp / f"big_solo{i}.onnx", "solo36", "lemniscate", False, seed=i))
             for i in range(2)]

@@ -4,7 +4,7 @@
     PYTHONPATH=OLD_TREE .venv/bin/python benchmarks/landing_ticks.py ...     (another revision's code:
         git archive REV | tar -x -C OLD_TREE)
 
-Runs `cfrace bench loop` in this process with cfrace.flight.tick.TickCore.step timed (time.thread_time:
+Runs `cfrace bench loop` in this process with cfrace.flight.loop.tick.TickCore.step timed (time.thread_time:
 the loop thread's CPU, not the machine's load). At the bench's time-out every drone starts landing in
 one tick. Prints the ticks with a landing drone, slowest first, and the racing ticks' p50 / p99 / max.
 """
@@ -28,7 +28,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     import cfrace
-    import cfrace.flight.tick as tick
+    import cfrace.flight.loop.tick as tick
     from cfrace.cli.main import main as cli
 
     ticks = []                       # (cpu s, k, drones landing)

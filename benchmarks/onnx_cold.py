@@ -4,10 +4,10 @@
 
 The flight loop sleeps most of each 10 ms period; this measures what that costs the next inference
 (docs/benchmarks.md, "What each warm-up pays"). Actor: the hold controller inside an MLP of
-the paper's size [512, 512, 256, 128] (cfrace.flight.holdpolicy), run through cfrace.policy.OnnxPolicy
+the paper's size [512, 512, 256, 128] (cfrace.rehearsal.hold_policy), run through cfrace.policy.OnnxPolicy
 as the loop runs it. Prints p50 / p90 / p99 in microseconds per sleep length, and the same with a
 warm-up call 1 ms before each timed call (the loop's previous warm-up), with a busy loop instead of
-the sleep, and through the loop's own clock with its warm-up window (cfrace.flight.clock.RealClock:
+the sleep, and through the loop's own clock with its warm-up window (cfrace.flight.loop.clock.RealClock:
 calls over and over from 3 ms before the deadline, then no sleep).
 """
 
@@ -20,15 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.flight.clock import RealClock
-from cfrace.flight.holdpolicy import make_sized_hold_policy
+from cfrace.flight.loop.clock import RealClock
+from cfrace.rehearsal.hold_policy import make_sized_hold_policy
 from cfrace.policy import OnnxPolicy
 
 
 def timed_calls(policy, obs, period_s: float, calls: int, warm_lead_s: float = 0.0, mode: str = "once") -> np.ndarray:
     """Time one call per period. mode: "once" (one warm-up call warm_lead_s before the deadline, then
     sleep), "spin" (no call: a busy loop instead of the sleep for the whole period), "window" (the
-    flight loop's own clock, cfrace.flight.clock.RealClock, with its warm-up window of warm_lead_s)."""
+    flight loop's own clock, cfrace.flight.loop.clock.RealClock, with its warm-up window of warm_lead_s)."""
     out = []
     if mode == "window":
         clock = RealClock(period_s)

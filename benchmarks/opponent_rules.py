@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/opponent_rules.py [--races 50] [--seeds 1,2] [--lineups ours,ours,ds,ds;ours,ds,ss,dm]
                                                  [--track lemniscate] [--json FILE]
 
-For every lineup, opponent rule (cfrace.env.observations.OPPONENT_RULES) and seed: the share of
+For every lineup, opponent rule (cfrace.contract.observations.OPPONENT_RULES) and seed: the share of
 races won by each policy, races without a winner, crashes, crashes while touching another drone
 and drone-drone contacts (cfrace.evaluate.field.race_field; one thread). Prints a markdown table
 and one JSON document; records the machine's load.
@@ -20,7 +20,7 @@ import torch
 
 
 def main() -> None:
-    from cfrace.env.observations import OPPONENT_RULES
+    from cfrace.contract.observations import OPPONENT_RULES
     from cfrace.evaluate.field import race_field
 
     ap = argparse.ArgumentParser()

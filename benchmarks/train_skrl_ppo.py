@@ -40,7 +40,7 @@ def build(worlds: int, seed: int, rollouts: int, out: str):
     from skrl.resources.preprocessors.torch import RunningStandardScaler
     from skrl.resources.schedulers.torch import KLAdaptiveLR
 
-    from cfrace.env.adapters.gymnasium_env import RaceVectorEnv
+    from cfrace.rl.adapters.gymnasium_env import RaceVectorEnv
 
     class Policy(GaussianMixin, Model):
         def __init__(self, observation_space, action_space, device):
@@ -88,7 +88,7 @@ def evaluate(agent, worlds: int = 64, seed: int = 123, steps: int = 500) -> dict
     mean duration (s) and the share that crashed."""
     import numpy as np
 
-    from cfrace.env.adapters.gymnasium_env import RaceVectorEnv
+    from cfrace.rl.adapters.gymnasium_env import RaceVectorEnv
 
     venv = RaceVectorEnv(worlds, "ds", "lemniscate", seed=seed)
     obs, _ = venv.reset(seed=seed)

@@ -14,8 +14,8 @@ the policy trained on. This module holds the one definition of that loop:
   position linear, attitude sign-fixed normalised linear), ``perturb_pose`` (mocap noise).
 
 cfrace.env.race_env.RaceEnv applies them to batches of worlds in training; the dry-run's simulated
-motion capture (cfrace.flight.mocap_sim.SimSource) applies the same functions to each frame. The
-estimator the policy then reads through is the flight stack's own (cfrace.flight.estimator); the
+motion capture (cfrace.flight.mocap.simulated.SimSource) applies the same functions to each frame. The
+estimator the policy then reads through is the flight stack's own (cfrace.flight.mocap.estimation); the
 env reproduces its rules on tensors (velocity from the last two frames, hold of the last pose,
 forward prediction) and tests/test_loopmodel.py checks the two agree frame for frame.
 """

@@ -7,7 +7,7 @@
     action [batch, ACTION_DIM] float32
 
 with the metadata of the policy contract (cfrace.contract) as metadata_props. Used by cfrace.export
-(trained actors) and cfrace.flight.holdpolicy (hand-made benchmark policies).
+(trained actors) and cfrace.rehearsal.hold_policy (hand-made benchmark policies).
 """
 
 from __future__ import annotations

@@ -292,7 +292,7 @@ def ground_start_positions(track: "Track", drones: int, floor_z: float = 0.0) ->
     track.spawn.ground_distance before gate 0 on its +n side, at height floor_z; and the yaw (rad)
     facing gate 0. Where a ground start's drones stand: the simulated drones
     (cfrace.simcf.firmware), the hover start's targets and the take-off check of a flight
-    (cfrace.flight.swarm). ConfigError if a slot lies outside the arena (a drone would start
+    (cfrace.flight.loop.swarm). ConfigError if a slot lies outside the arena (a drone would start
     outside the flight's fence soft limit, or crash at once in the simulator), saying how many
     drones fit."""
     xy = _ground_slots(track, drones)

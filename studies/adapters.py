@@ -40,9 +40,9 @@ def measure(n: int, seconds: float, per_env_max: int, repeats: int = 3) -> dict:
     """World-steps/s of every form at ``n`` worlds: the forms take turns, ``repeats`` rounds of
     ``seconds`` / ``repeats`` each, and the best round counts (the machine is shared: load only
     slows a form down, so the best round is the least disturbed)."""
-    from cfrace.env.adapters import make_race_env
-    from cfrace.env.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv
-    from cfrace.env.adapters.pettingzoo_env import RaceParallelEnv, RaceParallelVectorEnv
+    from cfrace.rl.adapters import make_race_env
+    from cfrace.rl.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv
+    from cfrace.rl.adapters.pettingzoo_env import RaceParallelEnv, RaceParallelVectorEnv
 
     rng = np.random.default_rng(0)
     act = rng.uniform(-1, 1, (n, 4)).astype(np.float32)

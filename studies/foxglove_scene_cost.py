@@ -1,4 +1,4 @@
-"""What building the Foxglove scene costs per flight-log record (cfrace.flight.foxglove_scene):
+"""What building the Foxglove scene costs per flight-log record (cfrace.flight.log.foxglove_scene):
 the /estimate (poses, 10-Hz drones and trails) and /setpoint (commands) records of a two-drone
 race, CPU time per call, p50 / p99 over 3000 ticks. Prints one line per record kind.
 
@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from cfrace.flight.foxglove_scene import FoxgloveScene
-from cfrace.flight.safety import Fence
+from cfrace.flight.log.foxglove_scene import FoxgloveScene
+from cfrace.flight.safety.check import Fence
 from cfrace.track import load_track
 
 

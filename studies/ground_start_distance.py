@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
+from cfrace.rehearsal.dryrun import dry_run
 from cfrace.paths import POLICIES_DIR, TRACKS_DIR
 
 

@@ -3,7 +3,7 @@
     .venv/bin/python studies/landing_spots_ab.py [OLD_REV] [--tracks lemniscate,complex] [--drones 3,8] [--cases 20]
 
 OLD_REV's cfrace/flight/spots.py (git show; it imports only numpy and the standard library) is loaded
-beside cfrace.flight.spots. For each track and drone count, ``--cases`` random sets of stop points in the
+beside cfrace.flight.landing.spots. For each track and drone count, ``--cases`` random sets of stop points in the
 arena land one drone after the other as the flight loop's tick does (choose_landing_spots with the
 spots and paths chosen so far). Prints whether every spot agrees, and per tick (all drones) and per
 single choice the median and worst CPU time (time.thread_time) of each version.
@@ -80,7 +80,7 @@ def main() -> None:
     ap.add_argument("--drones", default="3,8")
     ap.add_argument("--cases", type=int, default=20)
     args = ap.parse_args()
-    import cfrace.flight.spots as new
+    import cfrace.flight.landing.spots as new
 
     old = load_revision(args.old_rev)
     for track in args.tracks.split(","):

@@ -7,7 +7,7 @@ flight stack (docs/flight.md, "Mocap latency").
 Per (policy, latency L ms, compensation C ms, seed): the run of
 `cfrace sim dry-run --track lemniscate --ego P --opp ds --lockstep --laps 2 --mocap-latency-ms L
 --latency-comp-ms C --mocap-noise-m 0.001 --faults nan_policy@0.02:opp --seed S --profile PROFILE`
-(the opponent is stopped at once and lies at its start), through `cfrace.flight.dryrun.dry_run`,
+(the opponent is stopped at once and lies at its start), through `cfrace.rehearsal.dryrun.dry_run`,
 the function behind the command. C is 0 and L (and 10 for L = 0). Prints laps flown of 2 and how
 each run ended (the ego's stop kind when it did not finish).
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 def one_run(policy: str, latency_ms: float, comp_ms: float, seed: int, profile: str) -> dict:
     from cfrace.cli.common import choose_profile
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     from cfrace.track import load_track
 
     track = load_track("lemniscate")

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from cfrace.flight.faults import UdpCutRelay
+from cfrace.rehearsal.faults import UdpCutRelay
 from cfrace.simcf.firmware import SimFleet
 from cfrace.simcf.server import SimCrazyflieServer
 

@@ -20,7 +20,7 @@ import json
 import numpy as np
 
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
+from cfrace.rehearsal.dryrun import dry_run
 
 
 def race(track: str, policies: tuple, faults: str | None, timeout_s: float) -> dict:

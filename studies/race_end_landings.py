@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
+from cfrace.rehearsal.dryrun import dry_run
 
 
 def race_end(ego: str, opp: str, profile: str, t_end: float, track: str = "lemniscate", policies: tuple = ()) -> dict:

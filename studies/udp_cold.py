@@ -9,7 +9,7 @@ this process, in six ways: back to back; every 10 ms with a sleep in between; ev
 3-ms window of warm datagrams to a second socket of our own; after one warm datagram 3 ms before;
 after one warm datagram 0.2 ms before, in a busy wait; and the busy wait without datagrams. (The
 loop itself no longer sends on a socket: its setpoints go through a pipe to the link keeper,
-cfrace/flight/linkproc.py.) Pinned to one CPU (--cpu, default
+cfrace/flight/link/keeper.py.) Pinned to one CPU (--cpu, default
 the highest). p50 / p90 / p99 in us. Used for docs/benchmarks.md ("Loop CPU and priority").
 """
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.flight.benchloop import _free_base_port
+from cfrace.rehearsal.loop_bench import _free_base_port
 
 BIN = Path(sys.executable).parent / "cfrace"
 
@@ -37,7 +37,7 @@ def contacts(log_path: Path, bodies=("cf1", "cf2")) -> dict:
     """From a flight log: the closest approach of the two bodies during the race (before the first
     landing began) and the ticks closer than the two collision radii."""
     from cfrace.drone import load_profile
-    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.log.writer import read_log
     from cfrace.sim.collisions import CONTACT_MARGIN
 
     log = read_log(log_path)

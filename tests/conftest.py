@@ -6,7 +6,7 @@ import torch
 @pytest.fixture(autouse=True)
 def signal_handlers_back():
     """A command run in-process (`fly`, `sim dry-run`) ignores SIGINT/SIGTERM after its race, as the
-    process is about to exit (cfrace.flight.runner.SignalGuard): put them back after each test, so
+    process is about to exit (cfrace.flight.loop.race.SignalGuard): put them back after each test, so
     that later tests and the subprocesses they start get the usual ones."""
     import signal
     import threading
@@ -56,10 +56,10 @@ def ppo_batch():
 
 @pytest.fixture
 def spot_work(monkeypatch):
-    """The work of cfrace.flight.spots' landing-spot choice, counted (what bounds its CPU time in the
+    """The work of cfrace.flight.landing.spots' landing-spot choice, counted (what bounds its CPU time in the
     tick, the same on every machine): {"path_rule": candidates the rule on other drones' paths looked
     at, "paths_clear": candidates checked for a straight clear way}."""
-    import cfrace.flight.spots as ld
+    import cfrace.flight.landing.spots as ld
 
     work = {"path_rule": 0, "paths_clear": 0}
     apart, paths_clear = ld._apart, ld.paths_clear

@@ -10,8 +10,8 @@ import onnx
 from cfrace import __version__
 from cfrace.contract import ACTION_DIM
 from cfrace.drone import DEFAULT_PROFILE, load_profile
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import LAYOUTS
 from cfrace.policygraph import build_model
 
 

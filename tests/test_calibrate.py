@@ -23,7 +23,7 @@ from cfrace.calibrate.procedure import QUICK_PLAN, Plan, run_stand
 from cfrace.calibrate.sensor import QUANTITIES, SENSORS_DIR, load_sensor
 from cfrace.drone import load_profile
 from cfrace.errors import ConfigError, LinkError
-from cfrace.simcf.stand import SimStand
+from cfrace.rehearsal.thrust_stand import SimStand
 
 SHIPPED = sorted(p.stem for p in SENSORS_DIR.glob("*.yaml"))
 #: a short plan for the safety tests: they stop long before its end

@@ -160,7 +160,7 @@ def test_sim_serve_names_the_option_a_bad_value_came_from(tmp_path, args, words)
 def test_a_body_that_rises_too_little_in_the_check_points_at_the_profile_too():
     import numpy as np
 
-    from cfrace.flight.preflight import PreflightConfig, judge_signal
+    from cfrace.flight.safety.preflight import PreflightConfig, judge_signal
 
     q = np.array([1.0, 0.0, 0.0, 0.0])
     still = [(np.array([0.0, 0.0, 0.02]), q)] * 5

@@ -233,8 +233,8 @@ def test_readme_test_command_keeps_the_summary_and_the_slowest_tests():
 def test_log_info_gives_the_figures_the_race_printed(tmp_path, capsys):
     """A flight with a stall (skipped ticks): the JSON result, `log info --json` and the timing plot
     agree on every loop figure, and no period is negative."""
-    from cfrace.flight.flightlog import read_log
-    from cfrace.flight.logplot import timing_series
+    from cfrace.flight.log.writer import read_log
+    from cfrace.flight.log.plots import timing_series
 
     log = tmp_path / "stall.mcap"
     code, out, _ = run(["sim", "dry-run", *RACE, "--lockstep", "--timeout-s", "2", "--log", str(log),
@@ -398,7 +398,7 @@ def test_live_view_ends_on_the_final_frame_and_a_new_line():
     from rich.console import Console
 
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
 
     buf = io.StringIO()
     con = Console(file=buf, force_terminal=False, width=140)

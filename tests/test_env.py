@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from cfrace.drone import load_profile
-from cfrace.env.observations import build_observation, build_observations, layout_for
+from cfrace.contract.observations import build_observation, build_observations, layout_for
 from cfrace.env.race_env import RaceEnv
 from cfrace.env.rewards import RewardInputs, leading, overtaking, reward_terms
 from cfrace.track import load_track
@@ -208,8 +208,8 @@ def test_flight_obs_observes_the_pose_difference_and_floors_the_thrust():
     """flight_obs splits each policy step at 10 ms: the dynamics are the same (hover commands), the
     observed velocity is the last 10-ms pose difference (as the flight loop's estimator computes it
     from 100 Hz mocap), and thrust never goes below the firmware's least non-zero command."""
-    from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
-    from cfrace.env.observations import body_frame
+    from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS
+    from cfrace.contract.observations import body_frame
 
     track, prof = load_track("lemniscate"), load_profile("cf2x_paper")
     kw = dict(num_envs=3, method="ds", obstacles=False, seed=5, randomize=False, start="gate")

@@ -15,9 +15,9 @@ pytest.importorskip("pettingzoo")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 from pettingzoo.test import parallel_api_test, parallel_seed_test  # noqa: E402
 
-from cfrace.env.adapters import make_race_env  # noqa: E402
-from cfrace.env.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv  # noqa: E402
-from cfrace.env.adapters.pettingzoo_env import RaceParallelEnv  # noqa: E402
+from cfrace.rl.adapters import make_race_env  # noqa: E402
+from cfrace.rl.adapters.gymnasium_env import RaceGymEnv, RaceVectorEnv  # noqa: E402
+from cfrace.rl.adapters.pettingzoo_env import RaceParallelEnv  # noqa: E402
 from cfrace.errors import ConfigError  # noqa: E402
 
 
@@ -115,7 +115,7 @@ def test_gymnasium_vector_env():
 def test_parallel_vector_env_matches_raceenv():
     """The vectorized multi-agent form: dicts of batches equal to RaceEnv's step for step; the
     reset mask is exactly the worlds RaceEnv restarted (their step counter back to 0)."""
-    from cfrace.env.adapters.pettingzoo_env import RaceParallelVectorEnv
+    from cfrace.rl.adapters.pettingzoo_env import RaceParallelVectorEnv
 
     n = 32
     venv = RaceParallelVectorEnv(n, "ours", seed=4)

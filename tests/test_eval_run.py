@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from cfrace.drone import DEFAULT_PROFILE, load_profile
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import LAYOUTS
 from cfrace.evaluate.entrants import load_entrant, load_entrants
 from cfrace.evaluate.metrics import DRAW_CRASH, DRAW_TIE, DRAW_TIMEOUT, EGO_WIN, OPP_WIN, race_outcomes
 from cfrace.evaluate.rollout import Starts, rollout, start_poses

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cfrace.drone import load_profile
-from cfrace.env.actions import action_map_constants
+from cfrace.contract.actions import action_map_constants
 from cfrace.errors import PolicyError
 from cfrace.export import export_actor, parity_check, torch_reference
 from cfrace.policy import OnnxPolicy

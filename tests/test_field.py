@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cfrace.drone import DEFAULT_PROFILE, load_profile
-from cfrace.env.observations import (OPPONENT_RULES, build_observation, build_observations, choose_opponents,
+from cfrace.contract.observations import (OPPONENT_RULES, build_observation, build_observations, choose_opponents,
                                      critic_observations, layout_for)
 from cfrace.env.rewards import leading, overtaking
 from cfrace.evaluate.rating import expected_score, fit_ratings, pairwise, placings, winners
@@ -345,7 +345,7 @@ def test_shared_runner_trains_one_model_for_every_drone(tmp_path):
 
 def test_radio_budget_from_bitcraze_figures():
     from cfrace.errors import ConfigError
-    from cfrace.flight.radio import check_radios, max_drones_per_radio, parse_radio_uri
+    from cfrace.flight.link.radio import check_radios, max_drones_per_radio, parse_radio_uri
 
     assert max_drones_per_radio(100.0) == 4 and max_drones_per_radio(50.0) == 8
     r = parse_radio_uri("radio://0/80/2M/e7e7e7e7e1")

@@ -1,4 +1,4 @@
-"""The pose/command consistency check (cfrace.flight.consistency, running sums over its window)
+"""The pose/command consistency check (cfrace.flight.mocap.consistency, running sums over its window)
 against the window's sums written out plainly here, on random histories of several drones that
 start and stop being judged, and on a NaN that passes through the window."""
 
@@ -12,8 +12,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cfrace.drone import GRAVITY
-from cfrace.flight import consistency as cs
-from cfrace.flight.landing import BRAKE
+from cfrace.flight.mocap import consistency as cs
+from cfrace.flight.landing.descent import BRAKE
 
 
 def _reference(hist: list, w: int, lag: int, dt: float, m: float):

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
-from cfrace.env.actions import thrust_to_counts
+from cfrace.contract.actions import thrust_to_counts
 from cfrace.errors import LinkError
-from cfrace.flight.clock import LockstepClock, RealClock
-from cfrace.flight.link import DirectSimLink, RecordingLink, cflib_setpoint_args, packet_values
-from cfrace.flight.links import open_link
-from cfrace.flight.progress import FastRaceProgress
+from cfrace.flight.loop.clock import LockstepClock, RealClock
+from cfrace.flight.link.protocol import DirectSimLink, RecordingLink, cflib_setpoint_args, packet_values
+from cfrace.flight.link.opener import open_link
+from cfrace.flight.loop.gate_progress import FastRaceProgress
 from cfrace.sim.gates import RaceProgress
 from cfrace.track import load_track
 
@@ -321,11 +321,11 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     state) and in the flight loop (ObservationBuilder on estimates); with zero-noise mocap through
     the estimator, positions/attitude/gates agree to float32 and velocity to the filter's lag."""
     from cfrace.drone import load_profile
-    from cfrace.env.observations import LAYOUTS, build_observations
-    from cfrace.flight.estimator import Estimate, PoseEstimator
-    from cfrace.flight.loop import ObservationBuilder
-    from cfrace.flight.mocap import MocapFrame, Pose
-    from cfrace.flight.holdpolicy import hold_policy_layers
+    from cfrace.contract.observations import LAYOUTS, build_observations
+    from cfrace.flight.mocap.estimation import Estimate, PoseEstimator
+    from cfrace.flight.loop.flight_loop import ObservationBuilder
+    from cfrace.flight.mocap.sources import MocapFrame, Pose
+    from cfrace.rehearsal.hold_policy import hold_policy_layers
     from cfrace.sim.simulator import Simulator
 
     profile = load_profile(PROFILE)
@@ -341,7 +341,7 @@ def test_flight_observations_agree_with_the_simulator_and_env(track):
     builder = ObservationBuilder(track.gate_corners())
     est = PoseEstimator(["cf1", "cf2"], stale_after_s=0.15)
     progress = FastRaceProgress(track.gate_array(), 2)
-    from cfrace.env.actions import action_to_command
+    from cfrace.contract.actions import action_to_command
 
     worst = np.zeros(3)
     for k in range(200):                  # 2 s at 100 Hz (gate 0 is passed at ~1.2 s)
@@ -381,7 +381,7 @@ class ScriptedMocap:
 
     def read(self, timeout_s=0.0):
         k = int(round(self.clock.now() / self.clock.dt))
-        from cfrace.flight.mocap import MocapFrame, Pose
+        from cfrace.flight.mocap.sources import MocapFrame, Pose
 
         self.seq += 1
         poses = {b: Pose(p[min(k, len(p) - 1)], np.array([1.0, 0, 0, 0])) for b, p in self.paths.items()}
@@ -404,11 +404,11 @@ class CountingPolicy:
 
 def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
     from cfrace.drone import load_profile
-    from cfrace.env.observations import LAYOUTS
+    from cfrace.contract.observations import LAYOUTS
     from cfrace.flight.config import SafetyConfig
-    from cfrace.flight.estimator import PoseEstimator
-    from cfrace.flight.loop import Drone, FlightLoop, ObservationBuilder
-    from cfrace.flight.safety import Fence
+    from cfrace.flight.mocap.estimation import PoseEstimator
+    from cfrace.flight.loop.flight_loop import FlownDrone, FlightLoop, ObservationBuilder
+    from cfrace.flight.safety.check import Fence
 
     clock = clock or LockstepClock(0.01)
     prof = load_profile(PROFILE)
@@ -418,7 +418,7 @@ def make_loop(track, paths, *, laps=1, timeout_s=30.0, clock=None, safety=None):
         link = RecordingLink(f"null://{name}", clock=clock.now)
         link.connect()
         meta = {"max_thrust_weights": 3.15, "max_rates_deg": [100.0, 100.0, 200.0], "method": name}
-        drones.append(Drone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
+        drones.append(FlownDrone(name, body, CountingPolicy(LAYOUTS[lay].dim), LAYOUTS[lay], link, meta, prof.mass,
                             prof.thrust_curve, decimation=2, phase=phase))
     mocap = ScriptedMocap(paths, clock)
     loop = FlightLoop(drones=drones, mocap=mocap, estimator=PoseEstimator(["cf1", "cf2"], max_speed_mps=50.0),
@@ -435,7 +435,7 @@ def test_policies_are_warmed_before_the_first_tick_only_with_a_warm_up_window(tr
     runs PRE_RACE_WARM_CALLS times before the clock starts. (That it changes nothing the race
     computes, with real ONNX policies: test_the_warm_up_before_each_tick_changes_nothing_the_loop_
     computes in test_flight_core_run.py, whose warm-up arm runs it and whose baseline does not.)"""
-    from cfrace.flight.loop import PRE_RACE_WARM_CALLS
+    from cfrace.flight.loop.flight_loop import PRE_RACE_WARM_CALLS
 
     path = gate_path(track, 5.0, laps=1)
     results, calls = [], []
@@ -515,7 +515,7 @@ def test_prewarm_runs_only_the_policy_due_next_tick_on_the_newest_estimates(trac
 def test_zero_thrust_from_the_policy_is_sent_as_the_firmwares_least_flying_thrust(track):
     """A policy's zero thrust (a0 = -1) goes out as FLYING_MIN_COUNTS, not 0 (which the firmware
     takes as motors off, rate control reset); a stop still sends 0 (through link.stop)."""
-    from cfrace.flight.loop import FLYING_MIN_COUNTS
+    from cfrace.flight.loop.flight_loop import FLYING_MIN_COUNTS
 
     hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
     loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.2)
@@ -580,7 +580,7 @@ def test_live_view_renders_every_drone(track):
 
     from rich.console import Console
 
-    from cfrace.flight.liveview import LiveView
+    from cfrace.flight.log.liveview import LiveView
 
     hover = np.tile([[1.0, 2.0, 1.0]], (10, 1))
     loop = make_loop(track, {"cf1": hover, "cf2": hover + [0.5, 0, 0]}, timeout_s=0.2)
@@ -609,7 +609,7 @@ def test_live_view_renders_every_drone(track):
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibration_curve(profile):
     from cfrace.drone import load_profile
-    from cfrace.env.actions import SetpointMap, action_to_command
+    from cfrace.contract.actions import SetpointMap, action_to_command
 
     prof = load_profile(profile)
     m = SetpointMap(prof.mass, prof.max_thrust_weights, prof.max_rates_deg, prof.thrust_curve)
@@ -634,10 +634,10 @@ def test_setpoint_map_is_bit_identical_to_the_training_action_map_and_the_calibr
 def test_the_race_collects_garbage_by_the_automatic_thresholds_between_ticks():
     import gc
 
-    from cfrace.flight.loop import collect_garbage
+    from cfrace.flight.loop.flight_loop import collect_garbage
 
     was_on = gc.isenabled()
-    gc.disable()            # as during a race (cfrace.flight.runner._run_realtime_friendly)
+    gc.disable()            # as during a race (cfrace.flight.loop.race._run_realtime_friendly)
     try:
         gc.collect()
         collect_garbage()   # nothing due: no collection

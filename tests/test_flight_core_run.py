@@ -13,10 +13,10 @@ import pytest
 
 from cfrace.errors import CfraceError, MocapError, PolicyError
 from cfrace.flight.config import FlightConfig, SafetyConfig
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.flightlog import read_log
-from cfrace.flight.replay import replay_log
-from cfrace.flight.holdpolicy import make_hold_policy
+from cfrace.rehearsal.dryrun import dry_run
+from cfrace.flight.log.writer import read_log
+from cfrace.rehearsal.replay import replay_log
+from cfrace.rehearsal.hold_policy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 
@@ -99,7 +99,7 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
     """The check can fail: replaying with frames of another flight does not match."""
     import shutil
 
-    from cfrace.flight import replay as rp
+    from cfrace.rehearsal import replay as rp
 
     _, log = lockstep_run
     copy = tmp_path / "copy.mcap"
@@ -129,7 +129,7 @@ def test_real_time_dry_run_through_cflib(pols, tmp_path):
                                         result.get("landings"))
     # the defaults: SCHED_FIFO where this process may, the loop thread on a CPU of its own
     from test_flight_realtime import fifo_permitted
-    from cfrace.flight.realtime import resolve_loop_cpu
+    from cfrace.flight.loop.realtime import resolve_loop_cpu
     assert result["rt_fifo"] == fifo_permitted() and result["loop_cpu"] == resolve_loop_cpu("auto")
     # on a loaded machine a tick can be skipped (reported, action none); nothing may stop a drone
     assert all(e["action"] == "none" for e in result["safety_events"]), result["safety_events"]
@@ -150,7 +150,7 @@ def test_real_time_dry_run_through_cflib(pols, tmp_path):
 # ------------------------------------------------------------------------------- refused before flying
 
 def _fleet_and_race(pols, tmp_path, **kw):
-    from cfrace.flight.dryrun import sim_race
+    from cfrace.rehearsal.dryrun import sim_race
     from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
@@ -177,8 +177,8 @@ def test_a_link_type_without_the_whole_link_protocol_is_refused_before_anything_
     from dataclasses import replace
 
     from cfrace.errors import LinkError
-    from cfrace.flight.dryrun import sim_io
-    from cfrace.flight.runner import run_race
+    from cfrace.rehearsal.dryrun import sim_io
+    from cfrace.flight.loop.race import run_race
     from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
@@ -319,9 +319,9 @@ def test_the_flight_stack_flies_a_policy_like_the_training_simulator(tmp_path):
     import torch
 
     from cfrace.drone import load_profile
-    from cfrace.env.actions import action_to_command
-    from cfrace.env.observations import LAYOUTS, build_observations
-    from cfrace.flight.dryrun import sim_race
+    from cfrace.contract.actions import action_to_command
+    from cfrace.contract.observations import LAYOUTS, build_observations
+    from cfrace.rehearsal.dryrun import sim_race
     from cfrace.flight.setup import resolve_race
     from cfrace.policy import OnnxPolicy
     from cfrace.sim.simulator import Simulator
@@ -362,7 +362,7 @@ def test_shipped_policy_races_alone_through_the_flight_stack(policy, tmp_path):
     simulated firmware) flies a shipped policy two laps from the floor, the other drone stopped by
     the safety check at once. Each of the firmware's zero-thrust rule, the thrust curve ending at
     the motors' saturation and the old velocity filter made every shipped policy crash in lap 1."""
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
 
     c = FlightConfig(track="lemniscate", ego=policy, opp="ds", profile=PROFILE, quiet=True, laps=2, timeout_s=20.0,
                      log=tmp_path / "alone.mcap")
@@ -383,9 +383,9 @@ def test_the_simulated_crazyflie_flies_the_training_simulators_model(tmp_path):
     import torch
 
     from cfrace.drone import load_profile
-    from cfrace.flight.dryrun import dry_run
-    from cfrace.flight.flightlog import read_log
-    from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+    from cfrace.rehearsal.dryrun import dry_run
+    from cfrace.flight.log.writer import read_log
+    from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS
     from cfrace.sim.simulator import CrashRules, Simulator
     from cfrace.track import load_track
 
@@ -499,7 +499,7 @@ def test_profile_trained_names_the_profile_it_cannot_find(tmp_path):
     """--profile trained: a policy trained on a profile file outside calibration/ (or on another file
     of a shipped profile's name) is refused with one line, not flown on the default profile."""
     from cfrace.cli.common import choose_profile
-    from cfrace.flight.holdpolicy import make_hold_policy
+    from cfrace.rehearsal.hold_policy import make_hold_policy
     from cfrace.paths import CALIBRATION_DIR
     from cfrace.track import load_track
 

@@ -7,8 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from cfrace.flight.estimator import PoseEstimator, estimates_to_msg, quat_to_rot
-from cfrace.flight.mocap import MocapFrame, Pose
+from cfrace.flight.mocap.estimation import PoseEstimator, estimates_to_msg
+from cfrace.rotations import quat_to_rot
+from cfrace.flight.mocap.sources import MocapFrame, Pose
 
 Q0 = np.array([1.0, 0.0, 0.0, 0.0])
 DT = 0.01
@@ -177,8 +178,8 @@ def test_replayed_log_reproduces_the_logged_estimates(tmp_path):
     log (lockstep) through a fresh estimator gives bit-identical estimates."""
     import json
 
-    from cfrace.flight.flightlog import FlightLog, encode, read_log
-    from cfrace.flight.mocap import frame_to_msg, open_mocap
+    from cfrace.flight.log.writer import FlightLog, encode, read_log
+    from cfrace.flight.mocap.sources import frame_to_msg, open_mocap
 
     class Circle:
         t = 0.0

@@ -13,10 +13,10 @@ import pytest
 
 from cfrace.errors import ConfigError
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.faults import parse_faults
-from cfrace.flight.flightlog import read_log
-from cfrace.flight.holdpolicy import make_hold_policy
+from cfrace.rehearsal.dryrun import dry_run
+from cfrace.rehearsal.faults import parse_faults
+from cfrace.flight.log.writer import read_log
+from cfrace.rehearsal.hold_policy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 
@@ -183,8 +183,8 @@ def test_real_signal_mid_race_stops_everything(pols, tmp_path, sig, code):
 
 
 def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, tmp_path):
-    from cfrace.flight.dryrun import sim_race
-    from cfrace.flight.faults import FaultInjector
+    from cfrace.rehearsal.dryrun import sim_race
+    from cfrace.rehearsal.faults import FaultInjector
     from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
@@ -213,7 +213,7 @@ def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, t
 def test_bench_loop_against_a_sim_serve_process():
     """`cfrace bench loop`: `cfrace sim serve` in its own process, the fly code over cflib/UDP
     and the sim:// pose stream; every figure is measured."""
-    from cfrace.flight.benchloop import bench_loop
+    from cfrace.rehearsal.loop_bench import bench_loop
 
     r = bench_loop(2.0, profile=PROFILE, floor_s=1.0)
     loop = r["loop"]

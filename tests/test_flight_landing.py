@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from cfrace.flight.config import SafetyConfig
-from cfrace.flight.landing import BrakeController, LandingSetup, Touchdown, stopping_point
-from cfrace.flight.safety import Fence
-from cfrace.flight.spots import (LandingConfig, candidate_spots, choose_landing_spots, gate_footprints, _obstacle_dist,
+from cfrace.flight.landing.descent import BrakeController, LandingSetup, Touchdown, stopping_point
+from cfrace.flight.safety.check import Fence
+from cfrace.flight.landing.spots import (LandingConfig, candidate_spots, choose_landing_spots, gate_footprints, _obstacle_dist,
                                  _seg_point_dist)
-from cfrace.flight.link import packet_values
+from cfrace.flight.link.protocol import packet_values
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
 
@@ -48,7 +48,7 @@ def test_a_spot_is_not_reached_through_a_gate_or_an_obstacle():
     stop = np.array([1.5, 3.7])
     spot = choose_landing_spots(track, [stop])[0]
     g0, g1 = gate_footprints(track)[0]
-    from cfrace.flight.spots import _segments_cross
+    from cfrace.flight.landing.spots import _segments_cross
     assert not _segments_cross(stop, spot, g0, g1)
 
 
@@ -116,7 +116,7 @@ def test_brake_hand_over_and_land_from_race_speed(profile):
 
 def test_landing_pilot_flies_the_sequence():
     """The pilot's steps applied to the simulated firmware: two drones finishing side by side."""
-    from cfrace.flight.landing import LandingPilot
+    from cfrace.flight.landing.descent import LandingPilot
     track = load_track("lemniscate")
     fleet = SimFleet(track, "cf2x_paper", 2, arming_required=True, decks=())
     yaw = -math.pi / 2
@@ -166,7 +166,7 @@ def test_landing_paths_of_drones_that_land_together_neither_cross_nor_touch(spot
     chooses one drone at a time handing over the paths flown already (otherwise the spot is clear of
     the drones that stay, else merely free); the choice is bounded in work (it runs in the tick): the
     straight-way check on at most max_tries candidates for each of the 5 searches of its rules."""
-    from cfrace.flight.spots import segment_gap as seg_dist
+    from cfrace.flight.landing.spots import segment_gap as seg_dist
 
     def apart(stops, spots) -> list[bool]:
         return [seg_dist(stops[i], spots[i], stops[j], spots[j])
@@ -200,7 +200,7 @@ def test_eight_drones_landing_at_once_on_a_large_arena_get_the_whole_arena_s_spo
     20 ms of CPU here (the flight tick makes one a tick: tests/test_flight_landing_queue.py). Asserted
     by the work that bounds it, the same on every CPU: each choice puts at most NEAR_CANDIDATES
     candidates through the path rule and at most max_tries through the straight-way check."""
-    import cfrace.flight.spots as ld
+    import cfrace.flight.landing.spots as ld
 
     track, cfg = load_track("complex"), LandingConfig()
     rng = np.random.default_rng(3)
@@ -236,8 +236,8 @@ def test_braking_at_the_race_end_into_the_gate_ahead_crashes_so_the_drone_flies_
     0.3 s: the simulator drops the crashed drone to the floor in one step, which the flight loop saw as
     three pose outliers and then a 16 m/s speed stop. brakes_into_gate finds it: at the race's end such
     a drone flies on through the gate on its policy before it lands (SoftState.land_after_race)."""
-    from cfrace.flight.landing import LandingPilot
-    from cfrace.flight.softsafe import brakes_into_gate
+    from cfrace.flight.landing.descent import LandingPilot
+    from cfrace.flight.safety.failsafe import brakes_into_gate
     track = load_track("lemniscate")
     fleet = SimFleet(track, "cf2x_paper", 1, arming_required=True, decks=())
     fleet.arm(0, True)
@@ -273,7 +273,7 @@ def test_a_path_along_a_gate_frame_is_not_clear():
     """A drone that braked to a stop 0.1 m in front of gate 5's plane (a lockstep race ended by the
     timeout at 3.34 s): its go-to along the frame touched the frame's side bar. Near a gate, a clear
     path leads away from it."""
-    from cfrace.flight.spots import path_clear
+    from cfrace.flight.landing.spots import path_clear
     track = load_track("lemniscate")
     here = np.array([-2.01, 3.61])
     assert not path_clear(track, here, np.array([-0.7, 3.7]), LandingConfig().path_clearance_m)
@@ -289,7 +289,7 @@ def test_after_the_race_a_drone_flies_through_the_gate_ahead_then_lands():
     flies on, and so does one heading for the wall."""
     from types import SimpleNamespace
 
-    from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState
+    from cfrace.flight.safety.failsafe import FLY_THROUGH_MAX_S, SoftState
     from cfrace.drone import load_profile
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf2x_paper"))
     fence = Fence.from_track(setup.track, SafetyConfig().geofence_margin_m)
@@ -333,9 +333,9 @@ def test_drones_that_brake_side_by_side_swap_spots_rather_than_fly_across_each_o
     from types import SimpleNamespace
 
     from cfrace.drone import load_profile
-    from cfrace.flight.landing import LandingPilot
-    from cfrace.flight.spots import swap_pays
-    from cfrace.flight.softsafe import SoftState
+    from cfrace.flight.landing.descent import LandingPilot
+    from cfrace.flight.landing.spots import swap_pays
+    from cfrace.flight.safety.failsafe import SoftState
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf21bl"))
     here, there = np.array([-2.15, 7.98, 0.6]), np.array([-2.25, 7.85, 0.57])
     south, north = np.array([-2.0, 7.7]), np.array([-2.0, 8.5])
@@ -370,8 +370,8 @@ def test_a_braked_drone_holds_while_a_lower_one_lands_along_its_path():
     from types import SimpleNamespace
 
     from cfrace.drone import load_profile
-    from cfrace.flight.landing import APPROACH, HOLD, LandingPilot
-    from cfrace.flight.softsafe import SoftState
+    from cfrace.flight.landing.descent import APPROACH, HOLD, LandingPilot
+    from cfrace.flight.safety.failsafe import SoftState
     setup = LandingSetup.for_race(load_track("lemniscate"), load_profile("cf21bl"))
     high, low = np.array([0.70, 2.97, 0.69]), np.array([0.75, 2.87, 0.31])
     west, far_west = np.array([0.0, 2.8]), np.array([-0.8, 2.7])
@@ -407,7 +407,7 @@ def test_a_braked_drone_holds_while_a_lower_one_lands_along_its_path():
 def test_paths_checked_together_are_judged_as_each_alone():
     """spots.paths_clear samples paths of different lengths in one padded batch: each path's verdict is
     the one it gets alone, near gates and obstacles and far from them (both tracks, with obstacles)."""
-    from cfrace.flight.spots import paths_clear
+    from cfrace.flight.landing.spots import paths_clear
     rng, seen = np.random.default_rng(3), set()
     for name in ("lemniscate", "complex"):
         track = load_track(name)
@@ -431,8 +431,8 @@ def test_a_drone_that_falls_on_the_floor_while_braking_is_stopped_there_and_not_
     from types import SimpleNamespace
 
     from cfrace.drone import load_profile
-    from cfrace.flight.landing import BrakeController, LandingPilot
-    from cfrace.flight.softsafe import land_step
+    from cfrace.flight.landing.descent import BrakeController, LandingPilot
+    from cfrace.flight.safety.failsafe import land_step
 
     quat = np.array([1.0, 0.0, 0.0, 0.0])
 

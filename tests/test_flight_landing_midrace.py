@@ -1,5 +1,5 @@
 """A drone that lands mid-race while the others race on: a low battery does not make it brake into
-the fence or a gate (softsafe.may_start_landing: it flies on for up to FLY_THROUGH_MAX_S until
+the fence or a gate (failsafe.may_start_landing: it flies on for up to FLY_THROUGH_MAX_S until
 braking is safe), and its spot keeps off the race line (spots.candidate_spots off_line), where it
 would lie in the others' way and make them land too (opponent_down)."""
 
@@ -10,11 +10,11 @@ import pytest
 
 from cfrace.drone import load_profile
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.landing import LandingSetup
-from cfrace.flight.safety import Fence
-from cfrace.flight.softsafe import FLY_THROUGH_MAX_S, SoftState, brakes_out_of_fence
-from cfrace.flight.spots import (LandingConfig, _segments_cross, candidate_spots, choose_landing_spots, race_line,
+from cfrace.rehearsal.dryrun import dry_run
+from cfrace.flight.landing.descent import LandingSetup
+from cfrace.flight.safety.check import Fence
+from cfrace.flight.safety.failsafe import FLY_THROUGH_MAX_S, SoftState, brakes_out_of_fence
+from cfrace.flight.landing.spots import (LandingConfig, _segments_cross, candidate_spots, choose_landing_spots, race_line,
                                  race_line_dist)
 from cfrace.track import load_track
 
@@ -36,15 +36,15 @@ def test_braking_towards_a_near_wall_would_leave_the_fence(setup):
 
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_the_braking_distance_bounds_the_simulated_brake_from_a_racing_attitude(profile):
-    """softsafe.braking_distance, the one estimate behind brakes_out_of_fence and brakes_into_gate,
+    """failsafe.braking_distance, the one estimate behind brakes_out_of_fence and brakes_into_gate,
     against the brake flown on the simulated firmware from race speed, the drone pitched 45 deg
     forward (accelerating, the worst attitude to brake from): it never stops farther than estimated,
     and the estimate is no more than twice the distance (a wider one would make drones fly on
     where braking is safe)."""
     import math
 
-    from cfrace.flight.link import packet_values
-    from cfrace.flight.softsafe import braking_distance
+    from cfrace.flight.link.protocol import packet_values
+    from cfrace.flight.safety.failsafe import braking_distance
     from cfrace.simcf.firmware import SimFleet
     track = load_track("lemniscate")
     for speed in (3.0, 5.0, 7.0):

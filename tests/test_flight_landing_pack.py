@@ -1,6 +1,6 @@
 """Drones that raced close together land apart: a braking drone keeps away from the other flying
 drones (landing.separation_accel), and a drone just ahead of one that flies on through its gate after
-the race's end flies on with it (softsafe.fly_on_together) instead of braking in front of it."""
+the race's end flies on with it (failsafe.fly_on_together) instead of braking in front of it."""
 
 import math
 from types import SimpleNamespace
@@ -10,9 +10,9 @@ import pytest
 
 from cfrace.drone import load_profile
 from cfrace.flight.config import SafetyConfig
-from cfrace.flight.landing import LandingSetup, separation_accel
-from cfrace.flight.safety import Fence
-from cfrace.flight.softsafe import SoftState, fly_on_together, flying_others
+from cfrace.flight.landing.descent import LandingSetup, separation_accel
+from cfrace.flight.safety.check import Fence
+from cfrace.flight.safety.failsafe import SoftState, fly_on_together, flying_others
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
 from test_flight_landing import rate_setpoint
@@ -164,7 +164,7 @@ def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     ends. Before the separation push and the chain of fly-through, three of them crashed in their
     landings (two in contact while braking, one run into from behind); now every one lands."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     cfg = FlightConfig(track="complex", ego="ours", opp="ds", policies=("ours", "ds") * 4, profile="cf2x_paper",
                        laps=3, quiet=True, timeout_s=2.0)
     r = dry_run(cfg, lockstep=True).to_json()
@@ -181,7 +181,7 @@ def test_eight_shipped_drones_race_from_a_hover_start():
     race end above: d7, d8 stopped by the floor rule at 1 s); with --start hover the firmware takes
     every drone to its slot first, and all eight race through gates."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     cfg = FlightConfig(track="complex", ego="ours", opp="ds", policies=("ours", "ds") * 4, profile="cf2x_paper",
                        laps=3, quiet=True, timeout_s=1.6, start="hover")
     r = dry_run(cfg, lockstep=True).to_json()

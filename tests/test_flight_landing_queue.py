@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 
 from cfrace.drone import load_profile
-from cfrace.flight.landing import BRAKE, HOLD, LandingPilot, LandingSetup, stopping_point
-from cfrace.flight.softsafe import SPOTS_PER_TICK, SoftState
-from cfrace.flight.spots import NEAR_CANDIDATES, LandingConfig, choose_landing_spots
+from cfrace.flight.landing.descent import BRAKE, HOLD, LandingPilot, LandingSetup, stopping_point
+from cfrace.flight.safety.failsafe import SPOTS_PER_TICK, SoftState
+from cfrace.flight.landing.spots import NEAR_CANDIDATES, LandingConfig, choose_landing_spots
 from cfrace.track import load_track
 
 

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.dryrun import dry_run
-from cfrace.flight.flightlog import read_log
-from cfrace.flight.replay import replay_log
+from cfrace.rehearsal.dryrun import dry_run
+from cfrace.flight.log.writer import read_log
+from cfrace.rehearsal.replay import replay_log
 from test_flight_faults import check_landings
 
 
@@ -113,7 +113,7 @@ def test_real_time_race_lands_through_the_link_keeper(tmp_path):
     """Real time, real cflib over UDP through the link keeper process: the poses, the go-to, the
     notify-stop and the land reach the simulated drones, which land."""
     from test_flight_faults import PROFILE
-    from cfrace.flight.holdpolicy import make_hold_policy
+    from cfrace.rehearsal.hold_policy import make_hold_policy
     ego = make_hold_policy(tmp_path / "ego.onnx", "race42", "lemniscate", False)
     opp = make_hold_policy(tmp_path / "opp.onnx", "solo36", "lemniscate", False)
     cfg = FlightConfig(track="lemniscate", ego=str(ego), opp=str(opp), profile=PROFILE, quiet=True, timeout_s=2.0,

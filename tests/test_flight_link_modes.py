@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("cflib")
 
-from cfrace.flight.link_cflib import CflibLink  # noqa: E402
-from cfrace.flight.preflight import PreflightConfig, run_checks  # noqa: E402
+from cfrace.flight.link.crazyflie import CflibLink  # noqa: E402
+from cfrace.flight.safety.preflight import PreflightConfig, run_checks  # noqa: E402
 from cfrace.simcf.firmware import SimFleet  # noqa: E402
 from cfrace.simcf.server import SimCrazyflieServer  # noqa: E402
 

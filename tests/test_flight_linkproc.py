@@ -1,4 +1,4 @@
-"""The link keeper (cfrace.flight.linkproc): the drones' links live in a process of their own that
+"""The link keeper (cfrace.flight.link.keeper): the drones' links live in a process of their own that
 stops every flying drone when the flight loop's process dies (kill -9) or goes silent. Real cflib
 over UDP against the simulated Crazyflies; the "loop" is a real subprocess."""
 
@@ -18,7 +18,7 @@ from test_flight_core import _wait, hover_counts, served_fleet, track  # noqa: F
 
 LOOP = textwrap.dedent("""
     import sys, time
-    from cfrace.flight.links import link_factory
+    from cfrace.flight.link.opener import link_factory
     uris, heartbeat, stop_log, counts = sys.argv[1].split(","), float(sys.argv[2]), sys.argv[3], int(sys.argv[4])
     make = link_factory(uris, heartbeat_s=heartbeat, stop_log=stop_log, estop_watchdog=sys.argv[5] == "1")
     links = [make(i, u) for i, u in enumerate(uris)]
@@ -92,7 +92,7 @@ def test_a_lost_link_cuts_its_drones_motors_after_1_s_with_the_estop_watchdog(se
     """With estop_watchdog the keeper feeds every flying drone's emergency-stop watchdog: the drone
     whose link is cut (a UDP relay that drops everything) cuts its own motors 1 s after the last
     feed, while the other, still fed, flies on; without it the cut drone is only levelled (0.5 s)."""
-    from cfrace.flight.faults import UdpCutRelay
+    from cfrace.rehearsal.faults import UdpCutRelay
 
     fleet, server = served
     relay = UdpCutRelay(server.ports[0])
@@ -121,7 +121,7 @@ def test_a_locked_drone_is_refused_at_set_up_with_one_line(served):
     """A drone whose firmware is locked by an emergency stop (e.g. the watchdog after a flight with
     --estop-watchdog) cannot be armed: set-up says so and what to do, before anything is sent."""
     from cfrace.errors import LinkError
-    from cfrace.flight.keptlink import LinkKeeper
+    from cfrace.flight.link.keeper_client import LinkKeeper
 
     fleet, server = served
     fleet.emergency_stop(0, "emergency-stop watchdog")
@@ -140,7 +140,7 @@ def test_the_heartbeat_watches_setpoint_streams_not_the_high_level_commander(ser
     """A drone the firmware's high-level commander flies (the hover before a race, a landing) holds
     itself: a silent loop does not get it stopped (the real-time hover start was stopped by the
     heartbeat right after its take-off); once the loop streams setpoints, a silence stops it."""
-    from cfrace.flight.keptlink import LinkKeeper
+    from cfrace.flight.link.keeper_client import LinkKeeper
 
     fleet, server = served
     stop_log = tmp_path / "stops.jsonl"

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from cfrace.errors import LogError
-from cfrace.flight.flightlog import FlightLog, read_log
+from cfrace.flight.log.writer import FlightLog, read_log
 
 CFRACE = Path(sys.executable).parent / "cfrace"
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -86,7 +86,7 @@ def test_standard_mcap_readers_accept_the_file(tmp_path):
 
 _KILLED_WRITER = textwrap.dedent("""
     import sys, numpy as np
-    from cfrace.flight.flightlog import FlightLog
+    from cfrace.flight.log.writer import FlightLog
     log = FlightLog(sys.argv[1], {"track": "complex"})
     i = 0
     while True:
@@ -292,7 +292,7 @@ def test_log_info_cli(tmp_path):
 
 def test_log_plot_writes_pngs(tmp_path):
     import matplotlib.image as mpimg
-    from cfrace.flight.logplot import log_stats, plot_log
+    from cfrace.flight.log.plots import log_stats, plot_log
 
     path = make_log(tmp_path / "p.mcap")
     data = read_log(path)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from cfrace.errors import MocapError
-from cfrace.flight.flightlog import FlightLog
-from cfrace.flight.mocap import (MocapFrame, MocapSource, Pose, frame_from_msg, frame_to_msg,
+from cfrace.flight.log.writer import FlightLog
+from cfrace.flight.mocap.sources import (MocapFrame, MocapSource, Pose, frame_from_msg, frame_to_msg,
                                  open_mocap)
 
 Q0 = np.array([1.0, 0.0, 0.0, 0.0])
@@ -198,7 +198,7 @@ def test_frame_message_round_trip():
 
 
 def test_replay_lockstep_reproduces_frames_exactly_and_fast(tmp_path):
-    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.log.writer import read_log
     path = _record(tmp_path / "f.mcap", FakeSim(), 1500, occlude_every=7)
     recorded = [frame_from_msg(m) for _, m in read_log(path).messages("/mocap/pose")]
     src = open_mocap(f"replay://{path}?speed=0", bodies=["cf1", "cf2"])

@@ -6,8 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from cfrace.flight.link import DirectSimLink
-from cfrace.flight.preflight import PreflightConfig, run_checks, yaw_offset_deg
+from cfrace.flight.link.protocol import DirectSimLink
+from cfrace.flight.safety.preflight import PreflightConfig, run_checks, yaw_offset_deg
 from cfrace.simcf.firmware import SimFleet
 
 
@@ -80,7 +80,7 @@ def test_a_low_battery_arms_nothing():
 def test_a_radio_that_reports_no_link_quality_fails_the_link_check():
     """A UDP link to simulated drones measures no link quality (it passes, and says so); a Crazyradio
     link must report one: without it the check fails rather than passing on NaN."""
-    from cfrace.flight.preflight import check_status
+    from cfrace.flight.safety.preflight import check_status
     fleet, links, _ = setup()
     link = links[0]
     link.quality.link_quality = float("nan")

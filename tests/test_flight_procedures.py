@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from cfrace.errors import FlightError
-from cfrace.flight.link import DirectSimLink
-from cfrace.flight.procedures import HoverConfig, hover_start, hover_start_positions, hover_test
+from cfrace.flight.link.protocol import DirectSimLink
+from cfrace.flight.landing.procedures import HoverConfig, hover_start, hover_start_positions, hover_test
 from cfrace.simcf.firmware import SimFleet
 from cfrace.track import load_track
 
@@ -60,8 +60,8 @@ def test_hover_test_holds_and_lands_softly():
 def test_first_flight_checks_then_hovers_each_drone():
     """`cfrace fly --check --hover` on simulated drones (lockstep I/O of the dry-run)."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import sim_io
-    from cfrace.flight.procedures import first_flight
+    from cfrace.rehearsal.dryrun import sim_io
+    from cfrace.flight.landing.procedures import first_flight
     from cfrace.flight.setup import resolve_race
 
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", profile="cf21bl", quiet=True)

@@ -9,7 +9,7 @@ import threading
 import pytest
 
 from cfrace.errors import ConfigError
-from cfrace.flight import realtime
+from cfrace.flight.loop import realtime
 from cfrace.flight.config import FlightConfig, load_flight_file
 
 needs_two_cpus = pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
@@ -134,7 +134,7 @@ def test_the_pre_flight_summary_names_the_loop_cpu_and_priority():
 
     from cfrace.cli.flight import announce
     from cfrace.flight.config import SafetyConfig
-    from cfrace.flight.safety import Fence
+    from cfrace.flight.safety.check import Fence
     from cfrace.track import load_track
 
     def text(**kw):

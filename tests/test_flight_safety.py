@@ -1,4 +1,4 @@
-"""The pure safety check (cfrace.flight.safety) and the flight config."""
+"""The pure safety check (cfrace.flight.safety.check) and the flight config."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cfrace.errors import ConfigError
-from cfrace.flight import safety as sf
+from cfrace.flight.safety import check as sf
 from cfrace.flight.config import FlightConfig, SafetyConfig, make_config
 from cfrace.track import load_track
 

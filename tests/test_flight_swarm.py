@@ -8,7 +8,7 @@ import pytest
 
 from cfrace.errors import ConfigError
 from cfrace.flight.config import FlightConfig, drone_names
-from cfrace.flight.holdpolicy import make_hold_policy
+from cfrace.rehearsal.hold_policy import make_hold_policy
 
 from test_flight_faults import PROFILE, check_landings, checked_dry_run, pols  # noqa: F401  (pols: a fixture)
 
@@ -39,7 +39,7 @@ def test_four_drones_lockstep_fly_the_whole_race_from_the_grid(pols, tmp_path):
     obs = [m for _, m in data.messages("/obs")]
     assert obs and all(("cf1" in m) == ("cf3" in m) and ("cf2" in m) == ("cf4" in m) for m in obs)
     # the 4-drone log replays bit for bit (opponent rule, batched calls and phases included)
-    from cfrace.flight.replay import replay_log
+    from cfrace.rehearsal.replay import replay_log
 
     rep = replay_log(tmp_path / "f.mcap")
     assert rep["identical"] and rep["observations"] > 400, rep
@@ -95,7 +95,7 @@ def test_batched_inference_equals_one_call_per_drone(pols):
 
 def test_config_and_cli_lists():
     from cfrace.cli.flight import race_policies
-    from cfrace.flight.loopstate import inference_phases
+    from cfrace.flight.loop.state import inference_phases
 
     assert drone_names(2) == ("ego", "opp") and drone_names(3) == ("d1", "d2", "d3")
     cfg = FlightConfig(track="lemniscate", ego="ours", opp="ds", policies=("ours", "ds", "ours"))
@@ -115,7 +115,7 @@ def test_config_and_cli_lists():
 
 
 def test_separation_rule(pols, tmp_path):
-    from cfrace.flight import safety as sf
+    from cfrace.flight.safety import check as sf
     from cfrace.flight.config import SafetyConfig
 
     assert sf.too_close({"a": [0, 0, 0], "b": [0.1, 0, 0], "c": [1, 0, 0], "d": [np.nan, 0, 0]}, 0.2) == \
@@ -140,7 +140,7 @@ def test_a_ground_start_off_the_grid_is_refused_before_anything_is_sent(pols, mo
     import math
 
     from cfrace.flight.config import SafetyConfig
-    from cfrace.flight.dryrun import sim_race
+    from cfrace.rehearsal.dryrun import sim_race
     from cfrace.flight.setup import resolve_race
     from cfrace.simcf.firmware import SimFleet
 
@@ -161,7 +161,7 @@ def test_a_ground_start_off_the_grid_is_refused_before_anything_is_sent(pols, mo
 
 
 def dry_run_plain(cfg):
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
 
     return dry_run(cfg, lockstep=True)
 
@@ -196,8 +196,8 @@ def test_the_drones_of_one_policy_are_observed_in_one_call_bit_for_bit(layout_na
 
     from scipy.spatial.transform import Rotation
 
-    from cfrace.env.observations import LAYOUTS
-    from cfrace.flight.loopstate import ObservationBuilder
+    from cfrace.contract.observations import LAYOUTS
+    from cfrace.flight.loop.state import ObservationBuilder
     from cfrace.track import load_track
 
     corners = load_track("complex").gate_corners()

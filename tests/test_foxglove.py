@@ -19,7 +19,7 @@ pytest.importorskip("foxglove")
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory  # noqa: E402
 
 from cfrace.cli.main import main  # noqa: E402
-from cfrace.flight.flightlog import read_log  # noqa: E402
+from cfrace.flight.log.writer import read_log  # noqa: E402
 from cfrace.track import load_track  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -115,8 +115,8 @@ def test_log_carries_foxglove_schemas_and_messages_decode(flight_log):
 
 
 def test_obstacles_in_the_scene_when_raced_with(tmp_path):
-    from cfrace.flight.foxglove_scene import FoxgloveScene
-    from cfrace.flight.safety import Fence
+    from cfrace.flight.log.foxglove_scene import FoxgloveScene
+    from cfrace.flight.safety.check import Fence
 
     track = load_track("lemniscate")
     scene = FoxgloveScene(track, Fence.from_track(track, 0.3), ["cf1", "cf2"], obstacles=True).static()
@@ -245,7 +245,7 @@ def test_bench_loop_foxglove_alternates_the_three_configurations(monkeypatch):
     """`cfrace bench loop --foxglove`: each round runs the plain log, the scene in the log and the
     scene served live, in that order, with the options given; medians and ratios to the plain log.
     (bench_loop itself runs for real in test_flight_faults.test_bench_loop_against_a_sim_serve_process.)"""
-    import cfrace.flight.benchloop as benchloop
+    import cfrace.rehearsal.loop_bench as benchloop
     from cfrace.cli.bench import _foxglove_compare
 
     calls = []

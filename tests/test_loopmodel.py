@@ -16,8 +16,8 @@ import torch
 
 from cfrace.drone import load_profile
 from cfrace.errors import ConfigError
-from cfrace.flight.estimator import PoseEstimator
-from cfrace.flight.mocap_base import MocapFrame, Pose
+from cfrace.flight.mocap.estimation import PoseEstimator
+from cfrace.flight.mocap.base import MocapFrame, Pose
 from cfrace.loopmodel import (IDLE_THRUST_COUNTS, MOCAP_PERIOD_S, DroneRanges, LoopRanges, drone_ranges, frame_age,
                               interpolate_pose, perturb_pose, rotate_body)
 from cfrace.track import load_track
@@ -53,7 +53,7 @@ def test_the_rules_agree_on_numpy_and_torch_and_keep_unit_quaternions():
 
 
 def test_rotate_body_is_the_estimators_prediction():
-    from cfrace.flight.estimator import _rotate_body
+    from cfrace.flight.mocap.estimation import _rotate_body
     rng = np.random.default_rng(1)
     for _ in range(20):
         q, omega, h = _unit(rng.normal(size=4)), rng.normal(size=3) * 5, float(rng.random() * 0.03)

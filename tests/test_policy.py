@@ -8,7 +8,7 @@ import pytest
 
 from cfrace.contract import encode_meta
 from cfrace.drone import load_profile
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.observations import LAYOUTS
 from cfrace.errors import PolicyError
 from cfrace.policygraph import build_model
 from cfrace.policy import OnnxPolicy, resolve_policy

@@ -13,7 +13,7 @@ import onnx
 import pytest
 
 from cfrace.contract import decode_meta, encode_meta
-from cfrace.flight.holdpolicy import make_hold_policy
+from cfrace.rehearsal.hold_policy import make_hold_policy
 
 PROFILE = "cf2x_paper"
 CLI = [sys.executable, "-c", "from cfrace.cli.main import main; main()"]
@@ -90,8 +90,8 @@ def test_the_safety_check_judges_the_setpoint_that_is_sent(tmp_path):
     from test_flight_core import gate_path, make_loop
 
     from cfrace.drone import load_profile
-    from cfrace.env.actions import SetpointMap
-    from cfrace.flight.safety import CommandLimits
+    from cfrace.contract.actions import SetpointMap
+    from cfrace.flight.safety.check import CommandLimits
     from cfrace.track import load_track
 
     track = load_track("lemniscate")
@@ -145,7 +145,7 @@ def test_the_geofence_fault_leaves_the_fence_and_the_fence_stops_it(pols, tmp_pa
     """The injected fault climbs out through the fence's ceiling at a moderate speed: the stop is the
     geofence's (not the speed or tilt rule's), with the drone really outside the fence."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
 
     cfg = FlightConfig(track="lemniscate", ego=str(pols["ego"]), opp=str(pols["opp"]), profile=PROFILE, quiet=True,
                        timeout_s=4.0)
@@ -173,7 +173,7 @@ def test_signals_at_the_race_end_leave_a_complete_log_the_json_and_exit_143(serv
     import signal
     import time
 
-    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.log.writer import read_log
 
     fleet, server = served
     args = ["fly", "--track", "lemniscate", "--ego", str(pols["ego"]), "--opp", str(pols["opp"]),
@@ -226,8 +226,8 @@ def test_a_crafted_flight_log_gets_one_line_everywhere(pols, tmp_path):
     """/mocap/pose with a list where the poses object belongs: `log plot`, `sim replay` and
     `fly --mocap replay://` say so in one line."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
-    from cfrace.flight.flightlog import FlightLog, read_log
+    from cfrace.rehearsal.dryrun import dry_run
+    from cfrace.flight.log.writer import FlightLog, read_log
 
     real = tmp_path / "real.mcap"
     dry_run(FlightConfig(track="lemniscate", ego=str(pols["ego"]), opp=str(pols["opp"]), profile=PROFILE,
@@ -257,7 +257,7 @@ def test_sim_serve_reports_bad_packets_in_one_rate_limited_line(tmp_path):
     import socket
     import time
 
-    from cfrace.flight.benchloop import _free_base_port
+    from cfrace.rehearsal.loop_bench import _free_base_port
 
     base = _free_base_port()
     proc = subprocess.Popen(CLI + ["sim", "serve", "--track", "lemniscate", "--port", str(base), "--profile", PROFILE],
@@ -287,9 +287,9 @@ def test_recorded_or_foreign_poses_do_not_steer_live_drones(served, pols, tmp_pa
     """replay:// poses with live links are refused before anything flies; a moving replay is
     caught by the before-take-off check (the poses must stay still while nothing is armed)."""
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.consistency import check_still
-    from cfrace.flight.dryrun import dry_run
-    from cfrace.flight.mocap import open_mocap
+    from cfrace.flight.mocap.consistency import check_still
+    from cfrace.rehearsal.dryrun import dry_run
+    from cfrace.flight.mocap.sources import open_mocap
 
     log = tmp_path / "recorded.mcap"
     dry_run(FlightConfig(track="lemniscate", ego=str(pols["ego"]), opp=str(pols["opp"]), profile=PROFILE,
@@ -309,7 +309,7 @@ def test_swapped_mocap_bodies_are_stopped_once_the_drones_fly(served, pols, tmp_
     nothing sent. With that check off (safety.start_slot_m: 0) the drones take off to different
     heights, the poses stop moving with the commands and every drone is stopped (pose_mismatch)
     within 0.3 s of leaving the floor."""
-    from cfrace.flight.holdpolicy import make_hold_policy
+    from cfrace.rehearsal.hold_policy import make_hold_policy
 
     high = make_hold_policy(tmp_path / "high.onnx", "solo36", "lemniscate", False, height_offset=0.6)
     one_clear_line(fly(served, {**pols, "opp": high}, tmp_path, "--bodies", "cf2,cf1"),
@@ -329,7 +329,7 @@ def test_swapped_mocap_bodies_are_stopped_once_the_drones_fly(served, pols, tmp_
 def test_fault_suite_rows_pass_and_catch_a_replay(tmp_path):
     """Two rows of `cfrace sim faults` (the whole suite runs for minutes): a replay of the frames of
     1 s earlier mid-race is stopped by the consistency check within 0.3 s, with a complete log."""
-    from cfrace.flight.faultsuite import FAULT_T, dry_run_row, markdown
+    from cfrace.rehearsal.fault_suite import FAULT_T, dry_run_row, markdown
 
     row = dry_run_row("replay_poses", "lemniscate", tmp_path)
     assert row.passed and row.log_complete and row.exit_code == 3, row   # every drone stopped: exit 3
@@ -341,8 +341,8 @@ def test_fault_suite_rows_pass_and_catch_a_replay(tmp_path):
 def test_fault_suite_knows_every_fault_and_times_a_landing(tmp_path):
     """Every fault kind has its expected detection in the suite (a kind without one ended
     `cfrace sim faults` with a KeyError); a soft failsafe's row says when its landing touched down."""
-    from cfrace.flight.faults import KINDS
-    from cfrace.flight.faultsuite import EXPECT, FAULT_T, dry_run_row
+    from cfrace.rehearsal.faults import KINDS
+    from cfrace.rehearsal.fault_suite import EXPECT, FAULT_T, dry_run_row
 
     assert set(EXPECT) == set(KINDS)
     row = dry_run_row("low_battery", "lemniscate", tmp_path)

@@ -66,7 +66,7 @@ def test_the_flight_loops_least_thrust_keeps_rate_control():
     """The flight loop sends at least FLYING_MIN_COUNTS while a drone races: at that command the
     firmware still controls the body rates (as the training simulator does at zero thrust); one
     count less is zero thrust, rates off."""
-    from cfrace.flight.loop import FLYING_MIN_COUNTS
+    from cfrace.flight.loop.flight_loop import FLYING_MIN_COUNTS
     from cfrace.simcf.firmware import MIN_THRUST
 
     assert FLYING_MIN_COUNTS == MIN_THRUST

@@ -70,7 +70,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_the_import_graph_sees_function_level_and_relative_imports():
     graph = import_graph()
-    assert "cfrace.flight.link_cflib" in graph["cfrace.flight.links"]   # imported inside open_link
+    assert "cfrace.flight.link.crazyflie" in graph["cfrace.flight.link.opener"]   # imported inside open_link
     assert "cfrace.contract" in graph["cfrace.policy"]
 
 
@@ -78,16 +78,22 @@ def test_no_import_cycles_in_cfrace():
     assert find_cycle(import_graph()) is None
 
 
-#: docs/architecture.md's layers, bottom first: a module imports only its own layer and those below
+#: docs/architecture.md's layers, lowest first: every cfrace package (a subpackage of cfrace, or a module
+#: directly in it) lies in exactly one, and imports only its own layer and those below
 LAYERS = [
-    ("data", ["cfrace", "cfrace.errors", "cfrace.paths", "cfrace.yamlcfg", "cfrace.arrays", "cfrace.drone",
-              "cfrace.track"]),
-    ("model", ["cfrace.env.observations", "cfrace.env.actions", "cfrace.sim"]),
+    ("foundation", ["cfrace", "cfrace.errors", "cfrace.paths", "cfrace.yamlcfg", "cfrace.arrays", "cfrace.rotations",
+                    "cfrace.drone", "cfrace.track", "cfrace.trackplot", "cfrace.loopmodel"]),
+    ("simulation model", ["cfrace.sim"]),
     ("policy contract", ["cfrace.contract"]),
-    ("environment and policy files", ["cfrace.env", "cfrace.env.race_env", "cfrace.env.rewards", "cfrace.policy",
-                                      "cfrace.policygraph"]),
-    ("applications", ["cfrace.rl", "cfrace.evaluate", "cfrace.sweep", "cfrace.env.adapters", "cfrace.flight",
-                      "cfrace.simcf", "cfrace.calibrate", "cfrace.export", "cfrace.trackplot"]),
+    ("policy files", ["cfrace.policy", "cfrace.policygraph"]),
+    ("environment", ["cfrace.env"]),
+    ("training and export", ["cfrace.rl", "cfrace.export"]),
+    ("simulated Crazyflie", ["cfrace.simcf"]),
+    ("flight stack", ["cfrace.flight"]),
+    ("thrust-stand calibration", ["cfrace.calibrate"]),
+    ("rehearsal", ["cfrace.rehearsal"]),
+    ("sweeps", ["cfrace.sweep"]),
+    ("evaluation", ["cfrace.evaluate"]),
     ("CLI", ["cfrace.cli", "cfrace.__main__"]),
 ]
 #: imports up the layers, each with its reason
@@ -98,16 +104,42 @@ UPWARD_IMPORTS = {
 }
 
 
+def package_of(module: str) -> str:
+    """The cfrace package a module belongs to: cfrace.X for cfrace.X and everything under it."""
+    return ".".join(module.split(".")[:2])
+
+
+def package_graph(graph: dict[str, set[str]], leave_out=frozenset()) -> dict[str, set[str]]:
+    """cfrace package -> the other cfrace packages its modules import (module edges in leave_out left out)."""
+    out: dict[str, set[str]] = {package_of(m): set() for m in graph}
+    for a, deps in graph.items():
+        out[package_of(a)] |= {package_of(b) for b in deps if (a, b) not in leave_out} - {package_of(a)}
+    return out
+
+
 def layer_of(module: str) -> int:
-    """The index in LAYERS of the longest prefix naming ``module`` (KeyError if none does)."""
-    best = None
-    for k, (_, prefixes) in enumerate(LAYERS):
-        for p in prefixes:
-            if (module == p or module.startswith(p + ".")) and (best is None or len(p) > best[1]):
-                best = (k, len(p))
-    if best is None:
-        raise KeyError(f"{module} is in no layer of LAYERS (docs/architecture.md)")
-    return best[0]
+    """The index in LAYERS of the layer holding ``module``'s package (KeyError if none does)."""
+    for k, (_, packages) in enumerate(LAYERS):
+        if package_of(module) in packages:
+            return k
+    raise KeyError(f"{package_of(module)} is in no layer of LAYERS (docs/architecture.md)")
+
+
+def test_every_package_lies_in_exactly_one_layer():
+    listed = [p for _, packages in LAYERS for p in packages]
+    assert len(listed) == len(set(listed)), "a package is listed in two layers"
+    assert set(package_graph(import_graph())) == set(listed)
+
+
+def test_the_package_graph_sees_a_cycle_between_packages_that_modules_alone_do_not():
+    modules = {"cfrace.a.x": {"cfrace.b.y"}, "cfrace.b.y": set(), "cfrace.b.z": {"cfrace.a.w"}, "cfrace.a.w": set()}
+    assert find_cycle(modules) is None
+    assert find_cycle(package_graph(modules)) == ["cfrace.a", "cfrace.b", "cfrace.a"]
+    assert find_cycle(package_graph(modules, leave_out={("cfrace.b.z", "cfrace.a.w")})) is None
+
+
+def test_no_import_cycles_between_packages():
+    assert find_cycle(package_graph(import_graph(), leave_out=UPWARD_IMPORTS)) is None
 
 
 def test_every_module_imports_only_its_layer_and_those_below():
@@ -125,10 +157,10 @@ def _modules_loaded_by(code: str) -> set[str]:
     return set(out.split())
 
 
-FLY_PATH = ["cfrace.cli.flight", "cfrace.flight.loop", "cfrace.flight.runner", "cfrace.flight.links",
-            "cfrace.flight.link_cflib", "cfrace.flight.mocap", "cfrace.flight.estimator", "cfrace.flight.safety",
-            "cfrace.flight.progress", "cfrace.flight.flightlog", "cfrace.flight.config", "cfrace.policy",
-            "cfrace.contract", "cfrace.env.observations", "cfrace.env.actions"]
+FLY_PATH = ["cfrace.cli.flight", "cfrace.flight.loop.flight_loop", "cfrace.flight.loop.race", "cfrace.flight.link.opener",
+            "cfrace.flight.link.crazyflie", "cfrace.flight.mocap.sources", "cfrace.flight.mocap.estimation", "cfrace.flight.safety.check",
+            "cfrace.flight.loop.gate_progress", "cfrace.flight.log.writer", "cfrace.flight.config", "cfrace.policy",
+            "cfrace.contract", "cfrace.contract.observations", "cfrace.contract.actions"]
 
 
 def test_the_fly_path_imports_no_torch():

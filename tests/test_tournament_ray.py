@@ -12,7 +12,7 @@ pytest.importorskip("ray")
 
 from cfrace.cli.main import app  # noqa: E402
 from cfrace.evaluate.race import tournament  # noqa: E402
-from cfrace.sweep.ray_tournament import split  # noqa: E402
+from cfrace.evaluate.ray_tournament import split  # noqa: E402
 
 
 def test_split_keeps_order_and_balance():

@@ -136,7 +136,7 @@ def test_walkthrough_step_by_step(tmp_path):
         assert next(d for d in r["drones"] if d["name"] == r["winner"])["laps"] == 1, (name, r["drones"])
         assert all(d["gates_passed"] >= 3 for d in r["drones"]), (name, r["drones"])
         assert not [e for e in r["safety_events"] if e["action"] != "none"], (name, r["safety_events"])
-    from cfrace.flight.flightlog import read_log
+    from cfrace.flight.log.writer import read_log
     log = read_log(tmp_path / "fly.mcap")
     assert log.complete and log.count("/foxglove/tf") > 50 and log.meta["uris"][0] == f"udp://127.0.0.1:{base}"
     for name in ("fly_trajectory.png", "fly_speed.png", "fly_timing.png"):
@@ -145,8 +145,8 @@ def test_walkthrough_step_by_step(tmp_path):
     # its end included (a drone that flew on after the finish)
     import numpy as np
 
-    from cfrace.flight.logplot import racing_until, trajectories
-    from cfrace.flight.replay import replay_log
+    from cfrace.flight.log.plots import racing_until, trajectories
+    from cfrace.rehearsal.replay import replay_log
     until, trajs = racing_until(log), trajectories(log)
     for d in json.loads((tmp_path / "fly.json").read_text())["drones"]:
         tr = trajs[d["body"]]

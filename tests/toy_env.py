@@ -37,7 +37,7 @@ class ToyRaceEnv:
                  randomize: bool = True, layout: str | None = None):
         """layout: a name from LAYOUTS to pad the observation to that layout's size (noise
         features), so that checkpoints of the toy env can be exported like real ones."""
-        from cfrace.env.observations import LAYOUTS
+        from cfrace.contract.observations import LAYOUTS
 
         self.num_envs, self.num_agents, self.episode_steps = num_envs, num_agents, episode_steps
         self.device = torch.device(device)

@@ -170,7 +170,7 @@ def run_stand(uri: str, sensor: SensorSpec, bus: str, plan: Plan = Plan(), *, co
               out=print, connect_timeout_s: float = 5.0) -> Recording:
     """Run the procedure on the Crazyflie at ``uri`` with the sensor on ``bus``; returns the recording.
     Raises StandError / LinkError / KeyboardInterrupt after stopping the motors."""
-    from cfrace.calibrate.link import StandLink
+    from cfrace.calibrate.stand_link import StandLink
 
     if not confirmed:
         raise StandError("refusing to start the motors: fix the Crazyflie on the stand with its propellers on, "

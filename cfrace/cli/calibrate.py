@@ -28,7 +28,7 @@ def _say(text: str) -> None:
 
 def parse_faults(text: str | None) -> dict:
     """``KIND@SECONDS,...`` -> {kind: seconds after the motors first spin}."""
-    from cfrace.simcf.stand import FAULTS
+    from cfrace.rehearsal.thrust_stand import FAULTS
 
     faults = {}
     for item in filter(None, (text or "").split(",")):
@@ -74,7 +74,7 @@ def thrust_cmd(
     and the battery / motor speed from the drone's log, fit, and write a complete drone profile."""
     from cfrace.calibrate.procedure import QUICK_PLAN, Plan
     from cfrace.calibrate.sensor import load_sensor
-    from cfrace.calibrate.thrust import calibrate_thrust
+    from cfrace.cli.calibrate_run import calibrate_thrust
     from cfrace.drone import load_profile
 
     spec = load_sensor(sensor)            # bad input fails here, before anything starts
@@ -114,7 +114,7 @@ def stand_cmd(
 ):
     """A simulated Crazyflie on a simulated thrust stand: CRTP over UDP, a 6-axis sensor on a CAN bus."""
     from cfrace.calibrate.bus import parse_bus
-    from cfrace.simcf.stand import SimStand
+    from cfrace.rehearsal.thrust_stand import SimStand
 
     if parse_bus(bus).interface == "virtual":
         raise ConfigError(f"--bus {bus}: the virtual interface only reaches this process; use "

@@ -114,9 +114,9 @@ def choose_profile(profile: str | None, track=None, ego: str | None = None, obst
 
 
 def race_exit_code(result: dict, late_signal: str | None = None) -> int:
-    """The exit code of `fly` / `sim dry-run` after a race (cfrace.flight.runner.result_exit_code:
+    """The exit code of `fly` / `sim dry-run` after a race (cfrace.flight.loop.race.result_exit_code:
     0, 3 when the safety checks stopped every drone, 74, 130 / 143, 1)."""
-    from cfrace.flight.runner import result_exit_code
+    from cfrace.flight.loop.race import result_exit_code
 
     return result_exit_code(result, late_signal)
 

@@ -13,7 +13,7 @@ from cfrace.cli.common import check_folder, check_writable, write_json
 from rich.console import Console
 from rich.table import Table
 
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE
+from cfrace.contract.observations import DEFAULT_OPPONENT_RULE
 
 # tables are wide: piped output gets 160 columns unless COLUMNS says otherwise
 console = Console(width=None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 160)
@@ -203,7 +203,7 @@ def tournament_cmd(
     runner = None
     if ray or address:
         from cfrace.sweep.ray_exec import require_ray
-        from cfrace.sweep.ray_tournament import ray_pair_runner
+        from cfrace.evaluate.ray_tournament import ray_pair_runner
 
         require_ray()
         runner = ray_pair_runner(address)

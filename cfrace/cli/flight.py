@@ -19,7 +19,7 @@ from cfrace.errors import ConfigError
 console = Console(stderr=True)
 out = Console()
 
-#: the forms of --mocap (cfrace.flight.mocap)
+#: the forms of --mocap (cfrace.flight.mocap.sources)
 MOCAP_FORMS = ("vicon://HOST, optitrack://HOST, qualisys://HOST, vrpn://HOST, replay://LOG.mcap, "
                "or sim://HOST:PORT for `cfrace sim serve`'s drones (its pose port: first drone's port - 1)")
 FOXGLOVE_HELP = ("Serve the flight live to Foxglove (3D scene, commands) on ws://127.0.0.1:PORT; "
@@ -113,7 +113,7 @@ def final_state(d: dict) -> str:
 
 
 def loop_table(loop: dict, title: str | None = None) -> Table:
-    """The loop figures (cfrace.flight.loopfigures.loop_figures) as the table every command prints."""
+    """The loop figures (cfrace.flight.log.timing.loop_figures) as the table every command prints."""
     t = Table(title=title or f"loop timing, {loop['ticks']} ticks at {loop['rate_hz']:g} Hz (ms, p50 / p99 / max)")
     t.add_column("figure")
     t.add_column("ms")
@@ -180,7 +180,7 @@ def first_flight_cmd(cfg, check: bool, hover_drones: list[int], json_out: Path |
     """`cfrace fly --check` / `--hover`: no race; one line per check, exit 2 on a failure."""
     from dataclasses import replace
 
-    from cfrace.flight.procedures import first_flight
+    from cfrace.flight.landing.procedures import first_flight
     from cfrace.flight.setup import real_io, resolve_race
     cfg = replace(cfg, log=None)     # no race, no flight log (nor the link keeper's stop log)
     report = first_flight(resolve_race(cfg), real_io(cfg), check=check, hover_drones=hover_drones)
@@ -273,7 +273,7 @@ def register(app: typer.Typer) -> None:
             return first_flight_cmd(cfg, check, hover_list(hover_drones, len(cfg.uris)) if hover else [], json_out)
         check_writable(cfg.log, "--log")
         check_port(cfg.foxglove_port, "--foxglove")
-        from cfrace.flight.runner import fly
+        from cfrace.flight.loop.race import fly
         from cfrace.flight.setup import resolve_race
 
         race_and_report(lambda say: fly(resolve_race(cfg), console=console, announce=say), rule, json_out)
@@ -317,7 +317,7 @@ def race_and_report(race, rule: str, json_out: Path | None) -> None:
     its code (cfrace.cli.common.race_exit_code); ``rule``: why this drone profile. The --json path
     is checked before anything flies; a signal after the race no longer interrupts the printing
     and the writing (it only sets the exit code)."""
-    from cfrace.flight.runner import SignalGuard
+    from cfrace.flight.loop.race import SignalGuard
 
     check_writable(json_out, "--json")
     with SignalGuard() as guard:

@@ -35,8 +35,8 @@ def info_cmd(file: Path = typer.Argument(..., help="flight log (.mcap) written b
     flight printed, computed by the same function), and whether the log was closed cleanly or cut
     off (a killed flight: read up to the cut, exit code 0)."""
     from cfrace.cli.flight import loop_table
-    from cfrace.flight.flightlog import read_log
-    from cfrace.flight.logplot import log_stats
+    from cfrace.flight.log.writer import read_log
+    from cfrace.flight.log.plots import log_stats
 
     check_writable(json_out, "--json")
     data = read_log(file)
@@ -111,8 +111,8 @@ def plot_cmd(
     out: Optional[Path] = typer.Option(None, "-o", "--out", help="output directory (default: next to the log)"),
 ) -> None:
     """Write PNGs: trajectories over the track (top view), speed per drone, loop timing."""
-    from cfrace.flight.flightlog import read_log
-    from cfrace.flight.logplot import plot_log
+    from cfrace.flight.log.writer import read_log
+    from cfrace.flight.log.plots import plot_log
 
     data = read_log(file)
     check_folder(out, "-o")

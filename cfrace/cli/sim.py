@@ -11,7 +11,7 @@ from rich.console import Console
 
 from cfrace.cli.common import DEFAULT_PROFILE, check_port, check_writable, choose_profile, human_console, write_json
 from cfrace.cli.flight import FOXGLOVE_HELP
-from cfrace.flight.faults import KINDS as FAULT_KINDS
+from cfrace.rehearsal.faults import KINDS as FAULT_KINDS
 
 sim_app = typer.Typer(help="Simulated Crazyflies: serve them, race on them (dry-run), replay logs.",
                       no_args_is_help=True)
@@ -112,7 +112,7 @@ def dry_run_cmd(
     (real cflib over UDP)."""
     from cfrace.cli.flight import race_and_report, race_policies
     from cfrace.flight.config import FlightConfig, check_policy_sources, load_flight_file, split_list
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     from cfrace.flight.setup import resolve_race
     from cfrace.track import load_track
 
@@ -163,7 +163,7 @@ def faults_cmd(
 
     from rich.table import Table
 
-    from cfrace.flight.faultsuite import HEADER, run_suite
+    from cfrace.rehearsal.fault_suite import HEADER, run_suite
 
     from cfrace.errors import ConfigError
     from cfrace.flight.config import split_list
@@ -197,7 +197,7 @@ def replay_cmd(
 ):
     """Re-run a logged flight lockstep and check that every logged observation is reproduced exactly.
     Exit code 0: identical; 1: an observation differs, or the log holds none; 2: not a flight log."""
-    from cfrace.flight.replay import replay_log
+    from cfrace.rehearsal.replay import replay_log
 
     check_writable(json_out, "--json")
     r = replay_log(log, via_replay_source=via_replay_source)

@@ -47,7 +47,7 @@ class LabLoop:
                             self.lp_att.unsqueeze(-1))
 
     def _loop_observe(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """pos, vel, quat as the flight stack's estimator (cfrace.flight.estimator.PoseEstimator,
+        """pos, vel, quat as the flight stack's estimator (cfrace.flight.mocap.estimation.PoseEstimator,
         velocity_alpha 1) reports them from the loop model's frames: the frame of this tick (age =
         latency + jitter) and the two before it, each noisy and maybe dropped; velocity the
         difference of the last two frames it got, position predicted forward by the age of its

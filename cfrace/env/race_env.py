@@ -16,8 +16,8 @@ import torch
 
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
-from cfrace.env.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
+from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
+from cfrace.contract.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.errors import ConfigError

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from cfrace.contract import METHODS, POLICY_HZ
 from cfrace.drone import DroneProfile, load_profile
-from cfrace.env.observations import LAYOUTS, ObsLayout
+from cfrace.contract.observations import LAYOUTS, ObsLayout
 from cfrace.errors import ConfigError, PolicyError
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.track import Track, load_track

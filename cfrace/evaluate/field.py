@@ -5,7 +5,7 @@ Each race starts from the track's start grid (cfrace.track.start_grid) before a 
 on the floor before gate 0), each drone in a random slot; entrant k flies drone k. A race runs
 until every drone has finished or crashed (or the time limit): the finishing order is complete.
 Places, winners and the rating: cfrace.evaluate.rating. A policy trained for two drones sees one
-opponent, picked by the race's opponent rule (cfrace.env.observations.choose_opponents) unless
+opponent, picked by the race's opponent rule (cfrace.contract.observations.choose_opponents) unless
 its metadata names its own.
 """
 
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE, OPPONENT_RULES
+from cfrace.contract.observations import DEFAULT_OPPONENT_RULE, OPPONENT_RULES
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import common_profile, load_entrants, load_race_track
 from cfrace.evaluate.metrics import solo_metrics

@@ -188,7 +188,7 @@ def tournament(policies: list[str], track_name: str, obstacles: bool = False, ra
     """Every pair of policies races ``races`` times (half with swapped slots), all pairs at once.
     Cell [i][j] is i's win rate against j; the ordered pair (j, i) is the same races seen from j.
     ``pair_runner`` (same arguments and result as tournament_pairs) races the pairs elsewhere, e.g.
-    spread over Ray workers (cfrace.sweep.ray_tournament)."""
+    spread over Ray workers (cfrace.evaluate.ray_tournament)."""
     t0 = time.perf_counter()
     if len(policies) < 2:
         raise ConfigError("a tournament needs at least 2 policies")

@@ -156,7 +156,7 @@ def transfer(cfg: ReproduceConfig) -> list[dict]:
     per attempted lap."""
     from cfrace.evaluate.race import race
     from cfrace.flight.config import FlightConfig
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
 
     races = 2 if cfg.quick else 10
     out = []

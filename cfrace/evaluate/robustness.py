@@ -1,7 +1,7 @@
 """`cfrace sim robustness`: policies through the lockstep flight stack over a grid of lab conditions.
 
 Each cell of the grid (mocap latency x drone profile x mocap noise) runs, for every seed, the
-lockstep dry-run that `cfrace sim dry-run --lockstep` and `cfrace fly` run (cfrace.flight.dryrun):
+lockstep dry-run that `cfrace sim dry-run --lockstep` and `cfrace fly` run (cfrace.rehearsal.dryrun):
 
 - alone: each policy flies ``laps`` laps with the other one stopped at once
   (``--faults nan_policy@0.02:opp``, it lies at its start): laps flown, how the run ended
@@ -81,7 +81,7 @@ def _config(grid: Grid, ego: str, opp: str, profile: str, latency_ms: float):
 
 def alone_run(grid: Grid, policy: str, other: str, latency_ms: float, profile: str, noise_mm: float, seed: int) -> dict:
     """``policy`` alone (the other stopped at once) through the lockstep stack."""
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     res = dry_run(_config(grid, policy, other, profile, latency_ms), lockstep=True, faults=STOP_AT_ONCE, seed=seed,
                   mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3).to_json()
     d = res["drones"][0]
@@ -95,7 +95,7 @@ def alone_run(grid: Grid, policy: str, other: str, latency_ms: float, profile: s
 
 def duel_run(grid: Grid, k: int, latency_ms: float, profile: str, noise_mm: float, seed: int) -> dict:
     """Race k of a cell: ego and opp swap slots every other race; the winner by the flight stack."""
-    from cfrace.flight.dryrun import dry_run
+    from cfrace.rehearsal.dryrun import dry_run
     first, second = (grid.ego, grid.opp) if k % 2 == 0 else (grid.opp, grid.ego)
     res = dry_run(_config(grid, first, second, profile, latency_ms), lockstep=True, seed=seed * 1000 + k,
                   mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3).to_json()

@@ -24,8 +24,8 @@ import torch
 
 from cfrace.contract import POLICY_DT
 from cfrace.drone import DroneProfile
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
+from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
+from cfrace.contract.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
 from cfrace.env.race_env import MOCAP_DT, RaceEnv
 from cfrace.sim.collisions import CONTACT_MARGIN
 from cfrace.errors import ConfigError
@@ -131,7 +131,7 @@ class _Setup:
     rules: set                 # opponent rules in use (more than two drones)
     opponent_rule: str         # for policies without their own
     gates: torch.Tensor        # (G, 3) m
-    cum: torch.Tensor          # race line (cfrace.env.observations.polyline)
+    cum: torch.Tensor          # race line (cfrace.contract.observations.polyline)
     lap_len: torch.Tensor
     start_gate: torch.Tensor   # (W,) int64
     parked: torch.Tensor       # (W, 3) m, the opponent of a policy flying alone
@@ -254,7 +254,7 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
             opponent_rule: str = DEFAULT_OPPONENT_RULE) -> Recording:
     """Fly every world to the end; ``assign`` (W, D) int: entrant index per slot, -1 = motors off.
     ``opponent_rule``: who a policy without its own ``opponent_rule`` metadata observes when there
-    are more than two drones (cfrace.env.observations.choose_opponents)."""
+    are more than two drones (cfrace.contract.observations.choose_opponents)."""
     assign = np.asarray(assign, dtype=np.int64)
     w, d = assign.shape
     limit = laps * LAP_TIME_LIMIT_S if time_limit_s is None else time_limit_s

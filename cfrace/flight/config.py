@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from cfrace.errors import ConfigError
-from cfrace.flight.realtime import parse_loop_cpu, parse_rt_priority
+from cfrace.flight.loop.realtime import parse_loop_cpu, parse_rt_priority
 from cfrace.yamlcfg import Reader, load_yaml
 
 DRONE_NAMES = ("ego", "opp")  #: drone 0 flies the ego policy, drone 1 the opponent policy
@@ -61,7 +61,7 @@ def _limit(name: str, value, hi: float, lo: float = 0.0, *, lo_open: bool = Fals
 
 @dataclass(frozen=True)
 class SafetyConfig:
-    """Limits of the per-tick safety check (cfrace.flight.safety). See docs/flight.md."""
+    """Limits of the per-tick safety check (cfrace.flight.safety.check). See docs/flight.md."""
 
     geofence_margin_m: float = 0.3   #: m, the fence is the track arena grown by this on every side
     floor_z_m: float = 0.1           #: m, below this after ``floor_grace_s`` = crashed (training rule)
@@ -72,11 +72,11 @@ class SafetyConfig:
     link_timeout_s: float = 0.5      #: s without any packet from a drone = link lost
     overrun_stop_s: float = 0.1      #: s, a tick starting later than this past its deadline stops all
     #: m, least distance between two drones' centres before take-off (checked on the first mocap frame)
-    #: and while the take-off grace lasts (floor_grace_s); closer stops both (cfrace.flight.safety)
+    #: and while the take-off grace lasts (floor_grace_s); closer stops both (cfrace.flight.safety.check)
     min_separation_m: float = 0.2
     #: m, a ground start (start: ground): on the first mocap frame every drone must stand within this
     #: of its start-grid slot and face gate 0 within the training's heading jitter, else nothing
-    #: flies (the policies were trained from there, cfrace.flight.swarm.check_take_off); 0 = off
+    #: flies (the policies were trained from there, cfrace.flight.loop.swarm.check_take_off); 0 = off
     start_slot_m: float = 0.3
     # soft failsafes: these land the drone (docs/flight.md, "Safety")
     fence_soft_m: float = 0.3        #: m, inside the fence but closer than this to it: land
@@ -115,10 +115,10 @@ class FlightConfig:
     quiet: bool = False                          #: no live view
     view_hz: float = 4.0                         #: Hz, live view refresh
     #: SCHED_FIFO priority of the loop thread: "auto" (50 where this process may, else normal), 0
-    #: (normal) or 1-99 (flight/realtime.py)
+    #: (normal) or 1-99 (flight/loop/realtime.py)
     rt_priority: int | str = "auto"
     #: CPU of the loop thread: "auto" (the highest CPU of this process when it has two or more),
-    #: "off" or a CPU number; the process's other threads go to the other CPUs (flight/realtime.py)
+    #: "off" or a CPU number; the process's other threads go to the other CPUs (flight/loop/realtime.py)
     loop_cpu: int | str = "auto"
     prewarm_s: float = 0.003                     #: s before each tick: the warm-up window (FlightLoop.prewarm; 0 = off)
     velocity_alpha: float = 1.0                  #: estimator low-pass on pose differences, (0, 1]; 1 = none (docs/flight.md)

@@ -4,7 +4,7 @@ touches a drone: `cfrace fly` resolves it before it opens the mocap or any link.
 
 And the race's I/O as factories (RaceIO): the runner gets its clock, its links and its mocap
 source from them and knows nothing else of where they come from (radio, UDP, an in-process
-simulator, a lockstep clock, fault injection: cfrace.flight.dryrun builds those).
+simulator, a lockstep clock, fault injection: cfrace.rehearsal.dryrun builds those).
 """
 
 from __future__ import annotations
@@ -15,15 +15,15 @@ from pathlib import Path
 from typing import Callable
 
 from cfrace.drone import DroneProfile, load_profile
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import LAYOUTS, ObsLayout
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import LAYOUTS, ObsLayout
 from cfrace.errors import CfraceError, ConfigError, PolicyError
-from cfrace.flight.clock import RealClock
+from cfrace.flight.loop.clock import RealClock
 from cfrace.flight.config import FlightConfig
-from cfrace.flight.consistency import STILL_S
-from cfrace.flight.links import link_factory, stop_log_path
-from cfrace.flight.mocap import open_mocap
-from cfrace.flight.safety import CommandLimits, Fence
+from cfrace.flight.mocap.consistency import STILL_S
+from cfrace.flight.link.opener import link_factory, stop_log_path
+from cfrace.flight.mocap.sources import open_mocap
+from cfrace.flight.safety.check import CommandLimits, Fence
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.paths import CALIBRATION_DIR
 from cfrace.track import Track, ground_start_positions, load_track
@@ -154,7 +154,7 @@ def check_pose_source(mocap: str, uris) -> None:
 def real_io(cfg: FlightConfig) -> RaceIO:
     """Real drones: cflib links to cfg.uris held by the link keeper process, the mocap source
     cfg.mocap, the wall clock; the poses must be still before the set-up (consistency.check_still)."""
-    from cfrace.flight.radio import check_radios
+    from cfrace.flight.link.radio import check_radios
 
     if len(cfg.uris) != len(cfg.specs):
         raise ConfigError(f"--uris: need {len(cfg.specs)} link URIs (one per drone), got {list(cfg.uris)}")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from cfrace.contract import METHODS, MULTI_AGENT_METHODS
 from cfrace.drone import load_profile
-from cfrace.env.observations import OPPONENT_RULES, layout_for
+from cfrace.contract.observations import OPPONENT_RULES, layout_for
 from cfrace.errors import ConfigError
 from cfrace.track import load_track
 

@@ -22,8 +22,8 @@ import torch
 from cfrace import __version__
 from cfrace.contract import MULTI_AGENT_METHODS
 from cfrace.drone import DEFAULT_PROFILE
-from cfrace.env.actions import action_map_constants
-from cfrace.env.observations import DEFAULT_OPPONENT_RULE
+from cfrace.contract.actions import action_map_constants
+from cfrace.contract.observations import DEFAULT_OPPONENT_RULE
 from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import CHECKPOINT, FORMAT, load_checkpoint
 from cfrace.rl.config import IPPOConfig, preset

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from cfrace.env.observations import LAYOUTS
+from cfrace.contract.observations import LAYOUTS
 from cfrace.errors import ConfigError
 from cfrace.rl.checkpoint import load_checkpoint
 

@@ -33,7 +33,7 @@ def to_gate_frame(pos, gate_pose):
 def crossing(prev_local, local, outer_half: float = 0.7):
     """(passed, frame_hit) bool arrays (...,) from gate-frame positions before and after a step
     (torch tensors or numpy arrays). The rule; the C kernel gets its constants as build flags
-    (cfrace.sim.ckernel.rule_defines) and cfrace.flight.progress repeats it on floats for one drone."""
+    (cfrace.sim.ckernel.rule_defines) and cfrace.flight.loop.gate_progress repeats it on floats for one drone."""
     xp = array_module(local)
     crossed = (prev_local[..., 0] > 0.0) & (local[..., 0] <= 0.0)
     # the plane crossing point, interpolated between the two samples
@@ -51,7 +51,7 @@ def crossing(prev_local, local, outer_half: float = 0.7):
 @dataclass
 class RaceProgress:
     """Per-drone race progress (numpy, float64; the simulator's rule), the reference of
-    cfrace.flight.progress.FastRaceProgress.
+    cfrace.flight.loop.gate_progress.FastRaceProgress.
 
     Call update(t, positions) every tick with world positions (N, 3)."""
 

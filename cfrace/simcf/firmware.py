@@ -40,7 +40,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY, DroneProfile, load_profile
 from cfrace.errors import ConfigError
-from cfrace.flight.estimator import quat_to_rot
+from cfrace.rotations import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
@@ -661,7 +661,7 @@ class SimFleet:
                 "sys.isTumbled": (info >> 5) & 1,
                 **self._motor_logs(i),
             }
-            for hook in self.log_hooks:   # e.g. the thrust stand (simcf/stand.py): pm.vbat, rpm.*, motor.*
+            for hook in self.log_hooks:   # e.g. the thrust stand (rehearsal/thrust_stand.py): pm.vbat, rpm.*, motor.*
                 values.update(hook(i))
             return values
 

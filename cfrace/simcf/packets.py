@@ -24,7 +24,7 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
        ("sys.canfly", _U8), ("sys.isFlying", _U8), ("sys.isTumbled", _U8)]
     # motor speeds (group rpm, uint16 revolutions per minute, as the firmware logs them where the drone
     # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
-    # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
+    # counts): non-zero only on the simulated thrust stand (rehearsal/thrust_stand.py)
     + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
     # the standard groups of the firmware's stabilizer, estimator, controller and power management
     + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]

@@ -58,7 +58,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("simcf.bodyIndex", "uint8_t", 0, readonly=True, doc="simulator info: drone index"),
     # the firmware's motor test override (motors.c): enable 1 = each motor its own value, 2 = m1 to
     # all motors, 3 = m1 to all with battery compensation; 0 = off. Used by the thrust stand
-    # (cfrace calibrate, simulated by simcf/stand.py; without a stand these have no effect).
+    # (cfrace calibrate, simulated by rehearsal/thrust_stand.py; without a stand these have no effect).
     ParamSpec("motorPowerSet.enable", "uint8_t", 0, doc="motor override: 0 off, 1 per motor, 2 m1 to all, 3 + battery comp."),
     ParamSpec("motorPowerSet.m1", "uint16_t", 0, doc="motor 1 command, counts 0-65535"),
     ParamSpec("motorPowerSet.m2", "uint16_t", 0, doc="motor 2 command, counts"),
