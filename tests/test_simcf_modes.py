@@ -83,6 +83,7 @@ def test_logging_and_parameters_as_in_cflib_examples():
                      "stateEstimate.z"):
             conf.add_variable(name, "float")
         stamps = []
+        time.sleep(1.0)   # the attitude estimate boots facing kalman.initialYaw (0); the deck brings it round
         with SyncLogger(scf, conf) as logger:
             for ts, data, _ in logger:
                 stamps.append(ts)
@@ -90,8 +91,9 @@ def test_logging_and_parameters_as_in_cflib_examples():
                     break
         truth = fleet.state(0)
         _, _, yaw = quat_to_euler(truth["quat"])
-        assert data["stabilizer.yaw"] == pytest.approx(math.degrees(yaw), abs=0.1)
-        assert abs(data["stabilizer.roll"]) < 0.1 and abs(data["stabilizer.pitch"]) < 0.1
+        # the estimate (the deck's attitude, 0.01 rad noise, fused), not the truth
+        assert data["stabilizer.yaw"] == pytest.approx(math.degrees(yaw), abs=1.0)
+        assert abs(data["stabilizer.roll"]) < 1.0 and abs(data["stabilizer.pitch"]) < 1.0
         assert data["stateEstimate.x"] == pytest.approx(truth["pos"][0], abs=0.01)     # the Lighthouse deck
         assert data["stateEstimate.z"] == pytest.approx(truth["pos"][2], abs=0.01)
         assert 3.9 < data["pm.vbat"] < 4.2

@@ -127,6 +127,7 @@ def test_high_level_refused_while_disarmed_and_by_group():
     assert "refused" in " ".join(f.drain_events(0))
     f.arm(0, True)
     f.arm(1, True)
+    f.advance(0.5)   # the estimate boots at kalman.initialX/Y/Z and initialYaw: the deck brings it round first
     f.high_level(1, "set_group_mask", group_mask=0b10)
     f.high_level(0, "takeoff", 0b10, height=1.0, yaw=None, duration=1.0)
     f.high_level(1, "takeoff", 0b10, height=1.0, yaw=None, duration=1.0)

@@ -44,7 +44,7 @@ from cfrace.flight.estimator import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
-from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
+from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, yaw_quat
 from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
@@ -96,6 +96,7 @@ class DroneFirmware:
     setpoints_received: int = 0
     packets_received: int = 0
     events: list = field(default_factory=list)  #: console lines not yet sent
+    warned: set = field(default_factory=set)    #: console warnings already given once since boot
     priority: int = PRIORITY_DISABLE             #: of the setpoint in force
     controller: PidController = field(default_factory=lambda: PidController(ATTITUDE_I_LIMIT, PID_I_LIMIT))
     planner: hl.Planner = field(default_factory=hl.Planner)
@@ -173,8 +174,7 @@ class SimFleet:
         return self._steps * DT
 
     def _reset_physics(self) -> None:
-        yaw = self._start_yaw
-        quat = np.tile([math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)], (self.n, 1))
+        quat = np.tile(yaw_quat(self._start_yaw), (self.n, 1))
         self.sim.reset(self._start_pos, np.zeros((self.n, 3)), quat, np.zeros(self.n, np.int64))
         self._snapshot()
 
@@ -208,8 +208,16 @@ class SimFleet:
         params = default_params(i, self.arming_required, self.param_defaults(i))
         fw = DroneFirmware(params, not self.arming_required, PositionEstimator(self.decks, seed=self.seed * 1009 + i))
         fw.charge = self.battery.charge0
-        fw.estimator.reset((params["kalman.initialX"], params["kalman.initialY"], params["kalman.initialZ"]))
+        self._reset_estimator(i, fw)
         return fw
+
+    def _reset_estimator(self, i: int, fw: DroneFirmware) -> None:
+        """estimator_kalman.c (resetEstimation, kalmanCoreInit): position kalman.initialX/Y/Z, attitude
+        level with yaw kalman.initialYaw (rad), whatever the drone's true attitude."""
+        p = fw.params
+        true = self._quat[i] if hasattr(self, "_quat") else yaw_quat(self._start_yaw)
+        fw.estimator.reset((p["kalman.initialX"], p["kalman.initialY"], p["kalman.initialZ"]),
+                           p["kalman.initialYaw"], true)
 
     def teleport(self, i: int, pos, vel=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0)) -> None:
         """Put drone i in flight at pos (3,) m with velocity vel (3,) m/s and attitude quat (wxyz), its
@@ -219,7 +227,8 @@ class SimFleet:
             self.sim.set_drone(i, pos, vel, quat)
             self._snapshot()
             est = self._fw[i].estimator
-            est.reset(self._pos[i])
+            est.reset(self._pos[i], quat_to_euler(self._quat[i])[2], self._quat[i])
+            est.q_err = np.array([1.0, 0.0, 0.0, 0.0])   # the attitude estimate is right too
             est.vel = self._vel[i].copy()
 
     def reboot(self, i: int) -> None:
@@ -331,7 +340,7 @@ class SimFleet:
     def _estimate_goal(self, i: int) -> hl.Goal:
         """The estimated state as the planner's start: position, velocity, yaw."""
         est = self._fw[i].estimator
-        yaw = quat_to_euler(self._quat[i])[2]
+        yaw = quat_to_euler(est.attitude(self._quat[i]))[2]
         return hl.Goal(est.pos.copy(), est.vel.copy(), np.zeros(3), yaw, 0.0)
 
     def _high_level_setpoint(self, i: int) -> None:
@@ -355,11 +364,23 @@ class SimFleet:
 
     # ---------------------------------------------------------------- positioning
     def external_position(self, i: int, pos, quat=None) -> None:
-        """An external position (CRTP localization: mocap via the ground station), m (3,) world; the
-        attitude ``quat`` is accepted and not used (the simulated estimator's attitude is exact)."""
+        """An external position (CRTP localization: mocap via the ground station), m (3,) world, and
+        with an external pose its attitude ``quat`` (wxyz world-from-body), fused with std dev
+        locSrv.extQuatStdDev (crtp_localization_service.c, extPoseHandler; kalman_core.c,
+        kalmanCoreUpdateWithPose). A quaternion that is not finite or has no length is dropped."""
         with self.lock:
             fw = self._fw[self._check(i)]
             fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
+            if quat is not None and not fw.estimator.fuse_attitude(quat, self._quat[i],
+                                                                  float(fw.params["locSrv.extQuatStdDev"])):
+                if "quat" not in fw.warned:
+                    fw.warned.add("quat")
+                    fw.events.append("LOC: external pose with an invalid quaternion, its attitude ignored")
+
+    def radio_id(self, i: int) -> int:
+        """The id a packed external position addresses drone i by: the low byte of its radio address
+        (0xE7E7E7E7xx, xx = i + 1, the number in its default body name cf<i+1>)."""
+        return (self._check(i) + 1) & 0xFF
 
     def memories(self, i: int) -> list:
         """Drone i's memories (simcf/memory.py: list index = memory id), its RAM cleared by a reboot."""
@@ -496,7 +517,7 @@ class SimFleet:
         fw = self._fw[i]
         p = fw.params
         if p["kalman.resetEstimation"]:
-            fw.estimator.reset((p["kalman.initialX"], p["kalman.initialY"], p["kalman.initialZ"]))
+            self._reset_estimator(i, fw)
             p["kalman.resetEstimation"] = 0          # the firmware clears the request once done
         self._high_level_setpoint(i)
         if self._gated(fw):
@@ -504,8 +525,8 @@ class SimFleet:
             fw.control_thrust, fw.control_rates = 0.0, np.zeros(3)
             return 0.0, np.zeros(3)
         sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
-        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, quat_to_euler(self._quat[i]),
-                                             p, dt)
+        att = quat_to_euler(fw.estimator.attitude(self._quat[i]))   # the estimate, not the truth
+        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
         fw.control_thrust, fw.control_rates = newtons, rates
         return newtons, rates
@@ -519,7 +540,7 @@ class SimFleet:
             p = fw.params
             fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
                                  p["kalman.pNPos"])
-            fw.estimator.decks_measure(t, self._pos[i], self._vel[i])
+            fw.estimator.decks_measure(t, self._pos[i], self._vel[i], self._quat[i])
             b = self.battery
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
@@ -620,9 +641,10 @@ class SimFleet:
         with self.lock:
             i = self._check(i)
             fw = self._fw[i]
-            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(self._quat[i]))
-            w, x, y, z = self._quat[i]
             est, om = fw.estimator, np.degrees(self._omega[i])
+            q_est = est.attitude(self._quat[i])
+            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(q_est))
+            w, x, y, z = q_est
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
