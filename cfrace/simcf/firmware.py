@@ -48,6 +48,7 @@ from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, 
 from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
+from cfrace.simcf.supervisor import SupervisorClock
 from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
@@ -104,6 +105,8 @@ class DroneFirmware:
     control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
     charge: float = 0.9                          #: battery state of charge, 0-1
     amps: float = 0.0                            #: A, battery current
+    clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
+    tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
 
     def __post_init__(self):
         self.armed = self.auto_armed
@@ -428,8 +431,12 @@ class SimFleet:
                 return True
             if armed and fw.emergency:
                 return False
+            if armed and fw.tumbled:
+                return False          # supervisor.c: tumbled, the pre-flight checks do not pass
             if fw.armed != bool(armed):
                 fw.events.append("SUP: armed" if armed else "SUP: disarmed")
+                if armed:
+                    fw.clock.armed_at = self.time
             fw.armed = bool(armed)
             return True
 
@@ -469,8 +476,8 @@ class SimFleet:
                 fw.events.append("CMD: no setpoint for 2 s, motors off, thrust locked")
         elif age > WDT_LEVEL + 1e-9 and fw.watchdog == "ok":
             fw.watchdog = "level"
-            fw.flying_at_level = bool(fw.armed and not fw.emergency and not self._gated(fw)
-                                      and not fw.setpoint.is_stop)
+            # supervisor.c isFlyingCheck: flying while a motor ran above idle within the last 2 s
+            fw.flying_at_level = bool(fw.armed and not fw.emergency and fw.clock.is_flying(t))
             fw.events.append("CMD: no setpoint for 500 ms, levelling out")
 
     def _next_deadline(self, t: float) -> float:
@@ -529,6 +536,7 @@ class SimFleet:
         counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
         fw.control_thrust, fw.control_rates = newtons, rates
+        fw.clock.note_thrust(self.time, newtons > 0.0 and not sp.is_stop)
         return newtons, rates
 
     def _after_step(self, dt: float, vel_before: np.ndarray) -> None:
@@ -541,10 +549,35 @@ class SimFleet:
             fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
                                  p["kalman.pNPos"])
             fw.estimator.decks_measure(t, self._pos[i], self._vel[i], self._quat[i])
+            self._supervise(i, fw, t)
             b = self.battery
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
             fw.charge = max(0.0, fw.charge - fw.amps * dt / 3.6 / b.capacity_mah)
+
+    def _body_acc_g(self, i: int) -> np.ndarray:
+        """The accelerometer: specific force in the body frame, g."""
+        return quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+
+    def _supervise(self, i: int, fw: DroneFirmware, t: float) -> None:
+        """supervisor.c, supervisorUpdate: tumble check, preflight and landing timeouts."""
+        p = fw.params
+        fw.tumbled = bool(fw.clock.tumbled(t, self._body_acc_g(i)) and p["supervisor.tmblChckEn"])
+        if fw.emergency:
+            return
+        if fw.tumbled and fw.clock.is_flying(t) and fw.armed:
+            self._emergency(fw, "tumbled")               # Flying -> ExceptFreeFall -> Locked
+        elif fw.auto_armed:
+            return
+        elif fw.tumbled and fw.armed:
+            fw.armed = False
+            fw.events.append("SUP: tumbled, disarming")
+        elif fw.clock.preflight_timeout(t, fw.armed, p["supervisor.prefltTimeout"]):
+            fw.armed = False
+            fw.events.append("SUP: preflight timeout, disarming")
+        elif fw.clock.landing_timeout(t, fw.armed, p["supervisor.landedTimeout"]):
+            fw.armed = False
+            fw.events.append("SUP: landed timeout, disarming")
 
     def advance(self, dt: float) -> int:
         """Advance simulated time by dt s (in whole 2 ms physics steps; the remainder carries over).
@@ -615,9 +648,10 @@ class SimFleet:
         """The firmware's supervisor.info bits (see cflib Supervisor.STATES)."""
         with self.lock:
             fw = self._fw[self._check(i)]
-            flying = bool(fw.armed and not fw.emergency and self._cmd_thrust[i] > 0.0)
+            # supervisor.c updateLogData: flying = state Flying or WarningLevelOut (the 2 s hysteresis)
+            flying = bool(fw.armed and not fw.emergency and fw.clock.is_flying(self.time))
             bits = 0
-            bits |= int(not fw.armed and not fw.emergency) << 0       # can be armed
+            bits |= int(not fw.armed and not fw.emergency and not fw.tumbled) << 0   # can be armed
             bits |= int(fw.armed) << 1
             bits |= int(fw.auto_armed) << 2
             bits |= int(fw.armed and not fw.emergency) << 3           # can fly
@@ -632,8 +666,7 @@ class SimFleet:
             return bits
 
     def _tumbled(self, i: int) -> bool:
-        w, x, y, z = self._quat[i]
-        return 1.0 - 2.0 * (x * x + y * y) < 0.0   # body z axis pointing down
+        return self._fw[i].tumbled
 
     def log_values(self, i: int) -> dict:
         """Values of the emulated log variables for drone i (firmware names and units: m, m/s, deg,
@@ -648,7 +681,7 @@ class SimFleet:
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
-            body_acc = quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+            body_acc = self._body_acc_g(i)
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()

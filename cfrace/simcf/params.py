@@ -85,6 +85,9 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("hlCommander.groupmask", "uint8_t", 0,
               doc="the groups (bits) of this drone for the high-level commander's group masks; 0: none"),
     ParamSpec("pm.lowVoltage", "float", 3.2, doc="V, below: pm.state low power"),
+    ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble locks a flying drone (supervisor.c)"),
+    ParamSpec("supervisor.prefltTimeout", "uint16_t", 30000, doc="ms armed without flying before disarming"),
+    ParamSpec("supervisor.landedTimeout", "uint16_t", 3000, doc="ms after landing before disarming"),
     *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0), ("bcLedRing", 0)), readonly=True,
             doc="deck: 1 if the simulated drone carries this deck"),
 )
