@@ -123,7 +123,7 @@ def test_position_setpoints_autonomous_sequence():
         cf.commander.send_notify_setpoint_stop()
         assert max(errors) < 0.1, errors
         assert abs(yaw) < math.radians(5)                         # the setpoint's yaw, 0
-        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == 0.0
+        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -152,7 +152,7 @@ def test_motion_commander_with_a_flow_deck():
         along = float(np.dot(moved[:2] - start["pos"][:2], heading))
         assert along == pytest.approx(0.5, abs=0.12), along
         assert abs(math.degrees(math.remainder(yaw1 - yaw0, 2 * math.pi)) - 90.0) < 15.0
-        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == 0.0
+        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -195,7 +195,7 @@ def test_high_level_commander_takeoff_go_to_land_and_hand_over():
         rest = fleet.profile.collision_box[2] / 2
         touch = int(np.argmax(z < rest + 0.01))
         assert z[touch] < rest + 0.01 and abs(vz[max(0, touch - 1)]) <= 0.5, (z[touch], vz[touch - 1])
-        assert wait_for(lambda: fleet.status(0)["thrust"] == 0.0 and fleet.status(0)["high_level"] == "idle", 1.0)
+        assert wait_for(lambda: fleet.status(0)["thrust"] == fleet.idle_thrust(0) and fleet.status(0)["high_level"] == "idle", 1.0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -231,7 +231,7 @@ def test_mocap_example_external_pose_and_high_level_commander():
             assert np.linalg.norm(fleet.state(0)["pos"] - [x0 - 0.4, y0, 0.6]) < 0.1
             cf.high_level_commander.land(0.0, 1.5)
             time.sleep(2.0)
-            assert fleet.state(0)["pos"][2] < 0.02 and fleet.status(0)["thrust"] == 0.0
+            assert fleet.state(0)["pos"][2] < 0.02 and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         finally:
             stop.set()
             streamer.join()

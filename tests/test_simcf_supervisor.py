@@ -11,9 +11,8 @@ cflib = pytest.importorskip("cflib")
 import cflib.crtp  # noqa: E402
 
 from cfrace.simcf.firmware import SimFleet  # noqa: E402
-from cfrace.simcf.server import SimCrazyflieServer  # noqa: E402
 from cfrace.simcf.supervisor import SupervisorClock  # noqa: E402
-from cflibtools import connect, wait_for  # noqa: E402
+from cflibtools import served, wait_for  # noqa: E402
 
 cflib.crtp.init_drivers()
 
@@ -31,9 +30,7 @@ def hover(cf, fleet, seconds, z=0.5):
 def stops_then_silence(stop_seconds):
     """Hover, then stop setpoints for stop_seconds, then nothing for 2.6 s: -> supervisor.info."""
     fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False)
-    with SimCrazyflieServer(fleet, base_port=0) as server, connect(server.uris[0]) as scf:
-        cf = scf.cf
-        scf.wait_for_params()
+    with served(fleet) as cf:
         hover(cf, fleet, 2.0)
         assert fleet.supervisor_bitfield(0) & FLYING
         t_end = time.monotonic() + stop_seconds
@@ -55,9 +52,7 @@ def test_silence_right_after_the_motors_stop_locks_the_drone_as_the_2s_hysteresi
 
 def test_preflight_and_landing_timeouts_disarm():
     fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=True)
-    with SimCrazyflieServer(fleet, base_port=0) as server, connect(server.uris[0]) as scf:
-        cf = scf.cf
-        scf.wait_for_params()
+    with served(fleet) as cf:
         assert cf.param.get_value("supervisor.prefltTimeout") == "30000"
         assert cf.param.get_value("supervisor.landedTimeout") == "3000"
         cf.param.set_value("supervisor.prefltTimeout", "1000")
@@ -95,9 +90,7 @@ def test_the_tumble_check_times_a_tilt_and_an_upside_down_and_free_fall_resets_i
 
 def test_tmblchcken_is_a_parameter_of_the_supervisor():
     fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False)
-    with SimCrazyflieServer(fleet, base_port=0) as server, connect(server.uris[0]) as scf:
-        cf = scf.cf
-        scf.wait_for_params()
+    with served(fleet) as cf:
         assert cf.param.get_value("supervisor.tmblChckEn") == "1"
         cf.param.set_value("supervisor.tmblChckEn", "0")
         assert wait_for(lambda: fleet.get_param(0, "supervisor.tmblChckEn") == 0)

@@ -41,7 +41,7 @@ class StandLink(CflibLink):
 
     def prepare(self, period_ms: int = 10) -> None:
         """Check the TOCs and that the drone is not locked, zero the motor override, start the battery /
-        motor-speed log, arm."""
+        motor-speed log (arming is ``arm``, after the tare)."""
         cf = self._need()
         missing = [n for n in MOTOR_PARAMS if cf.param.toc.get_element_by_complete_name(n) is None]
         if missing:
@@ -68,10 +68,13 @@ class StandLink(CflibLink):
         except (KeyError, AttributeError) as exc:
             raise LinkError(f"{self.uri}: cannot start the stand log ({exc})") from None
         self._log_conf = conf
+        self.feed_watchdog()
+
+    def arm(self) -> None:
+        """Arm (after the tare: an armed Crazyflie 2.1 Brushless spins its props at idle thrust)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cf.supervisor.send_arming_request(True)
-        self.feed_watchdog()
+            self._need().supervisor.send_arming_request(True)
 
     def _on_log(self, timestamp, data, conf) -> None:
         now = time.monotonic()

@@ -501,9 +501,10 @@ class SimFleet:
         """(thrust N, body rates rad/s (3,)) drone i commands now (no controller update: for status)."""
         fw = self._fw[i]
         if self._gated(fw) or fw.setpoint.is_stop:
-            return 0.0, np.zeros(3)
+            return self._idle_newtons(fw), np.zeros(3)
         if fw.setpoint.mode_z == DISABLE:
-            return float(self.profile.thrust_curve.to_newtons(fw.setpoint.thrust)), fw.control_rates.copy()
+            newtons = float(self.profile.thrust_curve.to_newtons(fw.setpoint.thrust)) if fw.setpoint.thrust > 0 else 0.0
+            return max(newtons, self._idle_newtons(fw)), fw.control_rates.copy()
         return fw.control_thrust, fw.control_rates.copy()
 
     @staticmethod
@@ -518,6 +519,20 @@ class SimFleet:
         out.mode_yaw, out.rates[2] = VELOCITY, 0.0
         return out
 
+    def idle_thrust(self, i: int) -> float:
+        """N, drone i's collective thrust when it commands none: its props idling (armed, on a platform
+        with powerDist.idleThrust), else 0."""
+        with self.lock:
+            return self._idle_newtons(self._fw[self._check(i)])
+
+    def _idle_newtons(self, fw: DroneFirmware) -> float:
+        """N, the collective thrust of every motor at powerDist.idleThrust counts while the motors may
+        run (armed, not stopped: supervisorAreMotorsAllowedToRun); 0 otherwise or with no idle thrust."""
+        idle = float(fw.params["powerDist.idleThrust"])
+        if idle <= 0.0 or fw.emergency or not fw.armed:
+            return 0.0
+        return float(self.profile.thrust_curve.to_newtons(idle))
+
     def _control(self, i: int, dt: float) -> tuple[float, np.ndarray]:
         """One controller update of drone i over the next dt s: estimator reset request, the
         high-level commander, then the PID cascade. -> (thrust N, body rates rad/s (3,))."""
@@ -529,14 +544,18 @@ class SimFleet:
         self._high_level_setpoint(i)
         if self._gated(fw):
             fw.controller.reset()
-            fw.control_thrust, fw.control_rates = 0.0, np.zeros(3)
-            return 0.0, np.zeros(3)
+            idle = self._idle_newtons(fw)                # armed: the props spin at idle whatever the setpoint
+            fw.control_thrust, fw.control_rates = idle, np.zeros(3)
+            return idle, np.zeros(3)
         sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
         att = quat_to_euler(fw.estimator.attitude(self._quat[i]))   # the estimate, not the truth
         counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
+        idle = float(p["powerDist.idleThrust"])
+        fw.clock.note_thrust(self.time, counts > idle and counts > 0.0 and not sp.is_stop)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
+        # power_distribution_quadrotor.c, powerDistributionCap: each motor at least powerDist.idleThrust
+        newtons = max(newtons, self._idle_newtons(fw))
         fw.control_thrust, fw.control_rates = newtons, rates
-        fw.clock.note_thrust(self.time, newtons > 0.0 and not sp.is_stop)
         return newtons, rates
 
     def _after_step(self, dt: float, vel_before: np.ndarray) -> None:
@@ -640,8 +659,10 @@ class SimFleet:
         thrust = self._command(i)[0]
         if thrust <= 0.0:
             return 0
+        if self._gated(fw) or fw.setpoint.is_stop:
+            return int(fw.params["powerDist.idleThrust"])
         if fw.setpoint.mode_z == DISABLE:
-            return int(fw.setpoint.thrust)
+            return max(int(fw.setpoint.thrust), int(fw.params["powerDist.idleThrust"]))
         return int(round(float(self.profile.thrust_curve.to_counts(thrust))))
 
     def supervisor_bitfield(self, i: int) -> int:
