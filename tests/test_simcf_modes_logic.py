@@ -202,9 +202,12 @@ def test_controller_selection_battery_and_logs():
     assert any("not emulated" in e for e in f.drain_events(0))
     assert f.log_values(0)["pm.state"] == 0
     f.set_battery(0, 0.0)
-    f.advance(0.01)
+    f.advance(4.9)                   # pm_stm32f4.c: low power after 5 s below pm.lowVoltage
     logs = f.log_values(0)
-    assert logs["pm.vbat"] < f.get_param(0, "pm.lowVoltage") and logs["pm.state"] == 3
+    assert logs["pm.vbat"] < f.get_param(0, "pm.lowVoltage") and logs["pm.state"] == 0
+    f.advance(0.2)
+    logs = f.log_values(0)
+    assert logs["pm.state"] == 3
     assert logs["pm.batteryLevel"] == pytest.approx(0.0, abs=0.1)
     f.set_battery(0, 0.9)
     x0, y0, _ = f.state(0)["pos"]

@@ -59,6 +59,7 @@ WDT_SHUTDOWN = 2.0         #: s without setpoint -> motors off, thrust locked
 ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has been fed
 CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the controller's period)
 PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2   #: the commander's setpoint priorities
+LOW_POWER_TIMEOUT = 5.0    #: s below pm.lowVoltage before pm.state is low power (pm_stm32f4.c, PM_BAT_LOW_TIMEOUT)
 CONTROLLERS_EMULATED = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
 
 
@@ -105,6 +106,7 @@ class DroneFirmware:
     control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
     charge: float = 0.9                          #: battery state of charge, 0-1
     amps: float = 0.0                            #: A, battery current
+    vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
 
@@ -573,6 +575,8 @@ class SimFleet:
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
             fw.charge = max(0.0, fw.charge - fw.amps * dt / 3.6 / b.capacity_mah)
+            if b.volts(fw.charge, fw.amps) >= p["pm.lowVoltage"]:
+                fw.vbat_ok_time = t
 
     def _body_acc_g(self, i: int) -> np.ndarray:
         """The accelerometer: specific force in the body frame, g."""
@@ -730,7 +734,7 @@ class SimFleet:
                 **{f"posCtl.{k}": float(debug.get(k, 0.0)) for k in ("targetVX", "targetVY", "targetVZ", "targetX",
                                                                      "targetY", "targetZ")},
                 "pm.vbat": vbat, "pm.vbatMV": vbat * 1000.0,
-                "pm.state": 3 if vbat < fw.params["pm.lowVoltage"] else 0,
+                "pm.state": 3 if self.time - fw.vbat_ok_time > LOW_POWER_TIMEOUT else 0,
                 "pm.batteryLevel": 100.0 * fw.charge,
                 "range.zrange": 1000.0 * self._pos[i][2] if "flow" in self.decks else 0.0,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
@@ -746,10 +750,12 @@ class SimFleet:
         curve), from the simulator's rotor speeds; zeros for a physics without rotor states."""
         speeds = getattr(self.sim, "motor", None)
         if speeds is None:
-            return {f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)}
+            return {**{f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)},
+                    **{f"motor.m{k}_rpm": 0 for k in range(1, 5)}}
         w = np.asarray(speeds[i], np.float64)
         counts = self.profile.thrust_curve.to_counts(4.0 * self.profile.k_eta * w * w)
-        return {**{f"rpm.m{k + 1}": w[k] * 60.0 / (2.0 * math.pi) for k in range(4)},
+        rpm = w * 60.0 / (2.0 * math.pi)
+        return {**{f"rpm.m{k + 1}": rpm[k] for k in range(4)}, **{f"motor.m{k + 1}_rpm": rpm[k] for k in range(4)},
                 **{f"motor.m{k + 1}": float(counts[k]) if w[k] > 0 else 0.0 for k in range(4)}}
 
     def drain_events(self, i: int) -> list[str]:

@@ -28,6 +28,7 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
     # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
     # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
     + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
+    + [(f"motor.m{k}_rpm", _U16) for k in range(1, 5)]
     # the standard groups of the firmware's stabilizer, estimator, controller and power management
     + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]
     + [(f"stabilizer.{n}", _FLOAT) for n in ("roll", "pitch", "yaw")]
