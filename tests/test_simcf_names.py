@@ -43,3 +43,20 @@ def test_esc_telemetry_is_logged_as_motor_m_rpm_and_calibrate_prefers_it():
         assert min(data.values()) > 1000
         truth = fleet.log_values(0)
         assert data["motor.m1_rpm"] == pytest.approx(truth["rpm.m1"], rel=0.05)
+
+
+def test_compressed_state_estimate_and_the_thrust_target_are_logged():
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False)
+    with served(fleet) as cf:
+        conf = LogConfig(name="z", period_in_ms=20)
+        for name in ("stateEstimateZ.x", "stateEstimateZ.y", "stateEstimateZ.z"):
+            conf.add_variable(name, "int16_t")
+        conf.add_variable("ctrltarget.thrust", "float")
+        with SyncLogger(cf, conf) as logger:
+            for k, (_, data, _) in enumerate(logger):
+                if k == 25:
+                    break
+        est = fleet._fw[0].estimator.pos
+        assert data["stateEstimateZ.x"] == pytest.approx(1000.0 * est[0], abs=20.0)     # mm
+        assert data["stateEstimateZ.y"] == pytest.approx(1000.0 * est[1], abs=20.0)
+        assert data["ctrltarget.thrust"] == 0.0

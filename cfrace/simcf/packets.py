@@ -15,7 +15,7 @@ from cfrace.simcf.controller import ABS, VELOCITY, Setpoint
 #: log variable type codes (firmware log.h; cflib LogTocElement.types): code -> (struct, size)
 LOG_TYPES = {0x01: ("<B", 1), 0x02: ("<H", 2), 0x03: ("<I", 4), 0x04: ("<b", 1), 0x05: ("<h", 2),
              0x06: ("<i", 4), 0x07: ("<f", 4), 0x08: ("<e", 2)}
-_FLOAT, _U8, _U16, _I8 = 0x07, 0x01, 0x02, 0x04
+_FLOAT, _U8, _U16, _I8, _I16 = 0x07, 0x01, 0x02, 0x04, 0x05
 
 #: The emulated log TOC, in order: (name, stored type). Values come from SimFleet.log_values.
 LOG_VARS: tuple[tuple[str, int], ...] = tuple(
@@ -29,6 +29,9 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
     # counts): non-zero only on the simulated thrust stand (simcf/stand.py)
     + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
     + [(f"motor.m{k}_rpm", _U16) for k in range(1, 5)]
+    # estimator.c's compressed state: mm, mm/s, mm/s^2 as int16; ctrltarget.thrust (counts)
+    + [(f"stateEstimateZ.{n}", _I16) for n in ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")]
+    + [("ctrltarget.thrust", _FLOAT)]
     # the standard groups of the firmware's stabilizer, estimator, controller and power management
     + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]
     + [(f"stabilizer.{n}", _FLOAT) for n in ("roll", "pitch", "yaw")]
