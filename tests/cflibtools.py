@@ -1,6 +1,7 @@
 """Helpers for tests that drive simulated Crazyflies with the real cflib client."""
 
 import time
+from contextlib import contextmanager
 
 from cflib.crazyflie import Crazyflie
 from cflib.crazyflie.syncCrazyflie import SyncCrazyflie
@@ -19,3 +20,12 @@ def wait_for(cond, timeout=2.0):
             return True
         time.sleep(0.01)
     return cond()
+
+
+@contextmanager
+def served(fleet, index=0):
+    """fleet served over UDP and cflib connected to drone index, its parameters read: -> the Crazyflie."""
+    from cfrace.simcf.server import SimCrazyflieServer
+    with SimCrazyflieServer(fleet, base_port=0) as server, connect(server.uris[index]) as scf:
+        scf.wait_for_params()
+        yield scf.cf

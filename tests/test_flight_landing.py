@@ -111,7 +111,7 @@ def test_brake_hand_over_and_land_from_race_speed(profile):
     assert abs(touch.vz) <= 0.5 and np.linalg.norm(touch.place[:2] - spot) < 0.15, touch.as_dict()
     assert brake_end < 0.8 and lowest_y > track.arena.y[0] - 0.1         # stopped before the fence (0.3 m)
     fleet.advance(cfg.descent_s)
-    assert fleet.status(0)["thrust"] == 0.0 and not fleet.status(0)["crashed"]
+    assert fleet.status(0)["thrust"] == fleet.idle_thrust(0) and not fleet.status(0)["crashed"]
 
 
 def test_landing_pilot_flies_the_sequence():
@@ -156,7 +156,7 @@ def test_landing_pilot_flies_the_sequence():
         td = pilot.touchdown
         assert td.t is not None and td.t < 5.0 and abs(td.vz) <= 0.5, td.as_dict()
         assert np.linalg.norm(fleet.state(i)["pos"][:2] - spots[i]) < 0.15
-        assert not fleet.status(i)["crashed"] and fleet.status(i)["thrust"] == 0.0
+        assert not fleet.status(i)["crashed"] and fleet.status(i)["thrust"] == fleet.idle_thrust(i)
     assert np.linalg.norm(spots[0] - spots[1]) >= LandingConfig().drone_separation_m
 
 

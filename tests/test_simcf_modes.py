@@ -83,6 +83,7 @@ def test_logging_and_parameters_as_in_cflib_examples():
                      "stateEstimate.z"):
             conf.add_variable(name, "float")
         stamps = []
+        time.sleep(1.0)   # the attitude estimate boots facing kalman.initialYaw (0); the deck brings it round
         with SyncLogger(scf, conf) as logger:
             for ts, data, _ in logger:
                 stamps.append(ts)
@@ -90,8 +91,9 @@ def test_logging_and_parameters_as_in_cflib_examples():
                     break
         truth = fleet.state(0)
         _, _, yaw = quat_to_euler(truth["quat"])
-        assert data["stabilizer.yaw"] == pytest.approx(math.degrees(yaw), abs=0.1)
-        assert abs(data["stabilizer.roll"]) < 0.1 and abs(data["stabilizer.pitch"]) < 0.1
+        # the estimate (the deck's attitude, 0.01 rad noise, fused), not the truth
+        assert data["stabilizer.yaw"] == pytest.approx(math.degrees(yaw), abs=1.0)
+        assert abs(data["stabilizer.roll"]) < 1.0 and abs(data["stabilizer.pitch"]) < 1.0
         assert data["stateEstimate.x"] == pytest.approx(truth["pos"][0], abs=0.01)     # the Lighthouse deck
         assert data["stateEstimate.z"] == pytest.approx(truth["pos"][2], abs=0.01)
         assert 3.9 < data["pm.vbat"] < 4.2
@@ -121,7 +123,7 @@ def test_position_setpoints_autonomous_sequence():
         cf.commander.send_notify_setpoint_stop()
         assert max(errors) < 0.1, errors
         assert abs(yaw) < math.radians(5)                         # the setpoint's yaw, 0
-        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == 0.0
+        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -150,7 +152,7 @@ def test_motion_commander_with_a_flow_deck():
         along = float(np.dot(moved[:2] - start["pos"][:2], heading))
         assert along == pytest.approx(0.5, abs=0.12), along
         assert abs(math.degrees(math.remainder(yaw1 - yaw0, 2 * math.pi)) - 90.0) < 15.0
-        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == 0.0
+        assert wait_for(lambda: fleet.state(0)["pos"][2] < 0.02, 2.0) and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -193,7 +195,7 @@ def test_high_level_commander_takeoff_go_to_land_and_hand_over():
         rest = fleet.profile.collision_box[2] / 2
         touch = int(np.argmax(z < rest + 0.01))
         assert z[touch] < rest + 0.01 and abs(vz[max(0, touch - 1)]) <= 0.5, (z[touch], vz[touch - 1])
-        assert wait_for(lambda: fleet.status(0)["thrust"] == 0.0 and fleet.status(0)["high_level"] == "idle", 1.0)
+        assert wait_for(lambda: fleet.status(0)["thrust"] == fleet.idle_thrust(0) and fleet.status(0)["high_level"] == "idle", 1.0)
         assert not fleet.status(0)["crashed"]
 
 
@@ -229,7 +231,7 @@ def test_mocap_example_external_pose_and_high_level_commander():
             assert np.linalg.norm(fleet.state(0)["pos"] - [x0 - 0.4, y0, 0.6]) < 0.1
             cf.high_level_commander.land(0.0, 1.5)
             time.sleep(2.0)
-            assert fleet.state(0)["pos"][2] < 0.02 and fleet.status(0)["thrust"] == 0.0
+            assert fleet.state(0)["pos"][2] < 0.02 and fleet.status(0)["thrust"] == fleet.idle_thrust(0)
         finally:
             stop.set()
             streamer.join()

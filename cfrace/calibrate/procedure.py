@@ -140,6 +140,8 @@ class _Session:
         self.wait(self.reader.sensor.tare_samples / self.reader.sensor.rate_hz + 0.1)
         bias = self.reader.tare()
         self.out(f"  bias: force {np.round(bias[:3], 4).tolist()} N, torque {np.round(bias[3:] * 1e3, 3).tolist()} mN m")
+        self.link.arm()        # after the tare: armed, a Brushless's props idle
+        self.wait(0.1)
         self.out("all four motors, up and down")
         self.link.set_motors(2, 0)
         self.sweep("all", None, self.link.set_m1)

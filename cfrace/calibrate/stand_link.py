@@ -25,7 +25,8 @@ from cflib.crazyflie.log import LogConfig  # noqa: E402
 
 MOTOR_PARAMS = ("motorPowerSet.enable", "motorPowerSet.m1", "motorPowerSet.m2", "motorPowerSet.m3",
                 "motorPowerSet.m4")
-RPM_VARS = ("rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4")
+#: motor speed logs, the first the drone has: the Brushless's ESC telemetry (bidirectional DShot), the RPM deck
+RPM_SOURCES = (("motor.m1_rpm", "motor.m2_rpm", "motor.m3_rpm", "motor.m4_rpm"), ("rpm.m1", "rpm.m2", "rpm.m3", "rpm.m4"))
 
 
 class StandLink(CflibLink):
@@ -34,6 +35,7 @@ class StandLink(CflibLink):
     def __init__(self, uri: str):
         super().__init__(uri)
         self.has_rpm = False
+        self.rpm_vars: tuple = ()               #: the motor speed logs in use (RPM_SOURCES)
         self._log_lock = threading.Lock()
         self._log_rows: list[tuple] = []
         self._log_conf = None
@@ -41,7 +43,7 @@ class StandLink(CflibLink):
 
     def prepare(self, period_ms: int = 10) -> None:
         """Check the TOCs and that the drone is not locked, zero the motor override, start the battery /
-        motor-speed log, arm."""
+        motor-speed log (arming is ``arm``, after the tare)."""
         cf = self._need()
         missing = [n for n in MOTOR_PARAMS if cf.param.toc.get_element_by_complete_name(n) is None]
         if missing:
@@ -52,14 +54,16 @@ class StandLink(CflibLink):
         self.refuse_locked("e.g. its emergency-stop watchdog 1 s after the last stand run; its motors would not "
                            "spin", "power-cycle it (a simulated one: restart `cfrace sim stand`), then run again",
                            close=True)
-        self.has_rpm = all(cf.log.toc.get_element_by_complete_name(n) is not None for n in RPM_VARS)
+        found = [vs for vs in RPM_SOURCES if all(cf.log.toc.get_element_by_complete_name(n) is not None for n in vs)]
+        self.rpm_vars = found[0] if found else ()
+        self.has_rpm = bool(found)
         self._params["motorPowerSet.enable"] = threading.Event()
         cf.param.add_update_callback(group="motorPowerSet", name="enable", cb=self._param_cb)
         self.set_motors(0, 0)
         conf = LogConfig(name="stand", period_in_ms=period_ms)
         conf.add_variable("pm.vbat", "float")
         if self.has_rpm:
-            for n in RPM_VARS:
+            for n in self.rpm_vars:
                 conf.add_variable(n, "uint16_t")
         conf.data_received_cb.add_callback(self._on_log)
         try:
@@ -68,14 +72,17 @@ class StandLink(CflibLink):
         except (KeyError, AttributeError) as exc:
             raise LinkError(f"{self.uri}: cannot start the stand log ({exc})") from None
         self._log_conf = conf
+        self.feed_watchdog()
+
+    def arm(self) -> None:
+        """Arm (after the tare: an armed Crazyflie 2.1 Brushless spins its props at idle thrust)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cf.supervisor.send_arming_request(True)
-        self.feed_watchdog()
+            self._need().supervisor.send_arming_request(True)
 
     def _on_log(self, timestamp, data, conf) -> None:
         now = time.monotonic()
-        rpm = tuple(float(data[n]) for n in RPM_VARS) if self.has_rpm else ()
+        rpm = tuple(float(data[n]) for n in self.rpm_vars)
         with self._log_lock:
             self._log_rows.append((now, float(data["pm.vbat"])) + rpm)
             self.last_log = now

@@ -145,7 +145,7 @@ class StandRig:
             omega, cmd, volts = self.omega.copy(), self.commands.copy(), self.volts
         out = {"pm.vbat": volts + self.rng.normal(0.0, self.truth.vbat_noise)}
         for k in range(4):
-            out[f"rpm.m{k + 1}"] = omega[k] * 60.0 / (2.0 * math.pi)
+            out[f"rpm.m{k + 1}"] = out[f"motor.m{k + 1}_rpm"] = omega[k] * 60.0 / (2.0 * math.pi)
             out[f"motor.m{k + 1}"] = cmd[k]
         return out
 

@@ -18,8 +18,9 @@ import zlib
 
 from cfrace.simcf import memory
 from cfrace.simcf.firmware import SimFleet
-from cfrace.simcf.packets import (EXT_POSE, GENERIC_TYPES, LOG_TYPES, LOG_VARS, LogBlock,  # noqa: F401
-                                  pack_value, decode_generic, decode_high_level)
+from cfrace.simcf.packets import (EXT_POSE, EXT_POSE_PACKED, EXT_POSITION_PACKED, GENERIC_TYPES,  # noqa: F401
+                                  LOG_TYPES, LOG_VARS, LogBlock, pack_value, decode_generic, decode_high_level,
+                                  quat_decompress)
 from cfrace.simcf.params import PARAM_BY_NAME, PARAM_TYPES, PARAMS
 
 PROTOCOL_VERSION = 12     #: what the current firmware reports; cflib 0.1.34 needs >= 12 for the supervisor port
@@ -361,6 +362,19 @@ class CrtpEndpoint:
         if channel == 1 and payload and payload[0] == EXT_POSE and len(payload) >= 29:
             x, y, z, qx, qy, qz, qw = struct.unpack_from("<7f", payload, 1)
             self.fleet.external_position(self.index, (x, y, z), (qw, qx, qy, qz))
+            return []
+        # crtp_localization_service.c, extPositionPackedHandler / extPosePackedHandler: items for
+        # several drones in one broadcast packet, each drone takes the item with its own radio id
+        if channel == EXT_POSITION_PACKED or (channel == 1 and payload and payload[0] == EXT_POSE_PACKED):
+            pose = channel == 1
+            body = payload[1:] if pose else payload
+            size = 11 if pose else 7
+            me = self.fleet.radio_id(self.index)
+            for k in range(len(body) // size):
+                item = struct.unpack_from("<BhhhI" if pose else "<Bhhh", body, k * size)
+                if item[0] == me:
+                    pos = tuple(v / 1000.0 for v in item[1:4])
+                    self.fleet.external_position(self.index, pos, quat_decompress(item[4]) if pose else None)
             return []
         if channel == 1 and payload:
             if payload[0] == 3:

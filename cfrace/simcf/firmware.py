@@ -44,10 +44,11 @@ from cfrace.rotations import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
-from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks
+from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, yaw_quat
 from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
 from cfrace.simcf.physics import crash_reason, make_physics
+from cfrace.simcf.supervisor import SupervisorClock
 from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
@@ -58,6 +59,7 @@ WDT_SHUTDOWN = 2.0         #: s without setpoint -> motors off, thrust locked
 ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has been fed
 CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the controller's period)
 PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2   #: the commander's setpoint priorities
+LOW_POWER_TIMEOUT = 5.0    #: s below pm.lowVoltage before pm.state is low power (pm_stm32f4.c, PM_BAT_LOW_TIMEOUT)
 CONTROLLERS_EMULATED = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
 
 
@@ -96,6 +98,7 @@ class DroneFirmware:
     setpoints_received: int = 0
     packets_received: int = 0
     events: list = field(default_factory=list)  #: console lines not yet sent
+    warned: set = field(default_factory=set)    #: console warnings already given once since boot
     priority: int = PRIORITY_DISABLE             #: of the setpoint in force
     controller: PidController = field(default_factory=lambda: PidController(ATTITUDE_I_LIMIT, PID_I_LIMIT))
     planner: hl.Planner = field(default_factory=hl.Planner)
@@ -103,6 +106,9 @@ class DroneFirmware:
     control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
     charge: float = 0.9                          #: battery state of charge, 0-1
     amps: float = 0.0                            #: A, battery current
+    vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
+    clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
+    tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
 
     def __post_init__(self):
         self.armed = self.auto_armed
@@ -173,8 +179,7 @@ class SimFleet:
         return self._steps * DT
 
     def _reset_physics(self) -> None:
-        yaw = self._start_yaw
-        quat = np.tile([math.cos(yaw / 2.0), 0.0, 0.0, math.sin(yaw / 2.0)], (self.n, 1))
+        quat = np.tile(yaw_quat(self._start_yaw), (self.n, 1))
         self.sim.reset(self._start_pos, np.zeros((self.n, 3)), quat, np.zeros(self.n, np.int64))
         self._snapshot()
 
@@ -208,8 +213,16 @@ class SimFleet:
         params = default_params(i, self.arming_required, self.param_defaults(i))
         fw = DroneFirmware(params, not self.arming_required, PositionEstimator(self.decks, seed=self.seed * 1009 + i))
         fw.charge = self.battery.charge0
-        fw.estimator.reset((params["kalman.initialX"], params["kalman.initialY"], params["kalman.initialZ"]))
+        self._reset_estimator(i, fw)
         return fw
+
+    def _reset_estimator(self, i: int, fw: DroneFirmware) -> None:
+        """estimator_kalman.c (resetEstimation, kalmanCoreInit): position kalman.initialX/Y/Z, attitude
+        level with yaw kalman.initialYaw (rad), whatever the drone's true attitude."""
+        p = fw.params
+        true = self._quat[i] if hasattr(self, "_quat") else yaw_quat(self._start_yaw)
+        fw.estimator.reset((p["kalman.initialX"], p["kalman.initialY"], p["kalman.initialZ"]),
+                           p["kalman.initialYaw"], true)
 
     def teleport(self, i: int, pos, vel=(0.0, 0.0, 0.0), quat=(1.0, 0.0, 0.0, 0.0)) -> None:
         """Put drone i in flight at pos (3,) m with velocity vel (3,) m/s and attitude quat (wxyz), its
@@ -219,7 +232,8 @@ class SimFleet:
             self.sim.set_drone(i, pos, vel, quat)
             self._snapshot()
             est = self._fw[i].estimator
-            est.reset(self._pos[i])
+            est.reset(self._pos[i], quat_to_euler(self._quat[i])[2], self._quat[i])
+            est.q_err = np.array([1.0, 0.0, 0.0, 0.0])   # the attitude estimate is right too
             est.vel = self._vel[i].copy()
 
     def reboot(self, i: int) -> None:
@@ -331,7 +345,7 @@ class SimFleet:
     def _estimate_goal(self, i: int) -> hl.Goal:
         """The estimated state as the planner's start: position, velocity, yaw."""
         est = self._fw[i].estimator
-        yaw = quat_to_euler(self._quat[i])[2]
+        yaw = quat_to_euler(est.attitude(self._quat[i]))[2]
         return hl.Goal(est.pos.copy(), est.vel.copy(), np.zeros(3), yaw, 0.0)
 
     def _high_level_setpoint(self, i: int) -> None:
@@ -355,11 +369,23 @@ class SimFleet:
 
     # ---------------------------------------------------------------- positioning
     def external_position(self, i: int, pos, quat=None) -> None:
-        """An external position (CRTP localization: mocap via the ground station), m (3,) world; the
-        attitude ``quat`` is accepted and not used (the simulated estimator's attitude is exact)."""
+        """An external position (CRTP localization: mocap via the ground station), m (3,) world, and
+        with an external pose its attitude ``quat`` (wxyz world-from-body), fused with std dev
+        locSrv.extQuatStdDev (crtp_localization_service.c, extPoseHandler; kalman_core.c,
+        kalmanCoreUpdateWithPose). A quaternion that is not finite or has no length is dropped."""
         with self.lock:
             fw = self._fw[self._check(i)]
             fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
+            if quat is not None and not fw.estimator.fuse_attitude(quat, self._quat[i],
+                                                                  float(fw.params["locSrv.extQuatStdDev"])):
+                if "quat" not in fw.warned:
+                    fw.warned.add("quat")
+                    fw.events.append("LOC: external pose with an invalid quaternion, its attitude ignored")
+
+    def radio_id(self, i: int) -> int:
+        """The id a packed external position addresses drone i by: the low byte of its radio address
+        (0xE7E7E7E7xx, xx = i + 1, the number in its default body name cf<i+1>)."""
+        return (self._check(i) + 1) & 0xFF
 
     def memories(self, i: int) -> list:
         """Drone i's memories (simcf/memory.py: list index = memory id), its RAM cleared by a reboot."""
@@ -407,8 +433,12 @@ class SimFleet:
                 return True
             if armed and fw.emergency:
                 return False
+            if armed and fw.tumbled:
+                return False          # supervisor.c: tumbled, the pre-flight checks do not pass
             if fw.armed != bool(armed):
                 fw.events.append("SUP: armed" if armed else "SUP: disarmed")
+                if armed:
+                    fw.clock.armed_at = self.time
             fw.armed = bool(armed)
             return True
 
@@ -448,8 +478,8 @@ class SimFleet:
                 fw.events.append("CMD: no setpoint for 2 s, motors off, thrust locked")
         elif age > WDT_LEVEL + 1e-9 and fw.watchdog == "ok":
             fw.watchdog = "level"
-            fw.flying_at_level = bool(fw.armed and not fw.emergency and not self._gated(fw)
-                                      and not fw.setpoint.is_stop)
+            # supervisor.c isFlyingCheck: flying while a motor ran above idle within the last 2 s
+            fw.flying_at_level = bool(fw.armed and not fw.emergency and fw.clock.is_flying(t))
             fw.events.append("CMD: no setpoint for 500 ms, levelling out")
 
     def _next_deadline(self, t: float) -> float:
@@ -473,9 +503,10 @@ class SimFleet:
         """(thrust N, body rates rad/s (3,)) drone i commands now (no controller update: for status)."""
         fw = self._fw[i]
         if self._gated(fw) or fw.setpoint.is_stop:
-            return 0.0, np.zeros(3)
+            return self._idle_newtons(fw), np.zeros(3)
         if fw.setpoint.mode_z == DISABLE:
-            return float(self.profile.thrust_curve.to_newtons(fw.setpoint.thrust)), fw.control_rates.copy()
+            newtons = float(self.profile.thrust_curve.to_newtons(fw.setpoint.thrust)) if fw.setpoint.thrust > 0 else 0.0
+            return max(newtons, self._idle_newtons(fw)), fw.control_rates.copy()
         return fw.control_thrust, fw.control_rates.copy()
 
     @staticmethod
@@ -490,23 +521,42 @@ class SimFleet:
         out.mode_yaw, out.rates[2] = VELOCITY, 0.0
         return out
 
+    def idle_thrust(self, i: int) -> float:
+        """N, drone i's collective thrust when it commands none: its props idling (armed, on a platform
+        with powerDist.idleThrust), else 0."""
+        with self.lock:
+            return self._idle_newtons(self._fw[self._check(i)])
+
+    def _idle_newtons(self, fw: DroneFirmware) -> float:
+        """N, the collective thrust of every motor at powerDist.idleThrust counts while the motors may
+        run (armed, not stopped: supervisorAreMotorsAllowedToRun); 0 otherwise or with no idle thrust."""
+        idle = float(fw.params["powerDist.idleThrust"])
+        if idle <= 0.0 or fw.emergency or not fw.armed:
+            return 0.0
+        return float(self.profile.thrust_curve.to_newtons(idle))
+
     def _control(self, i: int, dt: float) -> tuple[float, np.ndarray]:
         """One controller update of drone i over the next dt s: estimator reset request, the
         high-level commander, then the PID cascade. -> (thrust N, body rates rad/s (3,))."""
         fw = self._fw[i]
         p = fw.params
         if p["kalman.resetEstimation"]:
-            fw.estimator.reset((p["kalman.initialX"], p["kalman.initialY"], p["kalman.initialZ"]))
+            self._reset_estimator(i, fw)
             p["kalman.resetEstimation"] = 0          # the firmware clears the request once done
         self._high_level_setpoint(i)
         if self._gated(fw):
             fw.controller.reset()
-            fw.control_thrust, fw.control_rates = 0.0, np.zeros(3)
-            return 0.0, np.zeros(3)
+            idle = self._idle_newtons(fw)                # armed: the props spin at idle whatever the setpoint
+            fw.control_thrust, fw.control_rates = idle, np.zeros(3)
+            return idle, np.zeros(3)
         sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
-        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, quat_to_euler(self._quat[i]),
-                                             p, dt)
+        att = quat_to_euler(fw.estimator.attitude(self._quat[i]))   # the estimate, not the truth
+        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
+        idle = float(p["powerDist.idleThrust"])
+        fw.clock.note_thrust(self.time, counts > idle and counts > 0.0 and not sp.is_stop)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
+        # power_distribution_quadrotor.c, powerDistributionCap: each motor at least powerDist.idleThrust
+        newtons = max(newtons, self._idle_newtons(fw))
         fw.control_thrust, fw.control_rates = newtons, rates
         return newtons, rates
 
@@ -519,11 +569,38 @@ class SimFleet:
             p = fw.params
             fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
                                  p["kalman.pNPos"])
-            fw.estimator.decks_measure(t, self._pos[i], self._vel[i])
+            fw.estimator.decks_measure(t, self._pos[i], self._vel[i], self._quat[i])
+            self._supervise(i, fw, t)
             b = self.battery
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
             fw.charge = max(0.0, fw.charge - fw.amps * dt / 3.6 / b.capacity_mah)
+            if b.volts(fw.charge, fw.amps) >= p["pm.lowVoltage"]:
+                fw.vbat_ok_time = t
+
+    def _body_acc_g(self, i: int) -> np.ndarray:
+        """The accelerometer: specific force in the body frame, g."""
+        return quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+
+    def _supervise(self, i: int, fw: DroneFirmware, t: float) -> None:
+        """supervisor.c, supervisorUpdate: tumble check, preflight and landing timeouts."""
+        p = fw.params
+        fw.tumbled = bool(fw.clock.tumbled(t, self._body_acc_g(i)) and p["supervisor.tmblChckEn"])
+        if fw.emergency:
+            return
+        if fw.tumbled and fw.clock.is_flying(t) and fw.armed:
+            self._emergency(fw, "tumbled")               # Flying -> ExceptFreeFall -> Locked
+        elif fw.auto_armed:
+            return
+        elif fw.tumbled and fw.armed:
+            fw.armed = False
+            fw.events.append("SUP: tumbled, disarming")
+        elif fw.clock.preflight_timeout(t, fw.armed, p["supervisor.prefltTimeout"]):
+            fw.armed = False
+            fw.events.append("SUP: preflight timeout, disarming")
+        elif fw.clock.landing_timeout(t, fw.armed, p["supervisor.landedTimeout"]):
+            fw.armed = False
+            fw.events.append("SUP: landed timeout, disarming")
 
     def advance(self, dt: float) -> int:
         """Advance simulated time by dt s (in whole 2 ms physics steps; the remainder carries over).
@@ -586,17 +663,20 @@ class SimFleet:
         thrust = self._command(i)[0]
         if thrust <= 0.0:
             return 0
+        if self._gated(fw) or fw.setpoint.is_stop:
+            return int(fw.params["powerDist.idleThrust"])
         if fw.setpoint.mode_z == DISABLE:
-            return int(fw.setpoint.thrust)
+            return max(int(fw.setpoint.thrust), int(fw.params["powerDist.idleThrust"]))
         return int(round(float(self.profile.thrust_curve.to_counts(thrust))))
 
     def supervisor_bitfield(self, i: int) -> int:
         """The firmware's supervisor.info bits (see cflib Supervisor.STATES)."""
         with self.lock:
             fw = self._fw[self._check(i)]
-            flying = bool(fw.armed and not fw.emergency and self._cmd_thrust[i] > 0.0)
+            # supervisor.c updateLogData: flying = state Flying or WarningLevelOut (the 2 s hysteresis)
+            flying = bool(fw.armed and not fw.emergency and fw.clock.is_flying(self.time))
             bits = 0
-            bits |= int(not fw.armed and not fw.emergency) << 0       # can be armed
+            bits |= int(not fw.armed and not fw.emergency and not fw.tumbled) << 0   # can be armed
             bits |= int(fw.armed) << 1
             bits |= int(fw.auto_armed) << 2
             bits |= int(fw.armed and not fw.emergency) << 3           # can fly
@@ -611,8 +691,7 @@ class SimFleet:
             return bits
 
     def _tumbled(self, i: int) -> bool:
-        w, x, y, z = self._quat[i]
-        return 1.0 - 2.0 * (x * x + y * y) < 0.0   # body z axis pointing down
+        return self._fw[i].tumbled
 
     def log_values(self, i: int) -> dict:
         """Values of the emulated log variables for drone i (firmware names and units: m, m/s, deg,
@@ -620,13 +699,14 @@ class SimFleet:
         with self.lock:
             i = self._check(i)
             fw = self._fw[i]
-            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(self._quat[i]))
-            w, x, y, z = self._quat[i]
             est, om = fw.estimator, np.degrees(self._omega[i])
+            q_est = est.attitude(self._quat[i])
+            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(q_est))
+            w, x, y, z = q_est
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
-            body_acc = quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
+            body_acc = self._body_acc_g(i)
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()
@@ -648,13 +728,16 @@ class SimFleet:
                 "ctrltarget.x": sp.position[0], "ctrltarget.y": sp.position[1], "ctrltarget.z": sp.position[2],
                 "ctrltarget.vx": sp.velocity[0], "ctrltarget.vy": sp.velocity[1], "ctrltarget.vz": sp.velocity[2],
                 "ctrltarget.roll": math.degrees(sp.attitude[0]), "ctrltarget.pitch": -math.degrees(sp.attitude[1]),
-                "ctrltarget.yaw": math.degrees(sp.rates[2]),
+                "ctrltarget.yaw": math.degrees(sp.rates[2]), "ctrltarget.thrust": float(sp.thrust),
+                **{f"stateEstimateZ.{k}": 1000.0 * v for k, v in zip(("x", "y", "z", "vx", "vy", "vz"),
+                                                                      (*est.pos, *est.vel))},
+                **{f"stateEstimateZ.{k}": 1000.0 * GRAVITY * v for k, v in zip(("ax", "ay", "az"), acc_g)},
                 **{f"controller.{k}": float(debug.get(k, 0.0)) for k in ("cmd_thrust", "roll", "yaw", "rollRate", "yawRate")},
                 "controller.pitch": -float(debug.get("pitch", 0.0)), "controller.pitchRate": float(debug.get("pitchRate", 0.0)),
                 **{f"posCtl.{k}": float(debug.get(k, 0.0)) for k in ("targetVX", "targetVY", "targetVZ", "targetX",
                                                                      "targetY", "targetZ")},
                 "pm.vbat": vbat, "pm.vbatMV": vbat * 1000.0,
-                "pm.state": 3 if vbat < fw.params["pm.lowVoltage"] else 0,
+                "pm.state": 3 if self.time - fw.vbat_ok_time > LOW_POWER_TIMEOUT else 0,
                 "pm.batteryLevel": 100.0 * fw.charge,
                 "range.zrange": 1000.0 * self._pos[i][2] if "flow" in self.decks else 0.0,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
@@ -670,10 +753,12 @@ class SimFleet:
         curve), from the simulator's rotor speeds; zeros for a physics without rotor states."""
         speeds = getattr(self.sim, "motor", None)
         if speeds is None:
-            return {f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)}
+            return {**{f"{g}.m{k}": 0 for g in ("rpm", "motor") for k in range(1, 5)},
+                    **{f"motor.m{k}_rpm": 0 for k in range(1, 5)}}
         w = np.asarray(speeds[i], np.float64)
         counts = self.profile.thrust_curve.to_counts(4.0 * self.profile.k_eta * w * w)
-        return {**{f"rpm.m{k + 1}": w[k] * 60.0 / (2.0 * math.pi) for k in range(4)},
+        rpm = w * 60.0 / (2.0 * math.pi)
+        return {**{f"rpm.m{k + 1}": rpm[k] for k in range(4)}, **{f"motor.m{k + 1}_rpm": rpm[k] for k in range(4)},
                 **{f"motor.m{k + 1}": float(counts[k]) if w[k] > 0 else 0.0 for k in range(4)}}
 
     def drain_events(self, i: int) -> list[str]:

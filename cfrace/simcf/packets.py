@@ -8,12 +8,14 @@ import math
 import struct
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from cfrace.simcf.controller import ABS, VELOCITY, Setpoint
 
 #: log variable type codes (firmware log.h; cflib LogTocElement.types): code -> (struct, size)
 LOG_TYPES = {0x01: ("<B", 1), 0x02: ("<H", 2), 0x03: ("<I", 4), 0x04: ("<b", 1), 0x05: ("<h", 2),
              0x06: ("<i", 4), 0x07: ("<f", 4), 0x08: ("<e", 2)}
-_FLOAT, _U8, _U16, _I8 = 0x07, 0x01, 0x02, 0x04
+_FLOAT, _U8, _U16, _I8, _I16 = 0x07, 0x01, 0x02, 0x04, 0x05
 
 #: The emulated log TOC, in order: (name, stored type). Values come from SimFleet.log_values.
 LOG_VARS: tuple[tuple[str, int], ...] = tuple(
@@ -26,6 +28,10 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
     # measures them, e.g. the 2.1 Brushless's ESC telemetry) and the motor commands (group motor,
     # counts): non-zero only on the simulated thrust stand (rehearsal/thrust_stand.py)
     + [(f"rpm.m{k}", _U16) for k in range(1, 5)] + [(f"motor.m{k}", _U16) for k in range(1, 5)]
+    + [(f"motor.m{k}_rpm", _U16) for k in range(1, 5)]
+    # estimator.c's compressed state: mm, mm/s, mm/s^2 as int16; ctrltarget.thrust (counts)
+    + [(f"stateEstimateZ.{n}", _I16) for n in ("x", "y", "z", "vx", "vy", "vz", "ax", "ay", "az")]
+    + [("ctrltarget.thrust", _FLOAT)]
     # the standard groups of the firmware's stabilizer, estimator, controller and power management
     + [(f"stateEstimate.{n}", _FLOAT) for n in ("ax", "ay", "az")]
     + [(f"stabilizer.{n}", _FLOAT) for n in ("roll", "pitch", "yaw")]
@@ -39,6 +45,29 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
 
 
 EXT_POSE = 8   #: localization generic channel: external pose x y z qx qy qz qw
+EXT_POSE_PACKED = 9   #: localization generic channel: up to 2 items <BhhhI (id, x y z mm, quat compressed)
+EXT_POSITION_PACKED = 2   #: localization channel: up to 4 items <Bhhh (id, x y z mm)
+_SMALL_MAX = 1.0 / math.sqrt(2.0)   #: the largest value a quaternion's three smaller components can have
+
+
+def quat_decompress(comp: int) -> np.ndarray:
+    """A quaternion compressed into 32 bits as the firmware decompresses it (quatcompress.h,
+    quatdecompress): bits 31-30 the index of the largest component (order x y z w), then for the
+    other three, highest index first in the low bits, a sign bit and a 9-bit magnitude scaled to
+    1/sqrt(2); the largest is non-negative and restores the unit norm. -> wxyz."""
+    mask = (1 << 9) - 1
+    largest = comp >> 30
+    q = [0.0] * 4
+    squares = 0.0
+    for k in (3, 2, 1, 0):
+        if k == largest:
+            continue
+        mag, neg = comp & mask, (comp >> 9) & 1
+        comp >>= 10
+        q[k] = (-1.0 if neg else 1.0) * _SMALL_MAX * mag / mask
+        squares += q[k] * q[k]
+    q[largest] = math.sqrt(max(0.0, 1.0 - squares))
+    return np.array([q[3], q[0], q[1], q[2]])
 
 #: generic commander setpoint types (crtp_commander_generic.c): type -> name; the legacy ones (1, 2, 5)
 #: carry a negated yaw rate (cflib sends -yawrate for firmware with protocol version <= 8)

@@ -17,6 +17,8 @@ class ParamSpec:
 
 
 #: CRTP parameter type codes (firmware param.h; cflib ParamTocElement.types): ctype -> (code, struct)
+BRUSHLESS_IDLE_THRUST = 7000   #: counts per motor, the Crazyflie 2.1 Brushless's powerDist.idleThrust
+BRUSHLESS_LOW_VOLTAGE = 3.35   #: V, the Brushless's pm.lowVoltage
 PARAM_TYPES = {"int8_t": (0x00, "<b"), "int16_t": (0x01, "<h"), "int32_t": (0x02, "<i"),
                "float": (0x06, "<f"), "uint8_t": (0x08, "<B"), "uint16_t": (0x09, "<H"),
                "uint32_t": (0x0A, "<I")}
@@ -84,7 +86,13 @@ PARAMS: tuple[ParamSpec, ...] = (
     *_group("hlCommander", "float", (("vtoff", 0.5), ("vland", 0.2)), doc="m/s, default take-off / landing speed"),
     ParamSpec("hlCommander.groupmask", "uint8_t", 0,
               doc="the groups (bits) of this drone for the high-level commander's group masks; 0: none"),
-    ParamSpec("pm.lowVoltage", "float", 3.2, doc="V, below: pm.state low power"),
+    ParamSpec("pm.lowVoltage", "float", 3.2, doc="V, below for 5 s: pm.state low power (3.35 on the Brushless)"),
+    ParamSpec("pm.criticalLowVoltage", "float", 3.0, doc="V, critically low battery"),
+    ParamSpec("powerDist.idleThrust", "uint32_t", 0,
+              doc="counts, least command of each armed motor (7000 on the Crazyflie 2.1 Brushless)"),
+    ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble locks a flying drone (supervisor.c)"),
+    ParamSpec("supervisor.prefltTimeout", "uint16_t", 30000, doc="ms armed without flying before disarming"),
+    ParamSpec("supervisor.landedTimeout", "uint16_t", 3000, doc="ms after landing before disarming"),
     *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0), ("bcLedRing", 0)), readonly=True,
             doc="deck: 1 if the simulated drone carries this deck"),
 )
@@ -111,6 +119,10 @@ def default_params(index: int, arming_required: bool, overrides: dict | None = N
     (the drone's profile and decks: see SimFleet.param_defaults)."""
     values = {p.name: coerce_param(p, p.default) for p in PARAMS}
     values["supervisor.armingReq"] = int(arming_required)
+    # the platforms that need arming are the Brushless ones: CONFIG_MOTORS_DEFAULT_IDLE_THRUST 7000
+    values["powerDist.idleThrust"] = BRUSHLESS_IDLE_THRUST if arming_required else 0
+    if arming_required:
+        values["pm.lowVoltage"] = coerce_param(PARAM_BY_NAME["pm.lowVoltage"], BRUSHLESS_LOW_VOLTAGE)
     values["simcf.bodyIndex"] = index
     for name, value in (overrides or {}).items():
         values[name] = coerce_param(PARAM_BY_NAME[name], value)

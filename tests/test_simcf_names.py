@@ -1,0 +1,62 @@
+"""Names and defaults a user's code reads, through the REAL cflib client: the Brushless's ESC
+telemetry motor.m1_rpm..m4_rpm (bidirectional DShot; rpm.m* is the RPM deck's), pm.lowVoltage
+3.35 V on the Brushless, pm.criticalLowVoltage, the supervisor's and power distribution's params."""
+
+import pytest
+
+cflib = pytest.importorskip("cflib")
+import cflib.crtp  # noqa: E402
+from cflib.crazyflie.log import LogConfig  # noqa: E402
+from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
+
+from cfrace.calibrate.link import RPM_SOURCES  # noqa: E402
+from cfrace.simcf.firmware import SimFleet  # noqa: E402
+from cflibtools import served  # noqa: E402
+
+cflib.crtp.init_drivers()
+
+
+@pytest.mark.parametrize("profile,arming,low", [("cf21bl", True, 3.35), ("cf2x_paper", False, 3.2)])
+def test_battery_thresholds_and_params_as_the_platform_has_them(profile, arming, low):
+    fleet = SimFleet("lemniscate", profile, 1, arming_required=arming)
+    with served(fleet) as cf:
+        assert float(cf.param.get_value("pm.lowVoltage")) == pytest.approx(low, abs=1e-6)
+        assert float(cf.param.get_value("pm.criticalLowVoltage")) < low
+        for name in ("powerDist.idleThrust", "supervisor.tmblChckEn", "supervisor.prefltTimeout",
+                     "supervisor.landedTimeout"):
+            assert cf.param.toc.get_element_by_complete_name(name) is not None, name
+
+
+def test_esc_telemetry_is_logged_as_motor_m_rpm_and_calibrate_prefers_it():
+    assert RPM_SOURCES[0] == tuple(f"motor.m{k}_rpm" for k in range(1, 5))
+    fleet = SimFleet("lemniscate", "cf21bl", 1, arming_required=True)
+    with served(fleet) as cf:
+        cf.supervisor.send_arming_request(True)
+        conf = LogConfig(name="esc", period_in_ms=20)
+        for name in RPM_SOURCES[0]:
+            conf.add_variable(name, "uint16_t")
+        with SyncLogger(cf, conf) as logger:
+            for k, (_, data, _) in enumerate(logger):
+                if k == 25:
+                    break
+        # armed: the props idle, so the ESCs report a speed, the simulator's rotor speed in rpm
+        assert min(data.values()) > 1000
+        truth = fleet.log_values(0)
+        assert data["motor.m1_rpm"] == pytest.approx(truth["rpm.m1"], rel=0.05)
+
+
+def test_compressed_state_estimate_and_the_thrust_target_are_logged():
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False)
+    with served(fleet) as cf:
+        conf = LogConfig(name="z", period_in_ms=20)
+        for name in ("stateEstimateZ.x", "stateEstimateZ.y", "stateEstimateZ.z"):
+            conf.add_variable(name, "int16_t")
+        conf.add_variable("ctrltarget.thrust", "float")
+        with SyncLogger(cf, conf) as logger:
+            for k, (_, data, _) in enumerate(logger):
+                if k == 25:
+                    break
+        est = fleet._fw[0].estimator.pos
+        assert data["stateEstimateZ.x"] == pytest.approx(1000.0 * est[0], abs=20.0)     # mm
+        assert data["stateEstimateZ.y"] == pytest.approx(1000.0 * est[1], abs=20.0)
+        assert data["ctrltarget.thrust"] == 0.0
