@@ -9,7 +9,7 @@ import cflib.crtp  # noqa: E402
 from cflib.crazyflie.log import LogConfig  # noqa: E402
 from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
 
-from cfrace.calibrate.link import RPM_SOURCES  # noqa: E402
+from cfrace.calibrate.stand_link import RPM_SOURCES  # noqa: E402
 from cfrace.simcf.firmware import SimFleet  # noqa: E402
 from cflibtools import served  # noqa: E402
 

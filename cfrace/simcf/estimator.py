@@ -37,7 +37,7 @@ import math
 import numpy as np
 
 from cfrace.drone import GRAVITY
-from cfrace.flight.estimator import quat_to_rot
+from cfrace.rotations import quat_to_rot
 
 DECKS = ("lighthouse", "flow", "ledring")   #: ledring: no measurements, its memories (simcf/memory.py)
 DECK_PARAMS = {"lighthouse": "deck.bcLighthouse4", "flow": "deck.bcFlow2", "ledring": "deck.bcLedRing"}
