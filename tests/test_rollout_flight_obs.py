@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 
 from cfrace.drone import load_profile
-from cfrace.env.actions import FIRMWARE_MIN_THRUST_COUNTS
+from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS
 from cfrace.evaluate.entrants import load_entrant
 from cfrace.evaluate.rollout import rollout, start_poses
 from cfrace.track import load_track
