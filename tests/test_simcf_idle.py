@@ -19,7 +19,9 @@ cflib.crtp.init_drivers()
 def test_armed_brushless_motors_idle_at_7000_counts_and_low_commands_are_floored():
     fleet = SimFleet("lemniscate", "cf21bl", 1, arming_required=True)
     with served(fleet) as cf:
-        assert cf.param.get_value("powerDist.idleThrust") == "7000"
+        assert cf.param.get_value("powerDist.idleThrust") == "0"       # the simulator's default (docs/simcf.md)
+        cf.param.set_value("powerDist.idleThrust", "7000")             # the Brushless firmware's own default
+        assert wait_for(lambda: fleet.get_param(0, "powerDist.idleThrust") == 7000)
         assert fleet.status(0)["thrust"] == 0.0                       # disarmed: off
         cf.supervisor.send_arming_request(True)
         assert wait_for(lambda: fleet.status(0)["armed"])

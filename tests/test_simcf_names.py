@@ -11,7 +11,7 @@ from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
 
 from cfrace.calibrate.stand_link import RPM_SOURCES  # noqa: E402
 from cfrace.simcf.firmware import SimFleet  # noqa: E402
-from cflibtools import served  # noqa: E402
+from cflibtools import served, wait_for  # noqa: E402
 
 cflib.crtp.init_drivers()
 
@@ -31,6 +31,8 @@ def test_esc_telemetry_is_logged_as_motor_m_rpm_and_calibrate_prefers_it():
     assert RPM_SOURCES[0] == tuple(f"motor.m{k}_rpm" for k in range(1, 5))
     fleet = SimFleet("lemniscate", "cf21bl", 1, arming_required=True)
     with served(fleet) as cf:
+        cf.param.set_value("powerDist.idleThrust", "7000")   # the Brushless firmware's idle (docs/simcf.md)
+        assert wait_for(lambda: fleet.get_param(0, "powerDist.idleThrust") == 7000)
         cf.supervisor.send_arming_request(True)
         conf = LogConfig(name="esc", period_in_ms=20)
         for name in RPM_SOURCES[0]:
