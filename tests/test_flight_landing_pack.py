@@ -158,6 +158,10 @@ def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_i
 
 
 @pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known regression since the simulated firmware flies on its own attitude "
+                   "estimate (issue 45): d4 of this column is low and fast when the race ends at 2.0 s and hits the "
+                   "floor 0.02 s into its braking (floor_braking); with the Brushless idle floor (powerDist.idleThrust "
+                   "7000) it lands. strict: the test fails as soon as every drone lands again")
 def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     """The 8-drone race of docs/flight.md, "Race ends in a field", ended at 2.0 s through the whole
     flight stack (lockstep): six drones race in a column, 0.13 m apart (in contact) when the race

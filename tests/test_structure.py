@@ -200,6 +200,8 @@ LONG_FILES = {
     "simcf/firmware.py": "SimFleet, the one object every simulated drone's CRTP handler enters under its lock: "
                          "setpoint priorities, watchdogs, arming, params and log values share its per-drone "
                          "firmware state (the controller, planner, estimator and packets have files of their own)",
+    "simcf/crtp.py": "CrtpEndpoint, one short handler per CRTP port the firmware serves (link, platform, param, "
+                     "log, memory, commander, generic setpoints, high-level, supervisor, localization) and the TOCs",
 }
 LONG_FUNCTIONS = {
     # typer command signatures: one parameter per option, with its help; the bodies are short
