@@ -21,8 +21,8 @@ from cfrace.contract.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES,
                                      critic_observations, layout_for, polyline, track_position)
 from cfrace.env.rewards import MULTI_AGENT, RewardInputs, RewardScales, leading, overtaking, reward_terms
 from cfrace.errors import ConfigError
-from cfrace.env.labloop import LabLoop
-from cfrace.loopmodel import MOCAP_PERIOD_S, DroneRanges, LoopRanges
+from cfrace.env.labloop import MOCAP_DT, LabLoop
+from cfrace.loopmodel import DroneRanges, LoopRanges
 from cfrace.sim.dynamics import quat_to_rot
 from cfrace.sim.simulator import CrashRules, Simulator
 from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
@@ -30,8 +30,7 @@ from cfrace.track import HEADING_JITTER_RAD, Track, start_grid
 SPAWN_REDRAWS = 50   #: draws of the starts that left the arena before giving up (cfrace.env.RaceEnv.spawn)
 
 SUBSTEPS = 10
-MOCAP_DT = SUBSTEPS // 2 * Simulator.dt  #: s, pose difference of the flight observations (100 Hz mocap)
-assert abs(MOCAP_DT - MOCAP_PERIOD_S) < 1e-9
+assert SUBSTEPS // 2 * Simulator.dt == MOCAP_DT   # the mid-step pose sample is one 100 Hz mocap frame back
 
 
 @dataclass
