@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
+from cfrace.drone import GRAVITY
 from cfrace.errors import ConfigError
 
 MOCAP_PERIOD_S = 0.010     #: s, the flight loop's tick: one mocap frame per tick (100 Hz)
@@ -112,6 +113,23 @@ def rotate_body(q, omega, h):
     return r / m ** 0.5
 
 
+def predict_commanded(pos, vel, quat, acc, h, lag):
+    """Position and velocity of the estimator's latency compensation with the loop's last command:
+    a pose h s old (vel a pose difference, which lags it by ``lag`` s) brought to now as the
+    command flies it: the commanded collective acceleration ``acc`` (m/s^2) along the pose's body
+    z, less gravity, from the velocity of the pose's time (vel + a lag). Shapes (..., 3), (..., 3),
+    (..., 4), acc/h/lag broadcastable to (..., 1). Returns (pos, vel). (The attitude turns at the
+    measured body rates, rotate_body: in lockstep trials that flew better than the commanded rates,
+    which the rate controller follows only with the motors' lag.)"""
+    xp = _ns(quat)
+    w, x, y, z = quat[..., 0:1], quat[..., 1:2], quat[..., 2:3], quat[..., 3:4]
+    cat = np.concatenate if xp is np else xp.cat
+    a = cat([2.0 * (x * z + w * y) * acc, 2.0 * (y * z - w * x) * acc,
+             (1.0 - 2.0 * (x * x + y * y)) * acc - GRAVITY], -1)
+    v0 = vel + a * lag
+    return pos + v0 * h + a * (0.5 * h * h), v0 + a * h
+
+
 # ---------------------------------------------------------------------------------------------- ranges
 def _range(name: str, value, lo: float = 0.0, hi: float = math.inf) -> tuple[float, float]:
     try:
@@ -143,7 +161,7 @@ class LoopRanges:
     att_noise_rad: tuple[float, float] = (0.0, 0.01)  #: mocap attitude noise std, per episode
     drop: tuple[float, float] = (0.0, 0.05)           #: share of frames dropped (the estimator holds), per episode
     late: float = 0.3          #: share of episodes whose setpoint lands one tick (10 ms) late
-    comp: float = 0.5          #: share of episodes whose estimator predicts forward by the latency (else not at all)
+    comp: float = 0.8          #: share of episodes whose estimator predicts forward by the loop's delay (else not at all)
 
     def __post_init__(self):
         _range("latency", self.latency_s, 0.0, MAX_LATENCY_S)

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import torch
 
-from cfrace.loopmodel import MOCAP_PERIOD_S, body_rates, frame_age, interpolate_pose, perturb_pose, rotate_body
+from cfrace.loopmodel import (MOCAP_PERIOD_S, body_rates, frame_age, interpolate_pose, perturb_pose,
+                              predict_commanded, rotate_body)
 
 MOCAP_DT = MOCAP_PERIOD_S   #: s, one mocap frame (the env's mid-step pose sample)
 HISTORY = 8   #: 100 Hz poses kept for the loop model's delayed frames (70 ms back)
@@ -25,8 +26,9 @@ class LabLoop:
             self.lp_latency, self.lp_noise, self.lp_att, self.lp_drop = z(), z(), z(), z()
             self.lp_late, self.lp_comp, self.lp_fresh = (torch.zeros(e, a, dtype=torch.bool, device=dev) for _ in range(3))
             self.prev_thrust, self.prev_rates = z(), z(3)
+            self.cmd_acc = z()   #: m/s^2, the collective acceleration last commanded (the prediction's)
             self._extra += ("hist_pos", "hist_quat", "lp_latency", "lp_noise", "lp_att", "lp_drop", "lp_late",
-                            "lp_comp", "lp_fresh", "prev_thrust", "prev_rates")
+                            "lp_comp", "lp_fresh", "prev_thrust", "prev_rates", "cmd_acc")
         if drone is not None:
             self.dr_gain, self.dr_cap, self.dr_floor = (torch.zeros(e, a, device=dev) for _ in range(3))
             self._extra += ("dr_gain", "dr_cap", "dr_floor")
@@ -51,8 +53,10 @@ class LabLoop:
         velocity_alpha 1) reports them from the loop model's frames: the frame of this tick (age =
         latency + jitter) and the two before it, each noisy and maybe dropped; velocity the
         difference of the last two frames it got, position predicted forward by the age of its
-        last frame plus the latency compensation, attitude turned forward by the compensation
-        (episodes with it) at the body rates of the last two frames."""
+        last frame plus the latency compensation (episodes with it; the pose age and a late
+        setpoint's tick): after the episode's first command, as the commanded thrust flies it
+        (predict_commanded), before it on the velocity; attitude turned forward at the body rates
+        of the last two frames."""
         e, a = self.num_envs, self.num_agents
         age = frame_age(self.lp_latency, self.loop.jitter_s, self._rand(e, a))
         (p0, q0), (p1, q1), (p2, q2) = (self._frame_at(age + i * MOCAP_DT) for i in range(3))
@@ -65,13 +69,16 @@ class LabLoop:
         vel = (base - older) / x0(span)
         q = torch.where(x0(d0), q1, q0)
         q_prev = torch.where(x0(d0 | d1), q2, q1)
-        comp = torch.where(self.lp_comp, self.lp_latency, torch.zeros_like(self.lp_latency))
+        # compensation: the loop's delay as the lab measures it, the pose age and a late setpoint's tick
+        comp = torch.where(self.lp_comp, self.lp_latency + MOCAP_DT * self.lp_late, torch.zeros_like(self.lp_latency))
         h = comp + torch.where(d0, MOCAP_DT, 0.0)
         pos = base + vel * x0(h)
         q_prev = q_prev * x0(1.0 - 2.0 * ((q * q_prev).sum(-1) < 0).float())
         turned = rotate_body(q, body_rates(q_prev, q, x0(span)), x0(h))
         quat = torch.where(x0(comp > 0), turned, q)
-        return pos, vel, quat
+        cmd = x0((comp > 0) & ~self.lp_fresh)
+        c_pos, c_vel = predict_commanded(base, vel, q, x0(self.cmd_acc), x0(h), x0(span) * 0.5)
+        return torch.where(cmd, c_pos, pos), torch.where(cmd, c_vel, vel), quat
 
     def _push_pose(self) -> None:
         """This instant's poses into the 100 Hz history (newest first)."""
@@ -115,9 +122,11 @@ class LabLoop:
         """The thrust this drone delivers for the command: gain, idle floor, limit."""
         return torch.minimum(torch.maximum(thrust * self.dr_gain, self.dr_floor), self.dr_cap)
 
-    def _late_first_half(self, thrust: torch.Tensor, rates: torch.Tensor, half: int):
-        """The first tick of a step, with the command before where the setpoint lands late."""
+    def _late_first_half(self, thrust: torch.Tensor, rates: torch.Tensor, half: int, acc: torch.Tensor):
+        """The first tick of a step, with the command before where the setpoint lands late; ``acc``
+        the collective acceleration the command asks (thrust / mass, before the drone's gain)."""
         sim = self.sim
+        self.cmd_acc = acc
         late = self.lp_late & ~self.lp_fresh
         e1 = sim.step(torch.where(late, self.prev_thrust, thrust),
                       torch.where(late.unsqueeze(-1), self.prev_rates, rates), half)

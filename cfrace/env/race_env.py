@@ -250,13 +250,14 @@ class RaceEnv(LabLoop):
         thrust, rates = action_to_command(actions, self.profile.mass, self.profile.max_thrust_weights,
                                           self.profile.max_rates_deg)
         laps_before = sim.race.laps.clone()
+        acc = thrust / self.profile.mass     # what the loop's prediction assumes the command does
         if self.flight_obs:
             thrust = thrust.clamp_min(self.min_thrust_n)
         if self.drone is not None:   # the thrust this drone delivers for the command
             thrust = self._delivered(thrust)
         if self.flight_obs:
             half = SUBSTEPS // 2
-            e1 = self._late_first_half(thrust, rates, half) if self.loop is not None else sim.step(thrust, rates, half)
+            e1 = self._late_first_half(thrust, rates, half, acc) if self.loop is not None else sim.step(thrust, rates, half)
             self.mid_pos = sim.pos.clone()
             e2 = sim.step(thrust, rates, SUBSTEPS - half)
             if self.loop is not None:

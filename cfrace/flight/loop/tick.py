@@ -269,6 +269,8 @@ class TickCore:
                     continue   # hovering on the high-level commander until its first inference
                 r = d.rates_dps
                 setpoints[i] = (r[0], r[1], r[2], d.counts)
+        for d, sp in zip(self.drones, setpoints):   # the command the estimator's latency compensation flies on
+            self.estimator.command(d.body, d.thrust_n / d.mass if sp and d.landing is None and not d.stopped else None)
         return setpoints, stops
 
     def _events(self, out: TickOut, t: float, k: int) -> None:

@@ -14,6 +14,14 @@ Ages use only the caller's `now` (seconds since the last update that accepted a 
 uses only frame times, so the frame clock and the loop clock need not be the same clock (replay,
 simulation). Between poses the position is predicted forward with the velocity for up to
 `predict_s` (default stale_after_s), then held. An estimate older than stale_after_s is not valid.
+
+Latency compensation (`lead_s` > 0, the mocap system's latency): the estimate is predicted forward
+by the pose's age plus lead_s. For a body the loop has told its last command (`command`: the
+collective acceleration along body z it sent, cfrace.loopmodel.predict_commanded), position and
+velocity follow the commanded thrust and gravity from the velocity of the frame's time (a filtered
+pose difference lags the frame by dt (1/alpha - 1/2)); without one (before the first setpoint,
+while a drone lands on the high-level commander) position goes on at the velocity. The attitude
+turns at the measured body rates.
 Plain float64 arithmetic and no randomness: the same frames and times give the same estimates.
 """
 
@@ -25,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cfrace.drone import GRAVITY
 from cfrace.flight.mocap.sources import MocapFrame
 from cfrace.rotations import rot_wxyz
 
@@ -57,6 +66,19 @@ def _rotate_body(q: tuple, omega: tuple, h: float) -> tuple:
     return (r[0] / m, r[1] / m, r[2] / m, r[3] / m)
 
 
+def _predict_commanded(p: tuple, v: tuple, q: tuple, acc: float, h: float, lag: float) -> tuple[tuple, tuple]:
+    """cfrace.loopmodel.predict_commanded on Python floats (one body per call; tests/test_loopmodel.py
+    checks the two agree)."""
+    w, qx, qy, qz = q
+    ax = 2.0 * (qx * qz + w * qy) * acc
+    ay = 2.0 * (qy * qz - w * qx) * acc
+    az = (1.0 - 2.0 * (qx * qx + qy * qy)) * acc - GRAVITY
+    v0x, v0y, v0z = v[0] + ax * lag, v[1] + ay * lag, v[2] + az * lag
+    hh = 0.5 * h * h
+    return ((p[0] + v0x * h + ax * hh, p[1] + v0y * h + ay * hh, p[2] + v0z * h + az * hh),
+            (v0x + ax * h, v0y + ay * h, v0z + az * h))
+
+
 @dataclass
 class _Track:
     """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
@@ -69,6 +91,7 @@ class _Track:
     vel: tuple = (0.0, 0.0, 0.0)
     omega: tuple = (0.0, 0.0, 0.0)   # body rates, rad/s, from quaternion differences (filtered like vel)
     samples: int = 1
+    dt: float = 0.0                # s between the last two accepted poses (frame clock)
     out_pos: tuple | None = None   # last rejected pose, for re-acquisition
     out_t: float = 0.0
     out_run: int = 0
@@ -98,9 +121,19 @@ class PoseEstimator:
         self.counters: dict[str, dict[str, int]] = {b: dict.fromkeys(COUNTERS, 0) for b in bodies}
         self._tracks: dict[str, _Track] = {}
         self._last_frame: tuple[int, float] | None = None
+        self._commands: dict[str, float] = {}
+
+    def command(self, body: str, acc: float | None) -> None:
+        """The last command sent to ``body``: its collective acceleration (m/s^2 along body z, the
+        setpoint's thrust over the drone's mass); None: none (the drone is not on rate setpoints)."""
+        if acc is None or not math.isfinite(acc):
+            self._commands.pop(body, None)
+        else:
+            self._commands[body] = float(acc)
 
     def reset(self) -> None:
         self._tracks.clear()
+        self._commands.clear()
         self._last_frame = None
         for c in self.counters.values():
             c.update(dict.fromkeys(COUNTERS, 0))
@@ -178,7 +211,7 @@ class PoseEstimator:
             else:
                 a, (ox, oy, oz) = self.alpha, tr.omega
                 tr.omega = (ox + a * (w[0] - ox), oy + a * (w[1] - oy), oz + a * (w[2] - oz))
-        tr.pos, tr.quat, tr.t, tr.now = p, q, t, now
+        tr.pos, tr.quat, tr.t, tr.now, tr.dt = p, q, t, now, dt
         tr.samples += 1
         tr.out_pos, tr.out_run = None, 0
 
@@ -224,7 +257,13 @@ class PoseEstimator:
         if self.lead_s > 0.0:
             h += self.lead_s
             quat = _rotate_body(quat, tr.omega, h)
-        return Estimate(pos=np.array((x + vx * h, y + vy * h, z + vz * h)), vel=np.array(tr.vel),
+        acc = self._commands.get(body) if self.lead_s > 0.0 and tr.samples > 1 else None
+        if acc is not None:
+            lag = tr.dt * (1.0 / self.alpha - 0.5)
+            (x, y, z), (vx, vy, vz) = _predict_commanded((x, y, z), (vx, vy, vz), tr.quat, acc, h, lag)
+        else:
+            x, y, z = x + vx * h, y + vy * h, z + vz * h
+        return Estimate(pos=np.array((x, y, z)), vel=np.array((vx, vy, vz)),
                         rot=rot_wxyz(*quat), quat=np.array(quat), t=tr.t, age_s=age,
                         valid=valid)
 
