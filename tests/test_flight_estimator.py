@@ -259,3 +259,30 @@ def test_latency_compensation_predicts_the_pose_lead_s_ahead(lead):
     np.testing.assert_allclose(e.pos, pose(19 * DT + 0.004 + lead)[0], atol=1e-9)
     with pytest.raises(ValueError, match="lead_s"):
         PoseEstimator(["cf1"], lead_s=-0.01)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 0.5])
+def test_latency_compensation_flies_the_commanded_thrust_forward(alpha):
+    """A level drone climbing at 2 m/s^2 under a steady command of g + 2 m/s^2 of collective
+    acceleration, its poses 20 ms old: told the command, the estimator puts it where
+    it is now and at its speed now, exactly (a quadratic path; a filtered pose difference lags the
+    frame by dt (1/alpha - 1/2)); without the command, or with the rule off (the replay of a log
+    from before it), position goes on at the lagging velocity and falls short."""
+    lead, up = 0.020, 2.0
+    path = lambda t: np.array([0.5 * t, 0.0, 1.0 + 0.5 * up * t * t])   # x at 0.5 m/s, z accelerating
+    speed = lambda t: np.array([0.5, 0.0, up * t])
+    out = {}
+    for told, rule in ((True, True), (False, True), (True, False)):
+        est = PoseEstimator(["cf1"], alpha=alpha, lead_s=lead, commanded=rule)
+        for k in range(40):
+            if told:
+                est.command("cf1", 9.81 + up)
+            e = est.update(frame(k, {"cf1": (path(k * DT), Q0)}), now=k * DT)["cf1"]
+        out[told, rule] = e
+    t_now = 39 * DT + lead
+    np.testing.assert_allclose(out[True, True].pos, path(t_now), atol=1e-9)
+    np.testing.assert_allclose(out[True, True].vel, speed(t_now), atol=1e-6 if alpha < 1 else 1e-9)
+    for other in (out[False, True], out[True, False]):
+        assert abs(other.pos[2] - path(t_now)[2]) > 1e-4 and abs(other.vel[2] - speed(t_now)[2]) > 0.04
+    est.command("cf1", None)            # no longer on rate setpoints: forgotten
+    assert est._commands == {}

@@ -199,7 +199,7 @@ class RaceRun:
                      "profile": setup.profile.name, "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies),
                      "uris": list(io.uris), "mocap": cfg.mocap, "lockstep": not real_time,
                      "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
-                     "latency_comp_s": cfg.latency_comp, "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
+                     "latency_comp_s": cfg.latency_comp, "latency_prediction": "commanded", "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
                      "timeout_s": cfg.timeout_s, "landing": cfg.landing, "start": cfg.start,
                      "policies": {n: {"path": str(p.path), **p.policy.meta}
                                   for n, p in zip(cfg.names, setup.policies)},

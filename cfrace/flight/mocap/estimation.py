@@ -107,12 +107,14 @@ class PoseEstimator:
 
     def __init__(self, bodies: list[str], *, alpha: float = 0.5, max_speed_mps: float = 20.0,
                  max_jump_m: float = 0.3, stale_after_s: float = 0.1,
-                 predict_s: float | None = None, reacquire_after: int = 5, lead_s: float = 0.0):
+                 predict_s: float | None = None, reacquire_after: int = 5, lead_s: float = 0.0,
+                 commanded: bool = True):
         if not 0.0 < alpha <= 1.0:
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
         if not 0.0 <= lead_s < 0.1:
             raise ValueError(f"lead_s must be in [0, 0.1) s, got {lead_s}")
         self.lead_s = float(lead_s)
+        self.commanded = commanded   #: False: ignore command() (flight logs before the rule: their replays)
         self.bodies = list(bodies)
         self.alpha, self.max_speed_mps, self.max_jump_m = alpha, max_speed_mps, max_jump_m
         self.stale_after_s = stale_after_s
@@ -257,7 +259,7 @@ class PoseEstimator:
         if self.lead_s > 0.0:
             h += self.lead_s
             quat = _rotate_body(quat, tr.omega, h)
-        acc = self._commands.get(body) if self.lead_s > 0.0 and tr.samples > 1 else None
+        acc = self._commands.get(body) if self.lead_s > 0.0 and tr.samples > 1 and self.commanded else None
         if acc is not None:
             lag = tr.dt * (1.0 / self.alpha - 0.5)
             (x, y, z), (vx, vy, vz) = _predict_commanded((x, y, z), (vx, vy, vz), tr.quat, acc, h, lag)
