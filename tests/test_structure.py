@@ -96,12 +96,6 @@ LAYERS = [
     ("evaluation", ["cfrace.evaluate"]),
     ("CLI", ["cfrace.cli", "cfrace.__main__"]),
 ]
-#: imports up the layers, each with its reason
-UPWARD_IMPORTS = {
-    # the sweep writes `cfrace train` command lines from that command's own signature (one definition
-    # of the training options), imported inside sweep.spec.train_options
-    ("cfrace.sweep.spec", "cfrace.cli.train"),
-}
 
 
 def package_of(module: str) -> str:
@@ -109,11 +103,11 @@ def package_of(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
-def package_graph(graph: dict[str, set[str]], leave_out=frozenset()) -> dict[str, set[str]]:
-    """cfrace package -> the other cfrace packages its modules import (module edges in leave_out left out)."""
+def package_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """cfrace package -> the other cfrace packages its modules import."""
     out: dict[str, set[str]] = {package_of(m): set() for m in graph}
     for a, deps in graph.items():
-        out[package_of(a)] |= {package_of(b) for b in deps if (a, b) not in leave_out} - {package_of(a)}
+        out[package_of(a)] |= {package_of(b) for b in deps} - {package_of(a)}
     return out
 
 
@@ -135,20 +129,18 @@ def test_the_package_graph_sees_a_cycle_between_packages_that_modules_alone_do_n
     modules = {"cfrace.a.x": {"cfrace.b.y"}, "cfrace.b.y": set(), "cfrace.b.z": {"cfrace.a.w"}, "cfrace.a.w": set()}
     assert find_cycle(modules) is None
     assert find_cycle(package_graph(modules)) == ["cfrace.a", "cfrace.b", "cfrace.a"]
-    assert find_cycle(package_graph(modules, leave_out={("cfrace.b.z", "cfrace.a.w")})) is None
 
 
 def test_no_import_cycles_between_packages():
-    assert find_cycle(package_graph(import_graph(), leave_out=UPWARD_IMPORTS)) is None
+    assert find_cycle(package_graph(import_graph())) is None
 
 
 def test_every_module_imports_only_its_layer_and_those_below():
     graph = import_graph()
     up = sorted((a, b) for a, deps in graph.items() for b in deps
-                if layer_of(b) > layer_of(a) and (a, b) not in UPWARD_IMPORTS)
+                if layer_of(b) > layer_of(a))
     assert not up, "imports up the layers: " + ", ".join(f"{a} ({LAYERS[layer_of(a)][0]}) -> {b} "
                                                          f"({LAYERS[layer_of(b)][0]})" for a, b in up)
-    assert all(b in graph[a] for a, b in UPWARD_IMPORTS), "a listed exception no longer exists: drop it"
 
 
 def _modules_loaded_by(code: str) -> set[str]:
@@ -208,8 +200,7 @@ LONG_FUNCTIONS = {
     "cli/flight.py:register": "holds the `fly` command (defined inside it): its option list",
     "cli/flight.py:fly_cmd": "the `fly` command's option list; the body resolves the config and calls fly",
     "cli/sim.py:dry_run_cmd": "the `sim dry-run` command's option list; the body calls dry_run",
-    # its options, then the live progress view (the config is built and checked by checked_config)
-    "cli/train.py:train_cmd": "the `train` command's option list and its live progress view",
+    "rl/train_options.py:train_parameters": "the `train` command's option list (the body returns them)",
     "sim/simulator.py:_substep": "the torch reference of one physics step, kept in kernel.c's order to compare them",
 }
 

@@ -1,5 +1,5 @@
 """A sweep refuses, before any run starts (--dry-run included), what `cfrace train` refuses before its
-banner: the command's own option parser and checks (cfrace.cli.train.check_train_argv); and it
+banner: the command's own option parser and checks (cfrace.rl.train_options.check_train_argv); and it
 prints user-given paths, names and addresses as given."""
 
 from __future__ import annotations

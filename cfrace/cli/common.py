@@ -163,34 +163,3 @@ def check_folder(path: Path | None, what: str) -> None:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"{what} {path}: cannot make that folder ({exc.strerror or exc})") from None
-
-
-def _range_option(option: str, text: str, unit: float, hi: float) -> tuple[float, float]:
-    """'LO,HI' in the option's unit -> (lo, hi) in SI; ConfigError naming the option."""
-    from cfrace.errors import ConfigError
-    from cfrace.loopmodel import _range
-    parts = text.split(",")
-    try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise ConfigError(f"{option}: two numbers LO,HI, got {text!r}") from None
-    if len(values) != 2:
-        raise ConfigError(f"{option}: two numbers LO,HI, got {text!r}")
-    lo, hi_ = _range(option, values, 0.0, hi)
-    return lo * unit, hi_ * unit
-
-
-def loop_option(lab_loop: bool, latency_ms: str | None, noise_mm: str | None) -> dict | None:
-    """--lab-loop and its ranges -> TrainConfig.loop (LoopRanges fields as plain data)."""
-    from cfrace.errors import ConfigError
-    from cfrace.loopmodel import MAX_LATENCY_S, LoopRanges
-    if not lab_loop:
-        if latency_ms is not None or noise_mm is not None:
-            raise ConfigError("--loop-latency-ms / --loop-noise-mm: only with --lab-loop")
-        return None
-    given = {}
-    if latency_ms is not None:
-        given["latency_s"] = _range_option("--loop-latency-ms", latency_ms, 1e-3, MAX_LATENCY_S * 1e3)
-    if noise_mm is not None:
-        given["noise_m"] = _range_option("--loop-noise-mm", noise_mm, 1e-3, 50.0)
-    return LoopRanges(**given).to_meta()

@@ -15,7 +15,8 @@ from rich.markup import escape
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from cfrace.cli.common import loop_option, write_json
+from cfrace.cli.common import write_json
+from cfrace.rl.train_options import COMPILE, UPDATE_WORKERS, checked_config, takes_train_options
 
 console = Console(emoji=False)   # paths and names print as given (a:abc:b is no emoji)
 
@@ -25,14 +26,6 @@ _STATS = (("gates_per_s", "gates/s", "{:.2f}"), ("success", "lap done", "{:.0%}"
           ("win_share_agent1", "adv wins", "{:.0%}"))
 
 
-
-#: options of both `train` and `bench train`
-_UPDATE_WORKERS = typer.Option(1, "--update-workers", min=1,
-                               help="threads the agents' PPO updates run in at once (one agent per thread; "
-                                    "the same weights as one after the other)")
-_COMPILE = typer.Option(False, "--compile/--no-compile",
-                        help="the update's forward pass and losses through torch.compile (compiles for tens "
-                             "of seconds at the start)")
 
 def _fmt(value, spec="{:.3g}") -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
@@ -78,81 +71,12 @@ def _line(metrics: dict, info: dict) -> str:
     return "  ".join(parts)
 
 
-def train_cmd(
-    method: Optional[str] = typer.Option(None, "--method", help="ours | ds | ss | dm (required unless --resume)"),
-    track: Optional[str] = typer.Option(None, "--track", help="track name or YAML path (required unless --resume)"),
-    obstacles: Optional[bool] = typer.Option(None, "--obstacles/--no-obstacles", help="train with obstacles"),
-    preset: Optional[str] = typer.Option(None, "--preset", help="cpu (default) | paper"),
-    envs: Optional[int] = typer.Option(None, "--envs", min=1, help="parallel worlds (default: the preset's)"),
-    minutes: Optional[float] = typer.Option(None, "--minutes", min=0.0, help="wall-clock budget of this run"),
-    steps: Optional[int] = typer.Option(None, "--steps", min=1, help="total env-step budget (world transitions)"),
-    seed: Optional[int] = typer.Option(None, "--seed", help="random seed (default 0)"),
-    out: Optional[Path] = typer.Option(None, "--out", help="output folder (default runs/METHOD_TRACK[_obstacles]_sSEED)"),
-    resume: Optional[Path] = typer.Option(None, "--resume", help="continue the run in this folder from its checkpoint"),
-    device: Optional[str] = typer.Option(None, "--device", help="cpu | cuda (default: cuda when available)"),
-    profile: Optional[str] = typer.Option(None, "--profile", help="drone profile (default cf2x_paper)"),
-    threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
-    checkpoint_min: Optional[float] = typer.Option(None, "--checkpoint-min", min=0.0,
-                                                   help="minutes between checkpoints (default 5; a resumed run: its own)"),
-    set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
-    reward: Optional[list[str]] = typer.Option(None, "--reward", help="override a reward weight, e.g. --reward gate=10 "
-                                               "(cfrace.env.rewards.RewardScales; recorded in the policy)"),
-    init_from: Optional[Path] = typer.Option(None, "--init-from",
-                                             help="warm-start every actor from this checkpoint or run folder"),
-    episode_s: float = typer.Option(30.0, "--episode-s", min=1.0, help="race length before the time-out (s)"),
-    critic_warmup: int = typer.Option(20, "--critic-warmup", min=0,
-                                      help="iterations with frozen actors after --init-from"),
-    random_phase: bool = typer.Option(False, "--random-phase",
-                                      help="first races start part-way into the time limit (spread time-outs)"),
-    fixed_opponent: Optional[Path] = typer.Option(None, "--fixed-opponent",
-                                                  help="checkpoint or run whose actor (frozen) flies the "
-                                                       "second drone in part of the worlds (several: A,B: "
-                                                       "one per world, in turn)"),
-    fixed_opponent_frac: float = typer.Option(0.5, "--fixed-opponent-frac",
-                                              help="share of the worlds with the fixed opponent"),
-    fixed_opponent_drones: int = typer.Option(1, "--fixed-opponent-drones", min=1,
-                                              help="drones it flies in those worlds (the last slots)"),
-    init_critic: bool = typer.Option(False, "--init-critic",
-                                     help="with --init-from: copy the critic too (same layout, sizes, reward)"),
-    critic_warmup_lr: float = typer.Option(1e-3, "--critic-warmup-lr", min=0.0,
-                                           help="learning rate of the critic warm-up iterations"),
-    precision: Optional[str] = typer.Option(None, "--precision",
-                                            help="PPO update in auto (measured at start, default) | fp32 | bf16"),
-    ground_start_prob: Optional[float] = typer.Option(None, "--ground-start-prob",
-                                                      help="share of training races started on the floor "
-                                                           "(default: the track's spawn.ground_start_prob)"),
-    keep_checkpoints: bool = typer.Option(False, "--keep-checkpoints",
-                                          help="keep every periodic checkpoint as OUT/checkpoints/itN.pt"),
-    drones: Optional[int] = typer.Option(None, "--drones", min=2,
-                                         help="drones per world for ours / dm (default 2): an N-drone race"),
-    opponent_rule: Optional[str] = typer.Option(None, "--opponent-rule",
-                                                help="with --drones > 2: which drone each one observes: "
-                                                     "nearest (default) | ahead | track"),
-    obstacle_curriculum: int = typer.Option(0, "--obstacle-curriculum", min=0,
-                                            help="with --obstacles: the obstacles grow from nothing to full size "
-                                                 "over the first ITERS iterations (0: full size throughout)"),
-    update_workers: int = _UPDATE_WORKERS,
-    compile_: bool = _COMPILE,
-    flight_obs: bool = typer.Option(False, "--flight-obs",
-                                    help="observe velocity as the flight stack estimates it (10-ms pose "
-                                         "difference) and keep thrust above the firmware's least command"),
-    lab_loop: bool = typer.Option(False, "--lab-loop",
-                                  help="train through a lab's loop (cfrace.loopmodel; implies --flight-obs): "
-                                       "pose age, jitter, mocap noise, dropped frames, late setpoints, the "
-                                       "estimator's forward prediction in part of the episodes"),
-    loop_latency_ms: Optional[str] = typer.Option(None, "--loop-latency-ms", metavar="LO,HI",
-                                                  help="with --lab-loop: per-episode pose age range, ms (default 0,30)"),
-    loop_noise_mm: Optional[str] = typer.Option(None, "--loop-noise-mm", metavar="LO,HI",
-                                                help="with --lab-loop: per-episode mocap position noise std range, "
-                                                     "mm (default 0.5,3)"),
-    span_profiles: Optional[str] = typer.Option(None, "--span-profiles", metavar="A,B",
-                                                help="randomise the drone model to span these drone profiles "
-                                                     "as well as --profile (e.g. cf21bl): thrust, motor time "
-                                                     "constant, thrust limit and idle, drag, rate gains"),
-) -> None:
+@takes_train_options
+def train_cmd(**options) -> None:
     """Train policies with IPPO; checkpoint, CSV + TensorBoard logs, training-curve PNG. Ctrl-C
     (or SIGTERM) finishes the iteration, checkpoints and exits 130."""
-    cfg = checked_config(**locals())   # one line, before the banner and the run folder
+    cfg = checked_config(**options)   # one line, before the banner and the run folder
+    resume = options["resume"]
     from cfrace.rl.train import train
 
     budget = " and ".join(x for x in (f"{cfg.minutes:g} min" if cfg.minutes is not None else "",
@@ -202,80 +126,6 @@ def train_cmd(
         raise typer.Exit(130)      # as every command after Ctrl-C (the checkpoint is written)
 
 
-def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, seed, out, resume, device, profile,
-                   threads, checkpoint_min, set_, reward, init_from, episode_s, critic_warmup, random_phase,
-                   fixed_opponent, fixed_opponent_frac, fixed_opponent_drones, init_critic, critic_warmup_lr,
-                   precision, ground_start_prob, keep_checkpoints, drones, opponent_rule, obstacle_curriculum,
-                   update_workers, compile_, flight_obs, lab_loop=False, loop_latency_ms=None, loop_noise_mm=None,
-                   span_profiles=None, sources: bool = True):
-    """The TrainConfig of `cfrace train`'s options (its parameters), checked as the command checks it
-    before its banner (cfrace.rl.inputs.check_inputs; ``sources``: also load the files it names);
-    ConfigError (one line) else. `cfrace sweep` checks its runs with it (check_train_argv)."""
-    from cfrace.errors import ConfigError
-    from cfrace.rl.config import parse_overrides
-    if resume is None and (method is None or track is None):   # before any heavy import
-        raise ConfigError("--method and --track are required (or --resume DIR)")
-    overrides = parse_overrides(set_ or [])
-    from cfrace.env.rewards import parse_reward_overrides
-    rewards = parse_reward_overrides(reward or [])
-    from cfrace.rl.train import TrainConfig, resume_config
-
-    if minutes is None and steps is None:
-        minutes = 30.0
-    if resume is not None:
-        if overrides or rewards:
-            raise ConfigError("--set and --reward cannot change a resumed run")
-        cfg = resume_config(resume, method=method, track=track, obstacles=obstacles, preset=preset, num_envs=envs,
-                            seed=seed, profile=profile, minutes=minutes, steps=steps, device=device, threads=threads,
-                            out=str(out) if out else None,
-                            checkpoint_every_s=None if checkpoint_min is None else checkpoint_min * 60.0,
-                            precision=precision, keep_checkpoints=keep_checkpoints, update_workers=update_workers,
-                            compile=compile_)
-    else:
-        seed = 0 if seed is None else seed
-        name = f"{method}_{Path(track).stem}{'_obstacles' if obstacles else ''}_s{seed}"
-        cfg = TrainConfig(method, track, bool(obstacles), preset or "cpu", envs, seed, device,
-                          profile or TrainConfig.profile, minutes, steps, str(out or Path("runs") / name),
-                          (5.0 if checkpoint_min is None else checkpoint_min) * 60.0, threads=threads, overrides=overrides,
-                          init_from=str(init_from) if init_from else None, critic_warmup=critic_warmup,
-                          critic_warmup_lr=critic_warmup_lr, episode_s=episode_s,
-                          init_critic=init_critic, random_phase=random_phase,
-                          fixed_opponent=str(fixed_opponent) if fixed_opponent else None,
-                          fixed_opponent_frac=fixed_opponent_frac,
-                          fixed_opponent_drones=fixed_opponent_drones, flight_obs=flight_obs,
-                          keep_checkpoints=keep_checkpoints, precision=precision or "auto",
-                          ground_start_prob=ground_start_prob, drones=drones,
-                          update_workers=update_workers, compile=compile_,
-                          opponent_rule=opponent_rule or TrainConfig.opponent_rule,
-                          obstacle_curriculum=obstacle_curriculum, rewards=rewards,
-                          loop=loop_option(lab_loop, loop_latency_ms, loop_noise_mm),
-                          span_profiles=tuple(x.strip() for x in (span_profiles or "").split(",") if x.strip()))
-    from cfrace.rl.inputs import check_inputs
-    check_inputs(cfg, sources=sources, warm_start=resume is None)
-    return cfg
-
-
-def check_train_argv(argv: list[str]) -> None:
-    """What `cfrace train ARGV` (ARGV without "train") refuses before its banner, without running it:
-    the options parsed as the command parses them (types, ranges), then checked_config without
-    loading the files they name (a sweep's references may not exist yet); ConfigError (one line)."""
-    from typer.main import get_command
-
-    from cfrace.errors import ConfigError
-    try:
-        from typer._click.exceptions import ClickException   # typer >= 0.2x carries its own click
-    except ImportError:                                      # older typer: click itself
-        from click.exceptions import ClickException
-
-    app = typer.Typer()
-    app.command()(train_cmd)
-    try:
-        ctx = get_command(app).make_context("train", list(argv))
-    except ClickException as exc:
-        raise ConfigError(exc.format_message()) from None
-    checked_config(**ctx.params, sources=False)
-
-
 def export_cmd(
     checkpoint: Path = typer.Argument(..., help="checkpoint.pt or the run folder holding it"),
     output: Path = typer.Option(..., "-o", "--output", help="ONNX file to write"),
@@ -305,8 +155,8 @@ def bench_train_cmd(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="torch threads (default 1 on CPU)"),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="override a preset field, e.g. --set epochs=3"),
     precision: str = typer.Option("auto", "--precision", help="PPO update in auto | fp32 | bf16"),
-    update_workers: int = _UPDATE_WORKERS,
-    compile_: bool = _COMPILE,
+    update_workers: int = UPDATE_WORKERS,
+    compile_: bool = COMPILE,
     compare: Optional[str] = typer.Option(None, "--compare",
                                           help="time a second configuration side by side: KEY=VALUE[,...] "
                                                "(e.g. precision=fp32) or a git revision (e.g. main)"),

@@ -7,8 +7,9 @@
     Run.export_argv(out_root)         `cfrace export ...` (None without `export:`)
     Run.done(out_root)                trained to its budget (and exported, if it exports)
 
-The keys a run accepts are the options of `cfrace train` itself (read from its signature, '-' ->
-'_'), so the sweep format and the command cannot drift apart; `out` and `resume` belong to the sweep.
+The keys a run accepts are the options of `cfrace train` itself (read from its signature,
+cfrace.rl.train_options.train_parameters, '-' -> '_'), so the sweep format and the command cannot
+drift apart; `out` and `resume` belong to the sweep.
 """
 
 from __future__ import annotations
@@ -49,11 +50,11 @@ class TrainOption:
 @functools.lru_cache(maxsize=1)
 def train_options() -> dict[str, TrainOption]:
     """The options of `cfrace train`, read from the command's own signature (do not modify)."""
-    from cfrace.cli.train import train_cmd
+    from cfrace.rl.train_options import train_parameters
 
-    hints = typing.get_type_hints(train_cmd)
+    hints = typing.get_type_hints(train_parameters)
     out: dict[str, TrainOption] = {}
-    for name, param in inspect.signature(train_cmd).parameters.items():
+    for name, param in inspect.signature(train_parameters).parameters.items():
         key = name.rstrip("_")
         if key in SWEEP_OWNED:
             continue
@@ -75,8 +76,8 @@ def train_options() -> dict[str, TrainOption]:
 
 def check_train(run: "Run", out_root: str | Path, path: str) -> None:
     """ConfigError (one line naming the file and the run) where `cfrace train` would refuse the run's
-    options before its banner: the command's own parser and checks (cfrace.cli.train.check_train_argv)."""
-    from cfrace.cli.train import check_train_argv
+    options before its banner: the command's own parser and checks (cfrace.rl.train_options.check_train_argv)."""
+    from cfrace.rl.train_options import check_train_argv
 
     try:
         check_train_argv(run.train_argv(out_root)[1:])
