@@ -4,8 +4,8 @@
     PYTHONPATH=OLD_TREE .venv/bin/python benchmarks/landing_ticks.py ...     (another revision's code:
         git archive REV | tar -x -C OLD_TREE)
 
-Runs `cfrace bench loop` in this process with cfrace.flight.loop.tick.TickCore.step timed (time.thread_time:
-the loop thread's CPU, not the machine's load). At the bench's time-out every drone starts landing in
+Runs `cfrace bench loop` in this process with each tick's CPU timed
+(cfrace.rehearsal.loop_bench.landing_tick_cpu). At the bench's time-out every drone starts landing in
 one tick. Prints the ticks with a landing drone, slowest first, and the racing ticks' p50 / p99 / max.
 """
 
@@ -13,10 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
-
-import numpy as np
 
 
 def main() -> None:
@@ -28,39 +24,17 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     import cfrace
-    import cfrace.flight.loop.tick as tick
-    from cfrace.cli.main import main as cli
+    from cfrace.rehearsal.loop_bench import landing_tick_cpu
 
-    ticks = []                       # (cpu s, k, drones landing)
-    step = tick.TickCore.step
-
-    def timed(self, t_in, *a, **kw):
-        c0 = time.thread_time()
-        out = step(self, t_in, *a, **kw)
-        ticks.append((time.thread_time() - c0, t_in.k, sum(d.landing is not None for d in self.drones)))
-        return out
-
-    tick.TickCore.step = timed
-    sys.argv = ["cfrace", "bench", "loop", "--drones", str(args.drones), "--track", args.track,
-                "--duration-s", f"{args.duration_s:g}", "--floor-s", "0"]
-    try:
-        cli()
-    except SystemExit as exc:
-        if exc.code:
-            raise
-    landing = sorted((t for t in ticks if t[2]), reverse=True)
-    racing = np.array([t[0] for t in ticks if not t[2]]) * 1e3
+    doc = {"cfrace": cfrace.__file__} | landing_tick_cpu(args.drones, args.track, args.duration_s)
+    landing, racing = doc["landing_ticks_cpu_ms"], doc["racing_cpu_ms"]
     print(f"cfrace from {cfrace.__file__}")
     print(f"{len(landing)} ticks with a landing drone; slowest (CPU ms, tick, drones landing): "
-          + ", ".join(f"{c * 1e3:.2f} ({k}, {n})" for c, k, n in landing[:args.show]))
-    print(f"racing ticks: {len(racing)}, CPU ms p50 {np.median(racing):.2f}, p99 {np.percentile(racing, 99):.2f}, "
-          f"max {racing.max():.2f}")
+          + ", ".join(f"{c:.2f} ({k}, {n})" for c, k, n in landing[:args.show]))
+    print(f"racing ticks, CPU ms p50 {racing['p50']:.2f}, p99 {racing['p99']:.2f}, max {racing['max']:.2f}")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"cfrace": cfrace.__file__, "drones": args.drones, "track": args.track,
-                       "landing_ticks_cpu_ms": [[round(c * 1e3, 3), k, n] for c, k, n in landing],
-                       "racing_cpu_ms": {"p50": float(np.median(racing)), "p99": float(np.percentile(racing, 99)),
-                                         "max": float(racing.max())}}, f, indent=1)
+            json.dump(doc, f, indent=1)
 
 
 if __name__ == "__main__":

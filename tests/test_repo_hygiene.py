@@ -1,5 +1,5 @@
 """The repository's hygiene: no pointers to files outside it, no test that imports a benchmark script
-or a study, and every result file in git cited by a doc."""
+or a study or runs one (but the listed maintained examples), and every result file in git cited by a doc."""
 
 from __future__ import annotations
 
@@ -69,9 +69,45 @@ IMPORTS_A_SCRIPT = re.compile(
 
 
 def test_no_test_imports_a_benchmark_script_or_a_study():
-    """Tests call what they check in cfrace/; a maintained tool may be run as a user runs it (a subprocess),
-    a study not at all."""
+    """Tests call what they check in cfrace/; a maintained example listed in MAINTAINED_EXAMPLES may be run
+    as a user runs it (a subprocess), a study not at all."""
     this = Path(__file__).resolve()
     found = [f"{p.relative_to(REPO)}: {m.group(0).strip()}" for p in (REPO / "tests").rglob("*.py")
              if p.resolve() != this for m in IMPORTS_A_SCRIPT.finditer(p.read_text())]
     assert not found, "tests that import scripts:\n" + "\n".join(found)
+
+
+#: tests that run a benchmarks/ script as its users do (a subprocess), each with its reason; no test runs a study
+MAINTAINED_EXAMPLES = {
+    "tests/test_example_skrl.py": "benchmarks/train_skrl_ppo.py is the documented example of a third-party "
+                                  "trainer (skrl's PPO) on cfrace's Gymnasium vector env: what it shows is the "
+                                  "script itself, so the test runs it as a user does",
+}
+
+
+def script_dirs_named(source: str) -> list[str]:
+    """The string constants of a Python source, docstrings left out, that name benchmarks/ or studies/
+    (a path to a script there, as a test that runs one must build)."""
+    import ast
+
+    tree = ast.parse(source)
+    docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                  if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
+                  and node.body and isinstance(node.body[0], ast.Expr) and isinstance(node.body[0].value, ast.Constant)}
+    return [node.value for node in ast.walk(tree) if isinstance(node, ast.Constant) and isinstance(node.value, str)
+            and id(node) not in docstrings and re.search(r"(^|/)(benchmarks|studies)(/|$)", node.value)]
+
+
+def test_script_dirs_named_sees_paths_and_not_docstrings():
+    src = '"""benchmarks/x.py prints it."""\ndef f():\n    """studies/y.py"""\n    return ROOT / "benchmarks" / "x.py", "studies/y.py", "benchmarks_like"\n'
+    assert sorted(script_dirs_named(src)) == ["benchmarks", "studies/y.py"]
+
+
+def test_no_test_runs_a_script_but_the_maintained_examples():
+    named = {str(p.relative_to(REPO)): script_dirs_named(p.read_text()) for p in sorted((REPO / "tests").rglob("*.py"))
+             if p.resolve() != Path(__file__).resolve()}
+    found = {f: names for f, names in named.items() if names and f not in MAINTAINED_EXAMPLES}
+    assert not found, f"tests that run a benchmarks/ or studies/ script (call cfrace/ instead): {found}"
+    stale = [f for f in MAINTAINED_EXAMPLES if not named.get(f)]
+    assert not stale, f"listed as running a maintained example but no longer do: {stale}"
+    assert not any("studies" in n for f in MAINTAINED_EXAMPLES for n in named.get(f, [])), "a study is no example"

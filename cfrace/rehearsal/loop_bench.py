@@ -226,3 +226,32 @@ def compare_foxglove(duration_s: float, rounds: int, on_run=None, **options) -> 
         doc["figures"][label] = {"ms": dict(zip(names, med)),
                                  "ratio_to_plain": {n: (m / med[0] if med[0] else None) for n, m in zip(names[1:], med[1:])}}
     return doc
+
+
+def landing_tick_cpu(drones: int = 8, track: str = "complex", duration_s: float = 10.0) -> dict:
+    """bench_loop (no floor) with the CPU of each tick of cfrace.flight.loop.tick.TickCore.step recorded
+    (time.thread_time: the loop thread's CPU, not the machine's load). At the bench's time-out every drone
+    starts landing in one tick. {"drones", "track", "landing_ticks_cpu_ms": [[CPU ms, tick, drones
+    landing], ...] slowest first, "racing_cpu_ms": {"p50", "p99", "max"}}."""
+    from cfrace.flight.loop.tick import TickCore
+
+    ticks = []                       # (cpu s, k, drones landing)
+    step = TickCore.step
+
+    def timed(self, t_in, *a, **kw):
+        c0 = time.thread_time()
+        out = step(self, t_in, *a, **kw)
+        ticks.append((time.thread_time() - c0, t_in.k, sum(d.landing is not None for d in self.drones)))
+        return out
+
+    TickCore.step = timed
+    try:
+        bench_loop(duration_s, track=track, drones=drones, floor_s=0.0)
+    finally:
+        TickCore.step = step
+    landing = sorted((t for t in ticks if t[2]), reverse=True)
+    racing = np.array([t[0] for t in ticks if not t[2]]) * 1e3
+    return {"drones": drones, "track": track,
+            "landing_ticks_cpu_ms": [[round(c * 1e3, 3), k, n] for c, k, n in landing],
+            "racing_cpu_ms": {"p50": float(np.median(racing)), "p99": float(np.percentile(racing, 99)),
+                              "max": float(racing.max())}}
