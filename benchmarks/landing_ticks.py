@@ -5,7 +5,7 @@
         git archive REV | tar -x -C OLD_TREE)
 
 Runs `cfrace bench loop` in this process with each tick's CPU timed
-(cfrace.rehearsal.loop_bench.landing_tick_cpu). At the bench's time-out every drone starts landing in
+(cfrace.rehearsal.loop_timing.landing_tick_cpu). At the bench's time-out every drone starts landing in
 one tick. Prints the ticks with a landing drone, slowest first, and the racing ticks' p50 / p99 / max.
 """
 
@@ -24,7 +24,7 @@ def main() -> None:
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
     import cfrace
-    from cfrace.rehearsal.loop_bench import landing_tick_cpu
+    from cfrace.rehearsal.loop_timing import landing_tick_cpu
 
     doc = {"cfrace": cfrace.__file__} | landing_tick_cpu(args.drones, args.track, args.duration_s)
     landing, racing = doc["landing_ticks_cpu_ms"], doc["racing_cpu_ms"]

@@ -3,7 +3,7 @@
     python benchmarks/loop_ab.py [--configs NAME:KEY=V,...;NAME:...] [--rounds 3] [--seconds 8]
                                  [--policies paper|shipped] [--json FILE]
 
-Runs `cfrace bench loop` (cfrace.rehearsal.loop_bench.bench_loop: the unchanged fly code against a
+Runs `cfrace bench loop` (cfrace.rehearsal.loop_timing.bench_loop: the unchanged fly code against a
 `cfrace sim serve` process, real cflib over UDP, flight log on) once per setting per round, the
 settings interleaved within each round so that a change in the machine's load hits all of them
 alike. KEYs: prewarm_ms, loop_cpu (auto/off/N), rt_priority (auto/0/N). Prints per setting the median over the
@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from cfrace.rehearsal.loop_bench import GOALS_MS, bench_loop
+from cfrace.rehearsal.loop_timing import GOALS_MS, bench_loop
 
 FIGURES = [("compute p50", lambda l: l["compute_ms"]["p50"]),
            ("compute p99", lambda l: l["compute_ms"]["p99"]),

@@ -2,7 +2,7 @@
 
     python benchmarks/loop_sections.py [--seconds 10] [--policies paper|shipped]
 
-Runs the unchanged loop against `cfrace sim serve` in real time (cfrace.rehearsal.loop_bench) and
+Runs the unchanged loop against `cfrace sim serve` in real time (cfrace.rehearsal.loop_timing) and
 wraps the mocap read, pose estimator, race progress, safety check and each cflib send with
 time.perf_counter; prints p50/p90/p99 per part in microseconds, then the loop's own figures.
 The wrappers add about 1 us per call; calls made by the warm-up before each tick
@@ -20,7 +20,7 @@ import numpy as np
 
 import cfrace.flight.loop.flight_loop as loop_mod
 from cfrace.flight.safety import check as sf
-from cfrace.rehearsal.loop_bench import bench_loop
+from cfrace.rehearsal.loop_timing import bench_loop
 
 TIMES: dict[str, list[float]] = collections.defaultdict(list)
 

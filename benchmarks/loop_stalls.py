@@ -3,7 +3,7 @@
     python benchmarks/loop_stalls.py [--seconds 8] [--rt-priority auto|0|N] [--loop-cpu auto] [--bare] [--runs 1]
                                      [--late-ms 0.5]
 
-Default: `cfrace bench loop` (cfrace.rehearsal.loop_bench.bench_loop, the unchanged fly code against a
+Default: `cfrace bench loop` (cfrace.rehearsal.loop_timing.bench_loop, the unchanged fly code against a
 `cfrace sim serve` process) with a probe around each wait for the next tick
 (RealClock.wait_next): for every tick that starts more than ``--late-ms`` late it prints how the wait was
 spent by the loop thread, from /proc/self/task/TID/schedstat: on the CPU, waiting in the run queue
@@ -11,7 +11,7 @@ for the CPU (another thread or process ran there), and off the CPU without being
 or waiting for the GIL), and the local timer interrupts per second on each CPU over the run. Linux
 only.
 
---bare: instead, the machine's floor (cfrace.rehearsal.loop_bench.bare_loop, also printed by `cfrace
+--bare: instead, the machine's floor (cfrace.rehearsal.loop_timing.bare_loop, also printed by `cfrace
 bench loop`): a loop with no work at all, waiting as the flight loop waits, on the same CPU and
 priority: the lateness any 100 Hz Python loop gets on this machine. Used for docs/benchmarks.md
 ("Loop CPU and priority").
@@ -47,7 +47,7 @@ def timer_interrupts() -> list[int]:
 
 
 def bare(seconds: float, rt_priority, loop_cpu) -> None:
-    from cfrace.rehearsal.loop_bench import bare_loop
+    from cfrace.rehearsal.loop_timing import bare_loop
 
     r = bare_loop(seconds, rt_priority=rt_priority, loop_cpu=loop_cpu)
     late = r["late_ms"]
@@ -56,7 +56,7 @@ def bare(seconds: float, rt_priority, loop_cpu) -> None:
 
 
 def probed(seconds: float, rt_priority, loop_cpu, late_ms: float = 0.5) -> None:
-    from cfrace.rehearsal.loop_bench import bench_loop
+    from cfrace.rehearsal.loop_timing import bench_loop
 
     rec = []
     orig = ck.RealClock.wait_next

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.rehearsal.loop_bench import _free_base_port
+from cfrace.rehearsal.loop_timing import _free_base_port
 
 BIN = Path(sys.executable).parent / "cfrace"
 

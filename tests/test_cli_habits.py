@@ -309,7 +309,7 @@ def test_bench_sim_defaults_finish_soon():
             calls.append(modes)
             raise Stop
 
-        import cfrace.sim.bench as sim_bench
+        import cfrace.sim.throughput as sim_bench
         real = sim_bench.measure_all
         sim_bench.measure_all = measure_all
         try:

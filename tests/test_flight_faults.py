@@ -213,7 +213,7 @@ def test_an_exception_mid_race_still_stops_everything_and_closes_the_log(pols, t
 def test_bench_loop_against_a_sim_serve_process():
     """`cfrace bench loop`: `cfrace sim serve` in its own process, the fly code over cflib/UDP
     and the sim:// pose stream; every figure is measured."""
-    from cfrace.rehearsal.loop_bench import bench_loop
+    from cfrace.rehearsal.loop_timing import bench_loop
 
     r = bench_loop(2.0, profile=PROFILE, floor_s=1.0)
     loop = r["loop"]

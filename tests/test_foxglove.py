@@ -245,8 +245,8 @@ def test_bench_loop_foxglove_alternates_the_three_configurations(monkeypatch):
     """`cfrace bench loop --foxglove`: each round runs the plain log, the scene in the log and the
     scene served live, in that order, with the options given; medians and ratios to the plain log.
     (bench_loop itself runs for real in test_flight_faults.test_bench_loop_against_a_sim_serve_process.)"""
-    import cfrace.rehearsal.loop_bench as benchloop
-    from cfrace.cli.bench import _foxglove_compare
+    import cfrace.rehearsal.loop_timing as benchloop
+    from cfrace.cli.measure import _foxglove_compare
 
     calls = []
 

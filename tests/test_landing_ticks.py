@@ -1,7 +1,7 @@
-"""cfrace.rehearsal.loop_bench.landing_tick_cpu (benchmarks/landing_ticks.py prints it): the CPU of each
+"""cfrace.rehearsal.loop_timing.landing_tick_cpu (benchmarks/landing_ticks.py prints it): the CPU of each
 landing tick of `cfrace bench loop`."""
 
-from cfrace.rehearsal.loop_bench import landing_tick_cpu
+from cfrace.rehearsal.loop_timing import landing_tick_cpu
 
 
 def test_the_landing_ticks_of_a_four_drone_bench_are_reported():

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from cfrace.cli.main import app
 from cfrace.errors import ConfigError
 from cfrace.rl import precision as prec
-from cfrace.rl.benchcompare import Config, compare, parse_compare
+from cfrace.rl.speed_compare import Config, compare, parse_compare
 from cfrace.rl.config import preset
 from cfrace.rl.ippo import forward, make_optimizer, ppo_update
 

@@ -257,7 +257,7 @@ def test_sim_serve_reports_bad_packets_in_one_rate_limited_line(tmp_path):
     import socket
     import time
 
-    from cfrace.rehearsal.loop_bench import _free_base_port
+    from cfrace.rehearsal.loop_timing import _free_base_port
 
     base = _free_base_port()
     proc = subprocess.Popen(CLI + ["sim", "serve", "--track", "lemniscate", "--port", str(base), "--profile", PROFILE],

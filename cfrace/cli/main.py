@@ -20,7 +20,7 @@ except ImportError:                             # older typer: click itself
 
 import cfrace
 from cfrace.cli.common import json_to_stdout, restore_stdout
-from cfrace.cli import bench, calibrate, evaluate, flight, logs, reproduce, sim, sweep, tracks, train
+from cfrace.cli import calibrate, evaluate, flight, logs, measure, reproduce, sim, sweep, tracks, train
 from cfrace.errors import CfraceError, CfraceWarning
 
 app = typer.Typer(help="cfrace: multi-agent competitive drone racing for Crazyflies.",
@@ -40,7 +40,7 @@ def _root(version: bool = typer.Option(False, "--version", callback=_version, is
     """cfrace: multi-agent competitive drone racing for Crazyflies."""
 
 
-for module in (tracks, bench, train, evaluate, reproduce, flight, sim, logs, calibrate, sweep):
+for module in (tracks, measure, train, evaluate, reproduce, flight, sim, logs, calibrate, sweep):
     module.register(app)
 
 #: options whose value may be left out (`fly --foxglove` = `fly --foxglove 8765`): option -> (default,

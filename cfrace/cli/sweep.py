@@ -137,7 +137,7 @@ def bench_sweep_cmd(
 ) -> None:
     """Env-steps/s of one single-thread training run alone vs two at once, as Ray tasks; with load."""
     from cfrace.cli.evaluate import _write_json
-    from cfrace.sweep.bench import bench_parallel, bench_sweep_wall
+    from cfrace.sweep.ray_scaling import bench_parallel, bench_sweep_wall
 
     r = bench_parallel(method, track, envs, iterations, address)
     t = Table(title=f"training runs under Ray: {method} on {track}, {r['num_envs']} worlds, 1 thread each")
@@ -170,7 +170,7 @@ def bench_sweep_cmd(
 
 def register(app: typer.Typer) -> None:
     """Add `sweep` and `bench sweep`."""
-    from cfrace.cli.bench import bench_app
+    from cfrace.cli.measure import bench_app
 
     app.command("sweep")(sweep_cmd)
     bench_app.command("sweep")(bench_sweep_cmd)

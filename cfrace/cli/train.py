@@ -197,7 +197,7 @@ def bench_train_cmd(
 
 def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str], **options) -> None:
     """`bench train --compare`: this configuration (A) against the other (B), alternating; ratios A / B."""
-    from cfrace.rl.benchcompare import Config, compare, parse_compare, rev_knows
+    from cfrace.rl.speed_compare import Config, compare, parse_compare, rev_knows
 
     base = {k: v for k, v in options.items() if v is not None}
     a, b = Config("this tree", base), parse_compare(text, base)
@@ -228,7 +228,7 @@ def _bench_compare(text: str, rounds: int, json_out: Path | None, set_: list[str
 
 def register(app: typer.Typer) -> None:
     """Add `train`, `export` and `bench train`."""
-    from cfrace.cli.bench import bench_app
+    from cfrace.cli.measure import bench_app
 
     app.command("train")(train_cmd)
     app.command("export")(export_cmd)

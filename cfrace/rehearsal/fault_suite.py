@@ -33,7 +33,7 @@ import numpy as np
 
 from cfrace.contract import decode_meta, encode_meta
 from cfrace.drone import GRAVITY
-from cfrace.rehearsal.loop_bench import _free_base_port
+from cfrace.rehearsal.loop_timing import _free_base_port
 from cfrace.flight.config import FlightConfig, SafetyConfig
 from cfrace.rehearsal.dryrun import dry_run
 from cfrace.rehearsal.faults import KINDS, UdpCutRelay

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from cfrace.sim.bench import gates_start, hover_start, measure_sim
+from cfrace.sim.throughput import gates_start, hover_start, measure_sim
 from cfrace.cli.main import app
 from cfrace.track import load_track
 

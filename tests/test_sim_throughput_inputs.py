@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 
 from cfrace.cli.main import main
-from cfrace.sim import bench, ckernel
+from cfrace.sim import ckernel
+from cfrace.sim import throughput as bench
 
 
 def _cfrace(capsys, *args) -> tuple[int, str, str]:

@@ -1,4 +1,4 @@
-"""`cfrace bench ...`: benchmarks that print figures (the measuring: cfrace.sim.bench and the modules
+"""`cfrace bench ...`: benchmarks that print figures (the measuring: cfrace.sim.throughput and the modules
 each command names). Other CLI modules add commands to `bench_app`."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ console = Console()
 
 
 def summary_table(rows: list[dict]) -> Table:
-    from cfrace.sim.bench import MODES, rate_text
+    from cfrace.sim.throughput import MODES, rate_text
 
     table = Table(title="simulator speed: drone-steps per second (one drone, one 2 ms step)")
     modes = [m for m in MODES if any(r[m] is not None for r in rows)]
@@ -85,7 +85,7 @@ def sim_cmd(
 ) -> None:
     """Simulator drone-steps per second for each world count (C kernel, torch eager, torch.compile)
     against crazyflow."""
-    from cfrace.sim import bench
+    from cfrace.sim import throughput as bench
 
     sizes = _ints(worlds, "worlds")
     modes = bench.checked_modes(compile, modes_opt, drones, scenario, track, profile)   # before any output
@@ -167,8 +167,8 @@ def bench_loop_cmd(
 
 
 def _pose_stream_compare(duration_s: float, rounds: int, options: dict) -> dict:
-    """The loop without and with the pose stream, alternating (cfrace.rehearsal.loop_bench): a table."""
-    from cfrace.rehearsal.loop_bench import compare_pose_stream
+    """The loop without and with the pose stream, alternating (cfrace.rehearsal.loop_timing): a table."""
+    from cfrace.rehearsal.loop_timing import compare_pose_stream
 
     c = compare_pose_stream(duration_s, rounds, **options)
     t = Table(title=f"pose stream, {options.get('drones', 2)} drones: median of {rounds} run(s) each, "
@@ -195,7 +195,7 @@ def drone_counts(drones: str) -> list[int]:
 
 def _loop_runs(counts: list[int], json_out, floor_s: float, duration_s: float, **options) -> None:
     """bench_loop for each drone count: tables, ratios to the first, JSON."""
-    from cfrace.rehearsal.loop_bench import bench_loop
+    from cfrace.rehearsal.loop_timing import bench_loop
 
     runs = []
     for n in counts:
@@ -230,8 +230,8 @@ def ratio_line(runs: list[dict]) -> str:
 
 
 def _foxglove_compare(duration_s: float, rounds: int, options: dict) -> dict:
-    """`bench loop --foxglove`: cfrace.rehearsal.loop_bench.compare_foxglove, printed as a table."""
-    from cfrace.rehearsal.loop_bench import compare_foxglove
+    """`bench loop --foxglove`: cfrace.rehearsal.loop_timing.compare_foxglove, printed as a table."""
+    from cfrace.rehearsal.loop_timing import compare_foxglove
 
     def said(i: int, name: str, r: dict) -> None:
         console.print(f"round {i + 1}, {name}: compute p99 {r['loop']['compute_ms']['p99']:.3f} ms, "
