@@ -44,6 +44,7 @@ from cfrace.rotations import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
+from cfrace.simcf.mellinger import MellingerController
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, yaw_quat
 from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
@@ -60,7 +61,8 @@ ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has bee
 CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the controller's period)
 PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2   #: the commander's setpoint priorities
 LOW_POWER_TIMEOUT = 5.0    #: s below pm.lowVoltage before pm.state is low power (pm_stm32f4.c, PM_BAT_LOW_TIMEOUT)
-CONTROLLERS_EMULATED = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
+PID_CONTROLLERS = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
+MELLINGER = 2              #: stabilizer.controller of the Mellinger controller (controller.c, ControllerTypeMellinger)
 
 
 @dataclass(frozen=True)
@@ -101,6 +103,8 @@ class DroneFirmware:
     warned: set = field(default_factory=set)    #: console warnings already given once since boot
     priority: int = PRIORITY_DISABLE             #: of the setpoint in force
     controller: PidController = field(default_factory=lambda: PidController(ATTITUDE_I_LIMIT, PID_I_LIMIT))
+    mellinger: MellingerController = field(default_factory=MellingerController)
+    controller_type: int = 1                     #: the controller that ran last (PID 1, Mellinger 2)
     planner: hl.Planner = field(default_factory=hl.Planner)
     control_thrust: float = 0.0                  #: N, what the controller commanded last
     control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
@@ -203,7 +207,8 @@ class SimFleet:
         """{name: value} of the parameters whose boot value depends on this fleet: the thrust at
         hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks."""
         prof = self.profile
-        out = {"posCtlPid.thrustBase": round(float(prof.thrust_curve.to_counts(prof.weight)))}
+        hover = float(prof.thrust_curve.to_counts(prof.weight))
+        out = {"posCtlPid.thrustBase": round(hover), "ctrlMel.mass": prof.mass, "ctrlMel.massThrust": hover / prof.weight}
         for axis, pid in (("roll", prof.pid_roll_pitch), ("pitch", prof.pid_roll_pitch), ("yaw", prof.pid_yaw)):
             out.update({f"pid_rate.{axis}_kp": pid.kp, f"pid_rate.{axis}_ki": pid.ki, f"pid_rate.{axis}_kd": pid.kd})
         out.update({DECK_PARAMS[d]: 1 for d in self.decks})
@@ -358,7 +363,7 @@ class SimFleet:
             return
         if goal is not None:
             sp = Setpoint(mode_x=ABS, mode_y=ABS, mode_z=ABS, mode_yaw=ABS, source="high-level")
-            sp.position, sp.velocity = goal.pos, goal.vel
+            sp.position, sp.velocity, sp.acceleration, sp.rates = goal.pos, goal.vel, goal.acc, goal.omega
             sp.attitude[2] = goal.yaw
         elif fw.planner.state == hl.IDLE and fw.watchdog != "idle":
             sp = Setpoint(source="high-level stop")
@@ -414,8 +419,9 @@ class SimFleet:
             fw.params[name] = coerce_param(spec, value)
             if name == "stabilizer.stop" and fw.params[name]:
                 self._emergency(fw, "stabilizer.stop")
-            if name == "stabilizer.controller" and fw.params[name] not in CONTROLLERS_EMULATED:
-                fw.events.append(f"SIMCF: controller {fw.params[name]} is not emulated, PID runs")
+            if name == "stabilizer.controller" and fw.params[name] not in (*PID_CONTROLLERS, MELLINGER):
+                fw.events.append(f"SIMCF: controller {fw.params[name]} is not emulated (PID 1 and Mellinger 2 are), "
+                                 "PID runs")
             return fw.params[name]
 
     def get_param(self, i: int, name: str) -> float | int:
@@ -546,12 +552,21 @@ class SimFleet:
         self._high_level_setpoint(i)
         if self._gated(fw):
             fw.controller.reset()
+            fw.mellinger.reset()
             idle = self._idle_newtons(fw)                # armed: the props spin at idle whatever the setpoint
             fw.control_thrust, fw.control_rates = idle, np.zeros(3)
             return idle, np.zeros(3)
         sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
-        att = quat_to_euler(fw.estimator.attitude(self._quat[i]))   # the estimate, not the truth
-        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
+        q_est = fw.estimator.attitude(self._quat[i])                # the estimate, not the truth
+        kind = MELLINGER if p["stabilizer.controller"] == MELLINGER else 1
+        if kind != fw.controller_type:               # controller.c controllerInit: the new one starts afresh
+            fw.controller.reset()
+            fw.mellinger.reset()
+            fw.controller_type = kind
+        if kind == MELLINGER:
+            counts, rates = fw.mellinger.update(sp, fw.estimator.pos, fw.estimator.vel, q_est, p, dt)
+        else:
+            counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, quat_to_euler(q_est), p, dt)
         idle = float(p["powerDist.idleThrust"])
         fw.clock.note_thrust(self.time, counts > idle and counts > 0.0 and not sp.is_stop)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
@@ -710,7 +725,7 @@ class SimFleet:
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()
-            debug = fw.controller.debug
+            debug = (fw.mellinger if fw.controller_type == MELLINGER else fw.controller).debug
             values = {
                 **{f"stateEstimate.{k}": v for k, v in zip(("x", "y", "z", "vx", "vy", "vz"), (*est.pos, *est.vel))},
                 **{f"stateEstimate.{k}": v for k, v in zip(("ax", "ay", "az"), acc_g)},

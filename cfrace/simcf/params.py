@@ -40,6 +40,15 @@ ATTITUDE_GAINS = ((6.0, 3.0, 0.0), (6.0, 3.0, 0.0), (6.0, 1.0, 0.35))          #
 ATTITUDE_I_LIMIT = (20.0, 20.0, 360.0)                                        #: deg s
 VELOCITY_GAINS = ((25.0, 1.0, 0.0), (25.0, 1.0, 0.0), (25.0, 15.0, 0.0))       #: vx, vy, vz
 POSITION_GAINS = ((2.0, 0.0, 0.0), (2.0, 0.0, 0.0), (2.0, 0.5, 0.0))          #: x, y, z
+#: ctrlMel.* of the Mellinger controller (controller_mellinger.c, g_self): N/m, N s/m, N/(m s) on
+#: position; moment gains on attitude (kR), rates (kw) and their integrals. mass (kg) and massThrust
+#: (counts per N) are set from the drone's profile (the firmware's: CF_MASS and 132000).
+MELLINGER_GAINS = (("kp_xy", 0.4), ("kd_xy", 0.2), ("ki_xy", 0.05), ("i_range_xy", 2.0),
+                   ("kp_z", 1.25), ("kd_z", 0.4), ("ki_z", 0.05), ("i_range_z", 0.4),
+                   ("mass", 0.029), ("massThrust", 132000.0),
+                   ("kR_xy", 70000.0), ("kR_z", 60000.0), ("kw_xy", 20000.0), ("kw_z", 12000.0),
+                   ("ki_m_xy", 0.0), ("ki_m_z", 500.0), ("kd_omega_rp", 200.0),
+                   ("i_range_m_xy", 1.0), ("i_range_m_z", 1500.0))
 PID_I_LIMIT = 5000.0                                                          #: the firmware's default
 THRUST_BASE_FIRMWARE = 36000   #: counts, posCtlPid.thrustBase of the Crazyflie 2.x (our default: the profile's hover)
 
@@ -52,7 +61,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("stabilizer.estimator", "uint8_t", 2,
               doc="0 auto, 1 complementary, 2 Kalman: reported; the simulated drone always runs its Kalman filter"),
     ParamSpec("stabilizer.controller", "uint8_t", 1,
-              doc="0 auto, 1 PID, 2 Mellinger, ...: only PID (0, 1) is emulated; others: a console warning, PID runs"),
+              doc="0 auto, 1 PID, 2 Mellinger (simcf/mellinger.py); others: a console warning, PID runs"),
     ParamSpec("stabilizer.stop", "uint8_t", 0, doc="nonzero -> emergency stop"),
     ParamSpec("commander.enHighLevel", "uint8_t", 0, doc="accepted, no effect (as in the firmware)"),
     ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
@@ -77,6 +86,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("posCtlPid.thrustMin", "uint16_t", 20000, doc="counts, least thrust of the velocity controller"),
     *_group("posCtlPid", "float", (("rLimit", 20.0), ("pLimit", 20.0), ("xVelMax", 1.0), ("yVelMax", 1.0),
                                    ("zVelMax", 1.0)), doc="deg (limits), m/s (velocities)"),
+    *_group("ctrlMel", "float", MELLINGER_GAINS, doc="Mellinger controller (stabilizer.controller 2)"),
     ParamSpec("kalman.resetEstimation", "uint8_t", 0, doc="nonzero: reset the estimator (then set back to 0)"),
     *_group("kalman", "float", (("pNAcc_xy", 0.5), ("pNAcc_z", 1.0), ("pNVel", 0.0), ("pNPos", 0.0),
                                 ("initialX", 0.0), ("initialY", 0.0), ("initialZ", 0.0), ("initialYaw", 0.0)),
