@@ -372,9 +372,11 @@ class CrtpEndpoint:
             me = self.fleet.radio_id(self.index)
             for k in range(len(body) // size):
                 item = struct.unpack_from("<BhhhI" if pose else "<Bhhh", body, k * size)
+                pos = tuple(v / 1000.0 for v in item[1:4])
                 if item[0] == me:
-                    pos = tuple(v / 1000.0 for v in item[1:4])
                     self.fleet.external_position(self.index, pos, quat_decompress(item[4]) if pose else None)
+                else:
+                    self.fleet.peer_position(self.index, pos)
             return []
         if channel == 1 and payload:
             if payload[0] == 3:

@@ -113,6 +113,9 @@ class DroneFirmware:
     vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
+    ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
+    ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
+    loc_tick: int = 0                            #: ms (uint16), locSrvZ.tick: when the last of its own arrived
 
     def __post_init__(self):
         self.armed = self.auto_armed
@@ -380,12 +383,26 @@ class SimFleet:
         kalmanCoreUpdateWithPose). A quaternion that is not finite or has no length is dropped."""
         with self.lock:
             fw = self._fw[self._check(i)]
+            # crtp_localization_service.c (extPositionHandler + updateLogFromExtPos, extPoseHandler): the
+            # logs of the last measurement, as received (a position keeps the last pose's quaternion)
+            fw.ext_pose[:3] = np.asarray(pos, np.float32)
+            if quat is None:
+                fw.ext_pos[:] = fw.ext_pose[:3]
+            else:
+                fw.ext_pose[3:] = np.asarray([quat[1], quat[2], quat[3], quat[0]], np.float32)
+            fw.loc_tick = int(self.time * 1000.0) & 0xFFFF
             fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
             if quat is not None and not fw.estimator.fuse_attitude(quat, self._quat[i],
                                                                   float(fw.params["locSrv.extQuatStdDev"])):
                 if "quat" not in fw.warned:
                     fw.warned.add("quat")
                     fw.events.append("LOC: external pose with an invalid quaternion, its attitude ignored")
+
+    def peer_position(self, i: int, pos) -> None:
+        """A packed item for another drone (crtp_localization_service.c, peerLocalizationTellPosition):
+        only the ext_pos log takes it."""
+        with self.lock:
+            self._fw[self._check(i)].ext_pos[:] = np.asarray(pos, np.float32)
 
     def radio_id(self, i: int) -> int:
         """The id a packed external position addresses drone i by: the low byte of its radio address
@@ -755,6 +772,9 @@ class SimFleet:
                 "pm.state": 3 if self.time - fw.vbat_ok_time > LOW_POWER_TIMEOUT else 0,
                 "pm.batteryLevel": 100.0 * fw.charge,
                 "range.zrange": 1000.0 * self._pos[i][2] if "flow" in self.decks else 0.0,
+                **{f"ext_pos.{k}": float(v) for k, v in zip("XYZ", fw.ext_pos)},
+                **{f"locSrv.{k}": float(v) for k, v in zip(("x", "y", "z", "qx", "qy", "qz", "qw"), fw.ext_pose)},
+                "locSrvZ.tick": fw.loc_tick,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
                 "sys.isTumbled": (info >> 5) & 1,
                 **self._motor_logs(i),
