@@ -47,7 +47,8 @@ from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpo
 from cfrace.simcf.mellinger import MellingerController
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, yaw_quat
 from cfrace.simcf.memory import memories_of
-from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
+from cfrace.simcf.params import (ATTITUDE_I_LIMIT, FIRMWARE_RELEASE, PARAM_BY_NAME, PID_I_LIMIT, coerce_param,
+                                 default_params, device_type_name)
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.simcf.supervisor import SupervisorClock
 from cfrace.track import Track, ground_start_positions, load_track
@@ -115,6 +116,7 @@ class DroneFirmware:
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
     ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
     ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
+    banner_told: bool = False                    #: the boot lines went to a client since this boot
     loc_tick: int = 0                            #: ms (uint16), locSrvZ.tick: when the last of its own arrived
 
     def __post_init__(self):
@@ -420,9 +422,18 @@ class SimFleet:
             self._fw[self._check(i)].charge = min(1.0, max(0.0, float(charge)))
 
     def note_packet(self, i: int) -> None:
-        """Count one CRTP packet received for drone i (called by the server)."""
+        """Count one CRTP packet received for drone i (called by the server). The first since a boot
+        queues the boot's console lines, so the client that connects reads them: the firmware's, and
+        one naming the simulator (the drone itself reports the platform and release)."""
         with self.lock:
-            self._fw[self._check(i)].packets_received += 1
+            fw = self._fw[self._check(i)]
+            fw.packets_received += 1
+            if not fw.banner_told:
+                fw.banner_told = True
+                fw.events[:0] = [f"SYS: {device_type_name(self.arming_required)} is up and running!",
+                                 f"SYS: Build {FIRMWARE_RELEASE}",
+                                 "SIMCF: a simulated Crazyflie (cfrace.simcf), not a drone; where it differs "
+                                 "from the firmware: docs/simcf.md"]
 
     def set_param(self, i: int, name: str, value) -> float | int:
         """Write a parameter; returns the value as stored. KeyError for unknown, PermissionError RO."""

@@ -19,6 +19,18 @@ class ParamSpec:
 #: CRTP parameter type codes (firmware param.h; cflib ParamTocElement.types): ctype -> (code, struct)
 BRUSHLESS_IDLE_THRUST = 7000   #: counts per motor, the Crazyflie 2.1 Brushless's powerDist.idleThrust
 BRUSHLESS_LOW_VOLTAGE = 3.35   #: V, the Brushless's pm.lowVoltage
+#: The firmware release the simulated Crazyflie reports (platformservice.c: V_STAG) and its commit, whose
+#: first 12 hex digits are the read-only firmware.revision0 (8) and revision1 (4) (version.vtpl)
+FIRMWARE_RELEASE = "2026.08"
+FIRMWARE_REVISION = "54f31e243a0b28b67efef5ba20dbb6d9890a5478"
+
+
+def device_type_name(arming_required: bool) -> str:
+    """The platform's name as the firmware reports it (platform_cf2.c, platform_cf21bl.c: deviceTypeName):
+    the platforms that need arming are the 2.1 Brushless."""
+    return "Crazyflie 2.1 Brushless" if arming_required else "Crazyflie 2.1"
+
+
 PARAM_TYPES = {"int8_t": (0x00, "<b"), "int16_t": (0x01, "<h"), "int32_t": (0x02, "<i"),
                "float": (0x06, "<f"), "uint8_t": (0x08, "<B"), "uint16_t": (0x09, "<H"),
                "uint32_t": (0x0A, "<I")}
@@ -67,6 +79,11 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
               doc="simulator info: 1 if motors need an arming request"),
     ParamSpec("simcf.bodyIndex", "uint8_t", 0, readonly=True, doc="simulator info: drone index"),
+    ParamSpec("firmware.revision0", "uint32_t", int(FIRMWARE_REVISION[:8], 16), readonly=True,
+              doc="bytes 0-7 of the release's commit (version.vtpl)"),
+    ParamSpec("firmware.revision1", "uint16_t", int(FIRMWARE_REVISION[8:12], 16), readonly=True,
+              doc="bytes 8-11 of the release's commit"),
+    ParamSpec("firmware.modified", "uint8_t", 0, readonly=True, doc="nonzero if the firmware has local changes"),
     # the firmware's motor test override (motors.c): enable 1 = each motor its own value, 2 = m1 to
     # all motors, 3 = m1 to all with battery compensation; 0 = off. Used by the thrust stand
     # (cfrace calibrate, simulated by rehearsal/thrust_stand.py; without a stand these have no effect).
