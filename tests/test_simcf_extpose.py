@@ -13,6 +13,8 @@ import pytest
 
 cflib = pytest.importorskip("cflib")
 import cflib.crtp  # noqa: E402
+from cflib.crazyflie.log import LogConfig  # noqa: E402
+from cflib.crazyflie.syncLogger import SyncLogger  # noqa: E402
 from cflib.crtp.crtpstack import CRTPPacket  # noqa: E402
 
 from cfrace.simcf.firmware import SimFleet, quat_to_euler  # noqa: E402
@@ -148,3 +150,57 @@ def test_a_nan_quaternion_is_dropped_with_one_console_line_and_the_position_stil
         assert "".join(lines).count("invalid quaternion") == 1
         assert fleet._fw[0].estimator.pos == pytest.approx([1.0, 2.0, 0.5], abs=0.01)
         assert np.all(np.isfinite(fleet._fw[0].estimator.q_err))
+
+
+LOC_LOGS = (("locSrv.x", "locSrv.y", "locSrv.z", "locSrv.qx", "locSrv.qy", "locSrv.qz"),   # 26 bytes a block
+            ("locSrv.qw", "ext_pos.X", "ext_pos.Y", "ext_pos.Z", "locSrvZ.tick"))
+
+
+def read_logs(cf):
+    """One sample of every LOC_LOGS variable, logged through cflib."""
+    out = {}
+    for k, names in enumerate(LOC_LOGS):
+        conf = LogConfig(name=f"loc{k}", period_in_ms=10)
+        for name in names:
+            conf.add_variable(name, "uint16_t" if name.endswith("tick") else "float")
+        with SyncLogger(cf, conf) as logger:
+            for _, data, _ in logger:
+                out.update(data)
+                break
+    return out
+
+
+def test_locsrv_logs_and_params_are_the_last_external_pose_as_the_firmware_has_them():
+    """crtp_localization_service.c: locSrv.x..qw the last pose (a position updates x y z and keeps the
+    quaternion), ext_pos.X/Y/Z the last position (packed items for other drones too), locSrvZ.tick
+    the ms tick of the last packet for this drone; the locSrv parameters with the firmware's defaults."""
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False, decks=())
+    with SimCrazyflieServer(fleet, base_port=0) as server, connect(server.uris[0]) as scf:
+        cf = scf.cf
+        scf.wait_for_params()
+        assert float(cf.param.get_value("locSrv.extPosStdDev")) == pytest.approx(0.01)
+        assert float(cf.param.get_value("locSrv.extQuatStdDev")) == pytest.approx(4.5e-3)
+        assert [cf.param.get_value(f"locSrv.{n}") for n in ("enRangeStreamFP32", "enLhAngleStream", "enLhMtchStm",
+                                                           "maxTimeLhMtchStm", "minBsLhMtchStm")] == ["0", "0", "0", "25", "2"]
+        assert all(v == 0.0 for k, v in read_logs(cf).items())          # nothing received yet
+        qz, qw = math.sin(0.35), math.cos(0.35)
+        for _ in range(5):
+            cf.extpos.send_extpose(1.0, 2.0, 0.5, 0.0, 0.0, qz, qw)
+            time.sleep(0.01)
+        logs = read_logs(cf)
+        assert [logs[f"locSrv.{n}"] for n in ("x", "y", "z", "qx", "qy", "qz", "qw")] == pytest.approx(
+            [1.0, 2.0, 0.5, 0.0, 0.0, qz, qw], abs=1e-6)
+        assert [logs[f"ext_pos.{n}"] for n in "XYZ"] == [0.0, 0.0, 0.0]   # a pose is not a position
+        tick = logs["locSrvZ.tick"]
+        assert 0 < (int(fleet.time * 1000) - tick) % 65536 < 1000      # ms, within the last second
+        for _ in range(5):
+            cf.extpos.send_extpos(3.0, 4.0, 1.0)
+            time.sleep(0.01)
+        logs = read_logs(cf)
+        assert [logs[f"locSrv.{n}"] for n in ("x", "y", "z", "qz", "qw")] == pytest.approx([3.0, 4.0, 1.0, qz, qw], abs=1e-6)
+        assert [logs[f"ext_pos.{n}"] for n in "XYZ"] == pytest.approx([3.0, 4.0, 1.0], abs=1e-6)
+        send_raw(cf, 1, bytes([9]) + struct.pack("<BhhhI", 7, -500, 600, 700, quat_compress((1.0, 0.0, 0.0, 0.0))))
+        time.sleep(0.1)
+        logs = read_logs(cf)
+        assert [logs[f"ext_pos.{n}"] for n in "XYZ"] == pytest.approx([-0.5, 0.6, 0.7], abs=1e-6)   # a peer's
+        assert [logs[f"locSrv.{n}"] for n in ("x", "y", "z")] == pytest.approx([3.0, 4.0, 1.0], abs=1e-6)

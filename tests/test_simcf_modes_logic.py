@@ -198,7 +198,9 @@ def test_position_setpoint_watchdog_holds_then_stops():
 
 def test_controller_selection_battery_and_logs():
     f = fleet()
-    f.set_param(0, "stabilizer.controller", 2)
+    f.set_param(0, "stabilizer.controller", 2)                       # Mellinger: emulated
+    assert not any("not emulated" in e for e in f.drain_events(0))
+    f.set_param(0, "stabilizer.controller", 3)                       # INDI: not emulated, PID runs
     assert any("not emulated" in e for e in f.drain_events(0))
     assert f.log_values(0)["pm.state"] == 0
     f.set_battery(0, 0.0)

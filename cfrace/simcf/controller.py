@@ -17,7 +17,10 @@ Rules kept from the firmware:
 
 Simplified: one update rate (the fleet's 10 ms control period) for every stage; yaw in velocity mode
 is passed to the rate loop as a body rate (the firmware integrates it into a yaw angle setpoint);
-no velocity or acceleration feed-forward (the firmware's PID controller has none by default either).
+no velocity or acceleration feed-forward: with x, y, z absolute the position PID's output replaces
+the setpoint's velocity and the acceleration is not used, as in position_controller_pid.c
+(positionController; its feed-forward gains kff are 0 by default). The Mellinger controller
+(simcf/mellinger.py, stabilizer.controller 2) uses them.
 Angles here are right-handed (pitch positive = nose down), SI units; the firmware's legacy pitch
 sign is applied where packets are decoded and logs written.
 """
@@ -49,6 +52,7 @@ class Setpoint:
     position: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: m, world
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: m/s, world (or body-yaw frame)
     velocity_body: bool = False        #: velocity x, y in the yaw-rotated body frame (hover setpoints)
+    acceleration: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: m/s^2, world (the Mellinger controller's)
     attitude: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad, roll, pitch (nose down +), yaw
     rates: np.ndarray = field(default_factory=lambda: np.zeros(3))      #: rad/s, body p, q, r
     thrust: float = 0.0                #: counts, used when mode_z is DISABLE

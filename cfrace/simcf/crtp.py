@@ -21,10 +21,9 @@ from cfrace.simcf.firmware import SimFleet
 from cfrace.simcf.packets import (EXT_POSE, EXT_POSE_PACKED, EXT_POSITION_PACKED, GENERIC_TYPES,  # noqa: F401
                                   LOG_TYPES, LOG_VARS, LogBlock, pack_value, decode_generic, decode_high_level,
                                   quat_decompress)
-from cfrace.simcf.params import PARAM_BY_NAME, PARAM_TYPES, PARAMS
+from cfrace.simcf.params import FIRMWARE_RELEASE, PARAM_BY_NAME, PARAM_TYPES, PARAMS, device_type_name
 
 PROTOCOL_VERSION = 12     #: what the current firmware reports; cflib 0.1.34 needs >= 12 for the supervisor port
-FIRMWARE_VERSION = "cfrace-simcf"
 MAX_PAYLOAD = 30
 
 # ports
@@ -130,10 +129,11 @@ class CrtpEndpoint:
         if channel == 1:
             if cmd == 0:
                 return [packet(PLATFORM, 1, struct.pack("<Bi", 0, PROTOCOL_VERSION))]
+            # platformservice.c versionCommandProcess: the string after the command byte, no terminator
             if cmd == 1:
-                return [packet(PLATFORM, 1, bytes([1]) + FIRMWARE_VERSION.encode() + b"\0")]
+                return [packet(PLATFORM, 1, bytes([1]) + FIRMWARE_RELEASE.encode())]
             if cmd == 2:
-                return [packet(PLATFORM, 1, bytes([2]) + b"simcf\0")]
+                return [packet(PLATFORM, 1, bytes([2]) + device_type_name(self.fleet.arming_required).encode())]
         return []
 
     def _param(self, channel: int, payload: bytes) -> list[bytes]:
@@ -372,9 +372,11 @@ class CrtpEndpoint:
             me = self.fleet.radio_id(self.index)
             for k in range(len(body) // size):
                 item = struct.unpack_from("<BhhhI" if pose else "<Bhhh", body, k * size)
+                pos = tuple(v / 1000.0 for v in item[1:4])
                 if item[0] == me:
-                    pos = tuple(v / 1000.0 for v in item[1:4])
                     self.fleet.external_position(self.index, pos, quat_decompress(item[4]) if pose else None)
+                else:
+                    self.fleet.peer_position(self.index, pos)
             return []
         if channel == 1 and payload:
             if payload[0] == 3:

@@ -44,9 +44,11 @@ from cfrace.rotations import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
 from cfrace.simcf.controller import ABS, DISABLE, VELOCITY, PidController, Setpoint
+from cfrace.simcf.mellinger import MellingerController
 from cfrace.simcf.estimator import DECK_PARAMS, PositionEstimator, check_decks, yaw_quat
 from cfrace.simcf.memory import memories_of
-from cfrace.simcf.params import ATTITUDE_I_LIMIT, PARAM_BY_NAME, PID_I_LIMIT, coerce_param, default_params
+from cfrace.simcf.params import (ATTITUDE_I_LIMIT, FIRMWARE_RELEASE, PARAM_BY_NAME, PID_I_LIMIT, coerce_param,
+                                 default_params, device_type_name)
 from cfrace.simcf.physics import crash_reason, make_physics
 from cfrace.simcf.supervisor import SupervisorClock
 from cfrace.track import Track, ground_start_positions, load_track
@@ -60,7 +62,8 @@ ESTOP_WATCHDOG = 1.0       #: s, emergency-stop watchdog timeout once it has bee
 CONTROL_SUBSTEPS = 5       #: physics steps per control update (10 ms, the controller's period)
 PRIORITY_DISABLE, PRIORITY_HIGHLEVEL, PRIORITY_CRTP = 0, 1, 2   #: the commander's setpoint priorities
 LOW_POWER_TIMEOUT = 5.0    #: s below pm.lowVoltage before pm.state is low power (pm_stm32f4.c, PM_BAT_LOW_TIMEOUT)
-CONTROLLERS_EMULATED = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
+PID_CONTROLLERS = (0, 1)   #: stabilizer.controller values that select PID (auto, PID)
+MELLINGER = 2              #: stabilizer.controller of the Mellinger controller (controller.c, ControllerTypeMellinger)
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,8 @@ class DroneFirmware:
     warned: set = field(default_factory=set)    #: console warnings already given once since boot
     priority: int = PRIORITY_DISABLE             #: of the setpoint in force
     controller: PidController = field(default_factory=lambda: PidController(ATTITUDE_I_LIMIT, PID_I_LIMIT))
+    mellinger: MellingerController = field(default_factory=MellingerController)
+    controller_type: int = 1                     #: the controller that ran last (PID 1, Mellinger 2)
     planner: hl.Planner = field(default_factory=hl.Planner)
     control_thrust: float = 0.0                  #: N, what the controller commanded last
     control_rates: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, idem
@@ -109,6 +114,10 @@ class DroneFirmware:
     vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
+    ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
+    ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
+    banner_told: bool = False                    #: the boot lines went to a client since this boot
+    loc_tick: int = 0                            #: ms (uint16), locSrvZ.tick: when the last of its own arrived
 
     def __post_init__(self):
         self.armed = self.auto_armed
@@ -203,7 +212,8 @@ class SimFleet:
         """{name: value} of the parameters whose boot value depends on this fleet: the thrust at
         hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks."""
         prof = self.profile
-        out = {"posCtlPid.thrustBase": round(float(prof.thrust_curve.to_counts(prof.weight)))}
+        hover = float(prof.thrust_curve.to_counts(prof.weight))
+        out = {"posCtlPid.thrustBase": round(hover), "ctrlMel.mass": prof.mass, "ctrlMel.massThrust": hover / prof.weight}
         for axis, pid in (("roll", prof.pid_roll_pitch), ("pitch", prof.pid_roll_pitch), ("yaw", prof.pid_yaw)):
             out.update({f"pid_rate.{axis}_kp": pid.kp, f"pid_rate.{axis}_ki": pid.ki, f"pid_rate.{axis}_kd": pid.kd})
         out.update({DECK_PARAMS[d]: 1 for d in self.decks})
@@ -358,7 +368,7 @@ class SimFleet:
             return
         if goal is not None:
             sp = Setpoint(mode_x=ABS, mode_y=ABS, mode_z=ABS, mode_yaw=ABS, source="high-level")
-            sp.position, sp.velocity = goal.pos, goal.vel
+            sp.position, sp.velocity, sp.acceleration, sp.rates = goal.pos, goal.vel, goal.acc, goal.omega
             sp.attitude[2] = goal.yaw
         elif fw.planner.state == hl.IDLE and fw.watchdog != "idle":
             sp = Setpoint(source="high-level stop")
@@ -375,12 +385,26 @@ class SimFleet:
         kalmanCoreUpdateWithPose). A quaternion that is not finite or has no length is dropped."""
         with self.lock:
             fw = self._fw[self._check(i)]
+            # crtp_localization_service.c (extPositionHandler + updateLogFromExtPos, extPoseHandler): the
+            # logs of the last measurement, as received (a position keeps the last pose's quaternion)
+            fw.ext_pose[:3] = np.asarray(pos, np.float32)
+            if quat is None:
+                fw.ext_pos[:] = fw.ext_pose[:3]
+            else:
+                fw.ext_pose[3:] = np.asarray([quat[1], quat[2], quat[3], quat[0]], np.float32)
+            fw.loc_tick = int(self.time * 1000.0) & 0xFFFF
             fw.estimator.external_position(pos, float(fw.params["locSrv.extPosStdDev"]), self.time)
             if quat is not None and not fw.estimator.fuse_attitude(quat, self._quat[i],
                                                                   float(fw.params["locSrv.extQuatStdDev"])):
                 if "quat" not in fw.warned:
                     fw.warned.add("quat")
                     fw.events.append("LOC: external pose with an invalid quaternion, its attitude ignored")
+
+    def peer_position(self, i: int, pos) -> None:
+        """A packed item for another drone (crtp_localization_service.c, peerLocalizationTellPosition):
+        only the ext_pos log takes it."""
+        with self.lock:
+            self._fw[self._check(i)].ext_pos[:] = np.asarray(pos, np.float32)
 
     def radio_id(self, i: int) -> int:
         """The id a packed external position addresses drone i by: the low byte of its radio address
@@ -398,9 +422,18 @@ class SimFleet:
             self._fw[self._check(i)].charge = min(1.0, max(0.0, float(charge)))
 
     def note_packet(self, i: int) -> None:
-        """Count one CRTP packet received for drone i (called by the server)."""
+        """Count one CRTP packet received for drone i (called by the server). The first since a boot
+        queues the boot's console lines, so the client that connects reads them: the firmware's, and
+        one naming the simulator (the drone itself reports the platform and release)."""
         with self.lock:
-            self._fw[self._check(i)].packets_received += 1
+            fw = self._fw[self._check(i)]
+            fw.packets_received += 1
+            if not fw.banner_told:
+                fw.banner_told = True
+                fw.events[:0] = [f"SYS: {device_type_name(self.arming_required)} is up and running!",
+                                 f"SYS: Build {FIRMWARE_RELEASE}",
+                                 "SIMCF: a simulated Crazyflie (cfrace.simcf), not a drone; where it differs "
+                                 "from the firmware: docs/simcf.md"]
 
     def set_param(self, i: int, name: str, value) -> float | int:
         """Write a parameter; returns the value as stored. KeyError for unknown, PermissionError RO."""
@@ -414,8 +447,9 @@ class SimFleet:
             fw.params[name] = coerce_param(spec, value)
             if name == "stabilizer.stop" and fw.params[name]:
                 self._emergency(fw, "stabilizer.stop")
-            if name == "stabilizer.controller" and fw.params[name] not in CONTROLLERS_EMULATED:
-                fw.events.append(f"SIMCF: controller {fw.params[name]} is not emulated, PID runs")
+            if name == "stabilizer.controller" and fw.params[name] not in (*PID_CONTROLLERS, MELLINGER):
+                fw.events.append(f"SIMCF: controller {fw.params[name]} is not emulated (PID 1 and Mellinger 2 are), "
+                                 "PID runs")
             return fw.params[name]
 
     def get_param(self, i: int, name: str) -> float | int:
@@ -546,12 +580,21 @@ class SimFleet:
         self._high_level_setpoint(i)
         if self._gated(fw):
             fw.controller.reset()
+            fw.mellinger.reset()
             idle = self._idle_newtons(fw)                # armed: the props spin at idle whatever the setpoint
             fw.control_thrust, fw.control_rates = idle, np.zeros(3)
             return idle, np.zeros(3)
         sp = self._levelled(fw.setpoint) if fw.watchdog == "level" else fw.setpoint
-        att = quat_to_euler(fw.estimator.attitude(self._quat[i]))   # the estimate, not the truth
-        counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, att, p, dt)
+        q_est = fw.estimator.attitude(self._quat[i])                # the estimate, not the truth
+        kind = MELLINGER if p["stabilizer.controller"] == MELLINGER else 1
+        if kind != fw.controller_type:               # controller.c controllerInit: the new one starts afresh
+            fw.controller.reset()
+            fw.mellinger.reset()
+            fw.controller_type = kind
+        if kind == MELLINGER:
+            counts, rates = fw.mellinger.update(sp, fw.estimator.pos, fw.estimator.vel, q_est, p, dt)
+        else:
+            counts, rates = fw.controller.update(sp, fw.estimator.pos, fw.estimator.vel, quat_to_euler(q_est), p, dt)
         idle = float(p["powerDist.idleThrust"])
         fw.clock.note_thrust(self.time, counts > idle and counts > 0.0 and not sp.is_stop)
         newtons = float(self.profile.thrust_curve.to_newtons(counts)) if counts > 0.0 else 0.0
@@ -710,7 +753,7 @@ class SimFleet:
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()
-            debug = fw.controller.debug
+            debug = (fw.mellinger if fw.controller_type == MELLINGER else fw.controller).debug
             values = {
                 **{f"stateEstimate.{k}": v for k, v in zip(("x", "y", "z", "vx", "vy", "vz"), (*est.pos, *est.vel))},
                 **{f"stateEstimate.{k}": v for k, v in zip(("ax", "ay", "az"), acc_g)},
@@ -740,6 +783,9 @@ class SimFleet:
                 "pm.state": 3 if self.time - fw.vbat_ok_time > LOW_POWER_TIMEOUT else 0,
                 "pm.batteryLevel": 100.0 * fw.charge,
                 "range.zrange": 1000.0 * self._pos[i][2] if "flow" in self.decks else 0.0,
+                **{f"ext_pos.{k}": float(v) for k, v in zip("XYZ", fw.ext_pos)},
+                **{f"locSrv.{k}": float(v) for k, v in zip(("x", "y", "z", "qx", "qy", "qz", "qw"), fw.ext_pose)},
+                "locSrvZ.tick": fw.loc_tick,
                 "supervisor.info": info, "sys.canfly": (info >> 3) & 1, "sys.isFlying": (info >> 4) & 1,
                 "sys.isTumbled": (info >> 5) & 1,
                 **self._motor_logs(i),

@@ -41,7 +41,10 @@ LOG_VARS: tuple[tuple[str, int], ...] = tuple(
     + [(f"ctrltarget.{n}", _FLOAT) for n in ("x", "y", "z", "vx", "vy", "vz", "roll", "pitch", "yaw")]
     + [(f"controller.{n}", _FLOAT) for n in ("cmd_thrust", "roll", "pitch", "yaw", "rollRate", "pitchRate", "yawRate")]
     + [(f"posCtl.{n}", _FLOAT) for n in ("targetVX", "targetVY", "targetVZ", "targetX", "targetY", "targetZ")]
-    + [("pm.vbatMV", _U16), ("pm.batteryLevel", _U8), ("range.zrange", _U16)])
+    + [("pm.vbatMV", _U16), ("pm.batteryLevel", _U8), ("range.zrange", _U16)]
+    # crtp_localization_service.c: the last external position and pose, the tick of the last one
+    + [(f"ext_pos.{n}", _FLOAT) for n in "XYZ"]
+    + [(f"locSrv.{n}", _FLOAT) for n in ("x", "y", "z", "qx", "qy", "qz", "qw")] + [("locSrvZ.tick", _U16)])
 
 
 EXT_POSE = 8   #: localization generic channel: external pose x y z qx qy qz qw

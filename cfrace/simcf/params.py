@@ -19,6 +19,18 @@ class ParamSpec:
 #: CRTP parameter type codes (firmware param.h; cflib ParamTocElement.types): ctype -> (code, struct)
 BRUSHLESS_IDLE_THRUST = 7000   #: counts per motor, the Crazyflie 2.1 Brushless's powerDist.idleThrust
 BRUSHLESS_LOW_VOLTAGE = 3.35   #: V, the Brushless's pm.lowVoltage
+#: The firmware release the simulated Crazyflie reports (platformservice.c: V_STAG) and its commit, whose
+#: first 12 hex digits are the read-only firmware.revision0 (8) and revision1 (4) (version.vtpl)
+FIRMWARE_RELEASE = "2026.08"
+FIRMWARE_REVISION = "54f31e243a0b28b67efef5ba20dbb6d9890a5478"
+
+
+def device_type_name(arming_required: bool) -> str:
+    """The platform's name as the firmware reports it (platform_cf2.c, platform_cf21bl.c: deviceTypeName):
+    the platforms that need arming are the 2.1 Brushless."""
+    return "Crazyflie 2.1 Brushless" if arming_required else "Crazyflie 2.1"
+
+
 PARAM_TYPES = {"int8_t": (0x00, "<b"), "int16_t": (0x01, "<h"), "int32_t": (0x02, "<i"),
                "float": (0x06, "<f"), "uint8_t": (0x08, "<B"), "uint16_t": (0x09, "<H"),
                "uint32_t": (0x0A, "<I")}
@@ -40,6 +52,15 @@ ATTITUDE_GAINS = ((6.0, 3.0, 0.0), (6.0, 3.0, 0.0), (6.0, 1.0, 0.35))          #
 ATTITUDE_I_LIMIT = (20.0, 20.0, 360.0)                                        #: deg s
 VELOCITY_GAINS = ((25.0, 1.0, 0.0), (25.0, 1.0, 0.0), (25.0, 15.0, 0.0))       #: vx, vy, vz
 POSITION_GAINS = ((2.0, 0.0, 0.0), (2.0, 0.0, 0.0), (2.0, 0.5, 0.0))          #: x, y, z
+#: ctrlMel.* of the Mellinger controller (controller_mellinger.c, g_self): N/m, N s/m, N/(m s) on
+#: position; moment gains on attitude (kR), rates (kw) and their integrals. mass (kg) and massThrust
+#: (counts per N) are set from the drone's profile (the firmware's: CF_MASS and 132000).
+MELLINGER_GAINS = (("kp_xy", 0.4), ("kd_xy", 0.2), ("ki_xy", 0.05), ("i_range_xy", 2.0),
+                   ("kp_z", 1.25), ("kd_z", 0.4), ("ki_z", 0.05), ("i_range_z", 0.4),
+                   ("mass", 0.029), ("massThrust", 132000.0),
+                   ("kR_xy", 70000.0), ("kR_z", 60000.0), ("kw_xy", 20000.0), ("kw_z", 12000.0),
+                   ("ki_m_xy", 0.0), ("ki_m_z", 500.0), ("kd_omega_rp", 200.0),
+                   ("i_range_m_xy", 1.0), ("i_range_m_z", 1500.0))
 PID_I_LIMIT = 5000.0                                                          #: the firmware's default
 THRUST_BASE_FIRMWARE = 36000   #: counts, posCtlPid.thrustBase of the Crazyflie 2.x (our default: the profile's hover)
 
@@ -52,12 +73,17 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("stabilizer.estimator", "uint8_t", 2,
               doc="0 auto, 1 complementary, 2 Kalman: reported; the simulated drone always runs its Kalman filter"),
     ParamSpec("stabilizer.controller", "uint8_t", 1,
-              doc="0 auto, 1 PID, 2 Mellinger, ...: only PID (0, 1) is emulated; others: a console warning, PID runs"),
+              doc="0 auto, 1 PID, 2 Mellinger (simcf/mellinger.py); others: a console warning, PID runs"),
     ParamSpec("stabilizer.stop", "uint8_t", 0, doc="nonzero -> emergency stop"),
     ParamSpec("commander.enHighLevel", "uint8_t", 0, doc="accepted, no effect (as in the firmware)"),
     ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
               doc="simulator info: 1 if motors need an arming request"),
     ParamSpec("simcf.bodyIndex", "uint8_t", 0, readonly=True, doc="simulator info: drone index"),
+    ParamSpec("firmware.revision0", "uint32_t", int(FIRMWARE_REVISION[:8], 16), readonly=True,
+              doc="bytes 0-7 of the release's commit (version.vtpl)"),
+    ParamSpec("firmware.revision1", "uint16_t", int(FIRMWARE_REVISION[8:12], 16), readonly=True,
+              doc="bytes 8-11 of the release's commit"),
+    ParamSpec("firmware.modified", "uint8_t", 0, readonly=True, doc="nonzero if the firmware has local changes"),
     # the firmware's motor test override (motors.c): enable 1 = each motor its own value, 2 = m1 to
     # all motors, 3 = m1 to all with battery compensation; 0 = off. Used by the thrust stand
     # (cfrace calibrate, simulated by rehearsal/thrust_stand.py; without a stand these have no effect).
@@ -77,12 +103,16 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("posCtlPid.thrustMin", "uint16_t", 20000, doc="counts, least thrust of the velocity controller"),
     *_group("posCtlPid", "float", (("rLimit", 20.0), ("pLimit", 20.0), ("xVelMax", 1.0), ("yVelMax", 1.0),
                                    ("zVelMax", 1.0)), doc="deg (limits), m/s (velocities)"),
+    *_group("ctrlMel", "float", MELLINGER_GAINS, doc="Mellinger controller (stabilizer.controller 2)"),
     ParamSpec("kalman.resetEstimation", "uint8_t", 0, doc="nonzero: reset the estimator (then set back to 0)"),
     *_group("kalman", "float", (("pNAcc_xy", 0.5), ("pNAcc_z", 1.0), ("pNVel", 0.0), ("pNPos", 0.0),
                                 ("initialX", 0.0), ("initialY", 0.0), ("initialZ", 0.0), ("initialYaw", 0.0)),
             doc="process noise (m/s^2, m/s, m) and the state after a reset (m, rad)"),
     *_group("locSrv", "float", (("extPosStdDev", 0.01), ("extQuatStdDev", 4.5e-3)),
             doc="std dev of external position (m) and attitude (rad) measurements"),
+    *_group("locSrv", "uint8_t", (("enRangeStreamFP32", 0), ("enLhAngleStream", 0), ("enLhMtchStm", 0),
+                                  ("maxTimeLhMtchStm", 25), ("minBsLhMtchStm", 2)),
+            doc="Loco and Lighthouse streams to the client (crtp_localization_service.c): accepted, no effect"),
     *_group("hlCommander", "float", (("vtoff", 0.5), ("vland", 0.2)), doc="m/s, default take-off / landing speed"),
     ParamSpec("hlCommander.groupmask", "uint8_t", 0,
               doc="the groups (bits) of this drone for the high-level commander's group masks; 0: none"),

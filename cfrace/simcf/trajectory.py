@@ -26,9 +26,11 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from cfrace.drone import GRAVITY
 
 PP_SIZE = 8                       #: coefficients per polynomial (degree 7)
 POLY4D_BYTES = 4 * (4 * PP_SIZE + 1)   #: one poly4d piece in memory: 32 float32 coefficients + duration
@@ -46,10 +48,11 @@ class Goal:
     acc: np.ndarray    #: m/s^2 (3,)
     yaw: float         #: rad
     yaw_rate: float    #: rad/s
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(3))   #: rad/s, body rates of the flat trajectory
 
     def finite(self) -> bool:
-        return bool(np.all(np.isfinite(self.pos)) and np.all(np.isfinite(self.vel)) and math.isfinite(self.yaw)
-                    and math.isfinite(self.yaw_rate))
+        return bool(all(np.all(np.isfinite(v)) for v in (self.pos, self.vel, self.acc, self.omega))
+                    and math.isfinite(self.yaw) and math.isfinite(self.yaw_rate))
 
 
 def poly7_nojerk(x0: float, v0: float, a0: float, x1: float, v1: float, a1: float, duration: float) -> np.ndarray:
@@ -145,6 +148,20 @@ def decode_compressed(memory, offset: int) -> list[Piece]:
         pieces.append(Piece(coeffs, duration))
 
 
+def body_rates(acc: np.ndarray, jerk: np.ndarray, yaw: float, yaw_rate: float) -> np.ndarray:
+    """The body rates (3,) rad/s of a drone flying the flat outputs (pptraj.c, poly4d_eval, from the
+    differential flatness of a quadrotor): the thrust direction is acc + g; the jerk across it turns
+    it (about body x and y), the yaw rate projected on it turns about body z."""
+    thrust = acc + np.array([0.0, 0.0, GRAVITY])
+    mag = float(np.linalg.norm(thrust))
+    z_b = thrust / mag
+    y_b = np.cross(z_b, [math.cos(yaw), math.sin(yaw), 0.0])
+    y_b = y_b / np.linalg.norm(y_b)
+    x_b = np.cross(y_b, z_b)
+    h = (jerk - float(jerk @ z_b) * z_b) / mag
+    return np.array([-float(h @ y_b), float(h @ x_b), z_b[2] * yaw_rate])
+
+
 def _rotz(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -176,12 +193,14 @@ class PiecewiseTrajectory:
         """Piece at its own time tau, time stretched by the timescale; sign -1 runs it backwards."""
         with np.errstate(all="ignore"):
             ts = np.float64(self.timescale)
-            vals = [[polyval(c, tau, d) * (sign / ts) ** d for c in piece.coeffs] for d in range(3)]
-        return Goal(np.array(vals[0][:3]), np.array(vals[1][:3]), np.array(vals[2][:3]), vals[0][3], vals[1][3])
+            vals = [[polyval(c, tau, d) * (sign / ts) ** d for c in piece.coeffs] for d in range(4)]
+            acc, yaw, yaw_rate = np.array(vals[2][:3]), vals[0][3], vals[1][3]
+            omega = body_rates(acc, np.array(vals[3][:3]), yaw, yaw_rate)
+        return Goal(np.array(vals[0][:3]), np.array(vals[1][:3]), acc, yaw, yaw_rate, omega)
 
     @staticmethod
     def _held(goal: Goal) -> Goal:
-        return Goal(goal.pos, np.zeros(3), np.zeros(3), goal.yaw, 0.0)
+        return Goal(goal.pos, np.zeros(3), np.zeros(3), goal.yaw, 0.0)   # omega zero too
 
     def eval(self, t: float) -> Goal:
         t = t - self.t_begin
@@ -208,7 +227,8 @@ class PiecewiseTrajectory:
     def _transform(self, g: Goal) -> Goal:
         """pptraj.c traj_eval_transform: rotate about z by shift_yaw, then shift."""
         rot = _rotz(_wrap(self.shift_yaw))
-        return Goal(rot @ g.pos + self.shift, rot @ g.vel, rot @ g.acc, g.yaw + _wrap(self.shift_yaw), g.yaw_rate)
+        return Goal(rot @ g.pos + self.shift, rot @ g.vel, rot @ g.acc, g.yaw + _wrap(self.shift_yaw), g.yaw_rate,
+                    g.omega)
 
     def start_point(self) -> Goal:
         """The trajectory at its start (without shift), for relative starts (planner.c plan_start_trajectory)."""
