@@ -1,4 +1,5 @@
-"""`cfrace sim` commands: serve (simulated Crazyflies over CRTP/UDP), dry-run, replay."""
+"""`cfrace sim` commands: serve (simulated Crazyflies over CRTP/UDP), script (a cflib script against
+them), dry-run, replay."""
 
 from __future__ import annotations
 
@@ -57,6 +58,22 @@ def serve_cmd(
     serve(track, drones, port, profile, obstacles=obstacles, body_names=split_list(bodies), seed=seed,
           decks=() if decks.strip() == "none" else tuple(split_list(decks) or ()),
           reset_after_flight=reset_after_flight, out=say)
+
+
+@sim_app.command("script", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+def script_cmd(
+    ctx: typer.Context,
+    script: Path = typer.Argument(..., help="A Python script that flies Crazyflies with cflib, e.g. one of "
+                                            "cflib's examples; its own arguments follow it."),
+    port: int = typer.Option(19850, help="The --port of the `cfrace sim serve` to fly."),
+    drones: int = typer.Option(2, min=1, help="The --drones of that `cfrace sim serve`."),
+):
+    """Run a cflib script unmodified against `cfrace sim serve`: its radio URIs reach the served drones
+    (address E7E7E7E7E7 the first, E7E7E7E7xx the drone with radio id xx = 1, 2, ...). Exits with the
+    script's exit code."""
+    from cfrace.simcf.cflib_script import run_script, served_links
+
+    sys.exit(run_script(script, list(ctx.args), served_links(port, drones)))
 
 
 @sim_app.command("dry-run")

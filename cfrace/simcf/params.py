@@ -75,6 +75,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("stabilizer.controller", "uint8_t", 1,
               doc="0 auto, 1 PID, 2 Mellinger (simcf/mellinger.py); others: a console warning, PID runs"),
     ParamSpec("stabilizer.stop", "uint8_t", 0, doc="nonzero -> emergency stop"),
+    ParamSpec("led.bitmask", "uint8_t", 0, doc="the LEDs' override bits (led.c): accepted, no LEDs are simulated"),
     ParamSpec("commander.enHighLevel", "uint8_t", 0, doc="accepted, no effect (as in the firmware)"),
     ParamSpec("supervisor.armingReq", "uint8_t", 1, readonly=True,
               doc="simulator info: 1 if motors need an arming request"),
