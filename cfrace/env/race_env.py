@@ -250,7 +250,7 @@ class RaceEnv(LabLoop):
         thrust, rates = action_to_command(actions, self.profile.mass, self.profile.max_thrust_weights,
                                           self.profile.max_rates_deg)
         laps_before = sim.race.laps.clone()
-        acc = thrust / self.profile.mass     # what the loop's prediction assumes the command does
+        acc = thrust / self.profile.mass if self.loop is not None else None   # the loop prediction's command
         if self.flight_obs:
             thrust = thrust.clamp_min(self.min_thrust_n)
         if self.drone is not None:   # the thrust this drone delivers for the command
