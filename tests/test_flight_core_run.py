@@ -60,7 +60,7 @@ def test_lockstep_dry_run_flies_and_logs(lockstep_run):
     result, log = lockstep_run
     assert result["end"] == "timeout" and result["winner"] == "draw" and result["safety_events"] == []
     data = check_stopped_and_logged(result, log)
-    assert data.meta["velocity_alpha"] == 0.7 and data.meta["latency_prediction"] == "commanded"
+    assert data.meta["velocity_alpha"] == 0.7 and data.meta["latency_prediction"] == "commanded_always"
     for topic in ("/mocap/pose", "/estimate", "/obs", "/action", "/setpoint", "/timing", "/link", "/race"):
         assert data.count(topic) > 0, topic
     assert data.count("/obs") == 301                                           # 100 Hz loop, 3 s race

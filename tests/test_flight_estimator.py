@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cfrace.flight.mocap.estimation import PoseEstimator, estimates_to_msg
+from cfrace.flight.mocap.estimation import PREDICTIONS, PoseEstimator, estimates_to_msg
 from cfrace.rotations import quat_to_rot
 from cfrace.flight.mocap.sources import MocapFrame, Pose
 
@@ -272,17 +272,41 @@ def test_latency_compensation_flies_the_commanded_thrust_forward(alpha):
     path = lambda t: np.array([0.5 * t, 0.0, 1.0 + 0.5 * up * t * t])   # x at 0.5 m/s, z accelerating
     speed = lambda t: np.array([0.5, 0.0, up * t])
     out = {}
-    for told, rule in ((True, True), (False, True), (True, False)):
-        est = PoseEstimator(["cf1"], alpha=alpha, lead_s=lead, commanded=rule)
+    for told, rule in ((True, "commanded_always"), (False, "commanded_always"), (True, "velocity")):
+        est = PoseEstimator(["cf1"], alpha=alpha, lead_s=lead, prediction=rule)
         for k in range(40):
             if told:
                 est.command("cf1", 9.81 + up)
             e = est.update(frame(k, {"cf1": (path(k * DT), Q0)}), now=k * DT)["cf1"]
         out[told, rule] = e
     t_now = 39 * DT + lead
-    np.testing.assert_allclose(out[True, True].pos, path(t_now), atol=1e-9)
-    np.testing.assert_allclose(out[True, True].vel, speed(t_now), atol=1e-6 if alpha < 1 else 1e-9)
-    for other in (out[False, True], out[True, False]):
+    np.testing.assert_allclose(out[True, "commanded_always"].pos, path(t_now), atol=1e-9)
+    np.testing.assert_allclose(out[True, "commanded_always"].vel, speed(t_now), atol=1e-6 if alpha < 1 else 1e-9)
+    for other in (out[False, "commanded_always"], out[True, "velocity"]):
         assert abs(other.pos[2] - path(t_now)[2]) > 1e-4 and abs(other.vel[2] - speed(t_now)[2]) > 0.04
     est.command("cf1", None)            # no longer on rate setpoints: forgotten
     assert est._commands == {}
+
+
+def test_without_compensation_the_command_makes_up_only_for_the_velocitys_lag():
+    """Compensation off (lead_s 0): the estimate stays at the newest pose, and its velocity is the
+    velocity of that pose's time under "commanded_always" (today's rule), the filtered pose
+    difference's lag (dt (1/alpha - 1/2)) made up for by the command; "commanded" (the rule of logs
+    from 2026-12-07, only with compensation) and "velocity" keep the lagging velocity. An unknown
+    rule is refused."""
+    up, alpha = 2.0, 0.5
+    path = lambda t: np.array([0.5 * t, 0.0, 1.0 + 0.5 * up * t * t])
+    out = {}
+    for rule in PREDICTIONS:
+        est = PoseEstimator(["cf1"], alpha=alpha, prediction=rule)
+        for k in range(40):
+            est.command("cf1", 9.81 + up)
+            e = est.update(frame(k, {"cf1": (path(k * DT), Q0)}), now=k * DT)["cf1"]
+        out[rule] = e
+        np.testing.assert_allclose(e.pos, path(39 * DT), atol=1e-12)
+    np.testing.assert_allclose(out["commanded_always"].vel[2], up * 39 * DT, atol=1e-6)
+    for rule in ("commanded", "velocity"):
+        np.testing.assert_allclose(out[rule].vel, out["velocity"].vel, atol=0)
+        assert up * 39 * DT - out[rule].vel[2] > 0.5 * up * DT * (1 / alpha - 0.5)
+    with pytest.raises(ValueError, match="prediction must be one of"):
+        PoseEstimator(["cf1"], prediction="commanded_later")

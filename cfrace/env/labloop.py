@@ -55,8 +55,9 @@ class LabLoop:
         difference of the last two frames it got, position predicted forward by the age of its
         last frame plus the latency compensation (episodes with it; the pose age and a late
         setpoint's tick): after the episode's first command, as the commanded thrust flies it
-        (predict_commanded), before it on the velocity; attitude turned forward at the body rates
-        of the last two frames."""
+        (predict_commanded; with compensation or without, the flight estimator's rule
+        commanded_always), before it on the velocity; attitude turned forward at the body rates
+        of the last two frames (with compensation)."""
         e, a = self.num_envs, self.num_agents
         age = frame_age(self.lp_latency, self.loop.jitter_s, self._rand(e, a))
         (p0, q0), (p1, q1), (p2, q2) = (self._frame_at(age + i * MOCAP_DT) for i in range(3))
@@ -76,7 +77,7 @@ class LabLoop:
         q_prev = q_prev * x0(1.0 - 2.0 * ((q * q_prev).sum(-1) < 0).float())
         turned = rotate_body(q, body_rates(q_prev, q, x0(span)), x0(h))
         quat = torch.where(x0(comp > 0), turned, q)
-        cmd = x0((comp > 0) & ~self.lp_fresh)
+        cmd = x0(~self.lp_fresh)
         c_pos, c_vel = predict_commanded(base, vel, q, x0(self.cmd_acc), x0(h), x0(span) * 0.5)
         return torch.where(cmd, c_pos, pos), torch.where(cmd, c_vel, vel), quat
 

@@ -42,6 +42,7 @@ def _final_status(fleet) -> list[dict]:
         out.append({"body": name, "motors_off": s["thrust"] == 0.0, "thrust_n": s["thrust"],
                     "thrust_counts": s["thrust_counts"], "armed": s["armed"], "locked": s["locked"],
                     "watchdog": s["watchdog"], "emergency_stopped": s["emergency_stopped"], "crashed": s["crashed"],
+                    "crash_reason": s["crash_reason"],
                     "pos": [round(float(v), 4) for v in fleet.state(i)["pos"]]})
     return out
 

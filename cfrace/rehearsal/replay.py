@@ -161,7 +161,7 @@ def _loop(lg: _Logged, clock: _ReplayClock, source, links: list, log) -> FlightL
               for i, (n, phase) in enumerate(zip(meta["policies"], inference_phases(pols)))]
     estimator = PoseEstimator(bodies, stale_after_s=safety.mocap_stale_s, alpha=float(meta.get("velocity_alpha", 0.5)),
                               lead_s=float(meta.get("latency_comp_s", 0.0)),
-                              commanded=meta.get("latency_prediction") == "commanded")
+                              prediction=meta.get("latency_prediction", "velocity"))
     # the race's own timeout (logs before it was in /meta: the last tick) and its landings: after the
     # race's end a drone may fly on on its policy before it lands (failsafe.land_after_race)
     timeout_s = float(meta.get("timeout_s", float(clock.ticks[-1]["t"]) - 1e-9))

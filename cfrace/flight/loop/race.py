@@ -37,7 +37,7 @@ from cfrace.flight.safety import check as sf
 from cfrace.flight.mocap.consistency import check_still
 from cfrace.flight.link.opener import check_link, wait_heard
 from cfrace.flight.loop.swarm import check_take_off
-from cfrace.flight.mocap.estimation import PoseEstimator
+from cfrace.flight.mocap.estimation import PREDICTION, PoseEstimator
 from cfrace.flight.log.foxglove_scene import log_write_error, open_sink
 from cfrace.flight.landing.descent import LandingSetup
 from cfrace.flight.log.timing import loop_figures
@@ -199,7 +199,7 @@ class RaceRun:
                      "profile": setup.profile.name, "rate_hz": cfg.rate_hz, "bodies": list(cfg.bodies),
                      "uris": list(io.uris), "mocap": cfg.mocap, "lockstep": not real_time,
                      "safety": asdict(cfg.safety), "velocity_alpha": cfg.velocity_alpha,
-                     "latency_comp_s": cfg.latency_comp, "latency_prediction": "commanded", "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
+                     "latency_comp_s": cfg.latency_comp, "latency_prediction": PREDICTION, "loop_cpu": self.loop_cpu, "rt_priority": rt_priority,
                      "timeout_s": cfg.timeout_s, "landing": cfg.landing, "start": cfg.start,
                      "policies": {n: {"path": str(p.path), **p.policy.meta}
                                   for n, p in zip(cfg.names, setup.policies)},

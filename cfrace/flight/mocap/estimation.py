@@ -16,12 +16,13 @@ simulation). Between poses the position is predicted forward with the velocity f
 `predict_s` (default stale_after_s), then held. An estimate older than stale_after_s is not valid.
 
 Latency compensation (`lead_s` > 0, the mocap system's latency): the estimate is predicted forward
-by the pose's age plus lead_s. For a body the loop has told its last command (`command`: the
-collective acceleration along body z it sent, cfrace.loopmodel.predict_commanded), position and
-velocity follow the commanded thrust and gravity from the velocity of the frame's time (a filtered
-pose difference lags the frame by dt (1/alpha - 1/2)); without one (before the first setpoint,
-while a drone lands on the high-level commander) position goes on at the velocity. The attitude
-turns at the measured body rates.
+by the pose's age plus lead_s, the attitude at the measured body rates. For a body the loop has
+told its last command (`command`: the collective acceleration along body z it sent,
+cfrace.loopmodel.predict_commanded), position and velocity follow the commanded thrust and gravity
+from the velocity of the frame's time (a filtered pose difference lags the frame by
+dt (1/alpha - 1/2)), with compensation or without (`prediction`, PREDICTIONS); without a command
+(before the first setpoint, while a drone lands on the high-level commander) position goes on at
+the velocity.
 Plain float64 arithmetic and no randomness: the same frames and times give the same estimates.
 """
 
@@ -79,6 +80,14 @@ def _predict_commanded(p: tuple, v: tuple, q: tuple, acc: float, h: float, lag: 
             (v0x + ax * h, v0y + ay * h, v0z + az * h))
 
 
+#: the flight logs' ``latency_prediction``: how the estimate of a body told its command is predicted.
+#: velocity: never from the command (logs before 2026-12-07); commanded: only with latency
+#: compensation on; commanded_always: also without (h then only the pose's age since its frame,
+#: and the velocity from the frame's time: the filtered pose difference's lag made up for).
+PREDICTIONS = ("velocity", "commanded", "commanded_always")
+PREDICTION = "commanded_always"   #: today's flights' rule
+
+
 @dataclass
 class _Track:
     """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
@@ -108,13 +117,15 @@ class PoseEstimator:
     def __init__(self, bodies: list[str], *, alpha: float = 0.5, max_speed_mps: float = 20.0,
                  max_jump_m: float = 0.3, stale_after_s: float = 0.1,
                  predict_s: float | None = None, reacquire_after: int = 5, lead_s: float = 0.0,
-                 commanded: bool = True):
+                 prediction: str = PREDICTION):
         if not 0.0 < alpha <= 1.0:
             raise ValueError(f"alpha must be in (0, 1], got {alpha}")
         if not 0.0 <= lead_s < 0.1:
             raise ValueError(f"lead_s must be in [0, 0.1) s, got {lead_s}")
         self.lead_s = float(lead_s)
-        self.commanded = commanded   #: False: ignore command() (flight logs before the rule: their replays)
+        if prediction not in PREDICTIONS:
+            raise ValueError(f"prediction must be one of {', '.join(PREDICTIONS)}, got {prediction!r}")
+        self.prediction = prediction   #: a PREDICTIONS rule (replays fly the one of their log's meta)
         self.bodies = list(bodies)
         self.alpha, self.max_speed_mps, self.max_jump_m = alpha, max_speed_mps, max_jump_m
         self.stale_after_s = stale_after_s
@@ -259,7 +270,9 @@ class PoseEstimator:
         if self.lead_s > 0.0:
             h += self.lead_s
             quat = _rotate_body(quat, tr.omega, h)
-        acc = self._commands.get(body) if self.lead_s > 0.0 and tr.samples > 1 and self.commanded else None
+        rule = self.prediction
+        on = rule == "commanded_always" or (rule == "commanded" and self.lead_s > 0.0)
+        acc = self._commands.get(body) if on and tr.samples > 1 else None
         if acc is not None:
             lag = tr.dt * (1.0 / self.alpha - 0.5)
             (x, y, z), (vx, vy, vz) = _predict_commanded((x, y, z), (vx, vy, vz), tr.quat, acc, h, lag)
