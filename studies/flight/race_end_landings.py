@@ -1,11 +1,11 @@
 """Do the landings at a race's end keep clear of the gates? Lockstep races ended by the timeout at
 every moment of a window, each ending with both drones landing from wherever they were.
 
-    .venv/bin/python studies/race_end_landings.py [--ego ds] [--opp ours] [--profile cf2x_paper]
+    .venv/bin/python studies/flight/race_end_landings.py [--ego ds] [--opp ours] [--profile cf2x_paper]
         [--from 1.0] [--to 9.0] [--step 0.03] [--json FILE]
-    .venv/bin/python studies/race_end_landings.py --policies ours,ds,ours,ds,ours,ds,ours,ds --track complex ...
+    .venv/bin/python studies/flight/race_end_landings.py --policies ours,ds,ours,ds,ours,ds,ours,ds --track complex ...
         (a swarm: drones that crashed racing are not landings; each race end's slowest tick in CPU ms)
-    .venv/bin/python studies/race_end_landings.py --compare NEW.json:OLD.json ... [--json F]
+    .venv/bin/python studies/flight/race_end_landings.py --compare NEW.json:OLD.json ... [--json F]
         (the same scan by two code versions: bad race ends, landings that start at another time)
 
 Per race end: whether a simulated drone crashed (the simulator's crash flag at the end: a gate frame,

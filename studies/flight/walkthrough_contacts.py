@@ -2,7 +2,7 @@
 lockstep dry-run, the real-time dry-run, and `cfrace fly` against `cfrace sim serve` (two processes,
 as in docs/walkthrough.md).
 
-    python studies/walkthrough_contacts.py [--runs 10] [--paths lockstep,realtime,serve]
+    python studies/flight/walkthrough_contacts.py [--runs 10] [--paths lockstep,realtime,serve]
         [--track lemniscate] [--ego ours] [--opp ds] [--laps 1] [--extra "--profile cf2x_paper"]
         [--json FILE] [--keep DIR]
 

@@ -1,6 +1,6 @@
 """torch.compile of the PPO minibatch step against eager: compile time and time per minibatch.
 
-    python studies/update_compile.py [--method ours] [--precision fp32|bf16] [--steps 40] [--json FILE]
+    python studies/training/update_compile.py [--method ours] [--precision fp32|bf16] [--steps 40] [--json FILE]
 
 One agent's networks of the cpu preset, a minibatch of the preset's size (worlds x rollout /
 minibatches), the step as cfrace/rl/ippo.py runs it (forward with the output layers in float32,

@@ -1,6 +1,6 @@
 """How much of an N-drone race is decided by the start grid? Races of one lineup from other grids.
 
-    .venv/bin/python studies/start_grids.py [--lineup ours,ours,ds,ds] [--seeds 100,101,102] [--races 50]
+    .venv/bin/python studies/evaluation/start_grids.py [--lineup ours,ours,ds,ds] [--seeds 100,101,102] [--races 50]
                                                [--track lemniscate] [--json FILE]
 
 The track's grid (cfrace.track.start_grid: rows of two side by side, one offset apart, centred on

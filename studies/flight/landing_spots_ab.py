@@ -1,6 +1,6 @@
 """The landing-spot choice of another revision against this checkout's: the same spots, and its CPU time.
 
-    .venv/bin/python studies/landing_spots_ab.py [OLD_REV] [--tracks lemniscate,complex] [--drones 3,8] [--cases 20]
+    .venv/bin/python studies/flight/landing_spots_ab.py [OLD_REV] [--tracks lemniscate,complex] [--drones 3,8] [--cases 20]
 
 OLD_REV's cfrace/flight/spots.py (git show; it imports only numpy and the standard library) is loaded
 beside cfrace.flight.landing.spots. For each track and drone count, ``--cases`` random sets of stop points in the
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def load_revision(rev: str):

@@ -7,7 +7,7 @@ policies/pipeline.yaml does) in chosen.onnx. Every chosen policy is evaluated on
 on the test seeds (50 runs x 3 laps each, gate starts); the script prints one row per policy and
 the means over the training seeds with their spread. Usage:
 
-    .venv/bin/python studies/calibration_transfer.py --runs-dir runs/cal --seeds 2,3,4,5 [--json F]
+    .venv/bin/python studies/training/calibration_transfer.py --runs-dir runs/cal --seeds 2,3,4,5 [--json F]
 
 The trainings (docs/calibration.md):
 

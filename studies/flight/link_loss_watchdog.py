@@ -5,7 +5,7 @@ served in this process; drone 0's link goes through a UDP relay that drops every
 time T on. The drone's ground truth is sampled until it lies still: its highest point and how far
 from the cut it comes to rest, and when its motors went off (the firmware's watchdog). Usage:
 
-    .venv/bin/python studies/link_loss_watchdog.py --cuts 3,4,5 [--json FILE]
+    .venv/bin/python studies/flight/link_loss_watchdog.py --cuts 3,4,5 [--json FILE]
 """
 
 from __future__ import annotations

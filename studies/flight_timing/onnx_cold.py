@@ -1,6 +1,6 @@
 """How long one ONNX inference of the paper-size actor takes back to back and after a sleep.
 
-    python studies/onnx_cold.py [--calls 300]
+    python studies/flight_timing/onnx_cold.py [--calls 300]
 
 The flight loop sleeps most of each 10 ms period; this measures what that costs the next inference
 (docs/benchmarks.md, "What each warm-up pays"). Actor: the hold controller inside an MLP of

@@ -4,7 +4,7 @@ For each distance D: the track's YAML with `spawn.ground_distance: D` (a tempora
 lockstep dry-run of ours vs ds (the policies' training profile), 4 s; prints the gates each drone
 passed and how it ended. Usage:
 
-    .venv/bin/python studies/ground_start_distance.py [--track lemniscate] [--distances 0.6,0.8,1.0,1.2,1.4]
+    .venv/bin/python studies/flight/ground_start_distance.py [--track lemniscate] [--distances 0.6,0.8,1.0,1.2,1.4]
 """
 
 from __future__ import annotations

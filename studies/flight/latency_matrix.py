@@ -1,7 +1,7 @@
 """Mocap latency against its compensation: each shipped lemniscate policy alone through the lockstep
 flight stack (docs/flight.md, "Mocap latency").
 
-    .venv/bin/python studies/latency_matrix.py [--latencies 0,10,20,30,40] [--seeds 1,2,3]
+    .venv/bin/python studies/flight/latency_matrix.py [--latencies 0,10,20,30,40] [--seeds 1,2,3]
                                                   [--profile trained] [--json F]
 
 Per (policy, latency L ms, compensation C ms, seed): the run of

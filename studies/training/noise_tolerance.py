@@ -1,6 +1,6 @@
 """How much exploration noise does racing the track survive? A shipped policy that flies it, with noise.
 
-    .venv/bin/python studies/noise_tolerance.py [--policy ss] [--track lemniscate] [--envs 256]
+    .venv/bin/python studies/training/noise_tolerance.py [--policy ss] [--track lemniscate] [--envs 256]
                                                    [--seconds 20] [--seed 1] [--sigmas 0,0.1,0.3,0.5,1]
                                                    [--dims 0123]
 

@@ -1,7 +1,7 @@
 """The pose/command consistency check (cfrace/flight/mocap/consistency.py) on races of the shipped policies:
 false stops and the largest residuals, lockstep dry-runs through the whole flight stack.
 
-    python studies/consistency_races.py [--races 50] [--pairs lemniscate:ours:ds,complex:ours:ds]
+    python studies/flight/consistency_races.py [--races 50] [--pairs lemniscate:ours:ds,complex:ours:ds]
                                            [--noise-mm 1] [--json FILE]
 
 Each race: `cfrace sim dry-run --lockstep` (seed = race index) with the track's shipped policies and

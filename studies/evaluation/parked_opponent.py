@@ -1,6 +1,6 @@
 """Where does a two-drone policy flying alone see its opponent? Its success alone under each choice.
 
-    .venv/bin/python studies/parked_opponent.py [--policies dm,ours] [--seeds 0,1,2,3] [--runs 50] [--json FILE]
+    .venv/bin/python studies/evaluation/parked_opponent.py [--policies dm,ours] [--seeds 0,1,2,3] [--runs 50] [--json FILE]
 
 `cfrace eval` of a multi-agent policy shows it an opponent that never moves
 (cfrace.evaluate.rollout.parked_opponents): by default one that crashed at the start, on the floor in

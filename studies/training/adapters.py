@@ -1,6 +1,6 @@
 """Cost of the Gymnasium / PettingZoo adapters over the native batched RaceEnv, at equal world counts.
 
-    .venv/bin/python studies/adapters.py [--worlds 1,16,256] [--seconds 2] [--json FILE]
+    .venv/bin/python studies/training/adapters.py [--worlds 1,16,256] [--seconds 2] [--json FILE]
 
 For each world count N, world-steps per second (one 50 Hz step of one world, all its drones) of:
   native ds     RaceEnv(N worlds, ds), torch actions

@@ -1,7 +1,7 @@
 """What one UDP send on 127.0.0.1 costs the flight loop: back to back, once every 10 ms, and once
 every 10 ms after the path was warmed.
 
-    python studies/udp_cold.py [--sends 400] [--cpu N]
+    python studies/flight_timing/udp_cold.py [--sends 400] [--cpu N]
 
 The loop sends each drone one setpoint datagram per tick (udp:// links: the simulated drones).
 Measured is the sending thread's CPU time for socket.send of a 16-byte datagram to a socket in

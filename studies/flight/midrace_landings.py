@@ -1,7 +1,7 @@
 """One drone of a field told to land mid-race (a soft failsafe), at every step of a range of times:
 does it land, and do the others race on?
 
-    python studies/midrace_landings.py [--track lemniscate] [--policies ours,ds,ours,ds] [--fault low_battery]
+    python studies/flight/midrace_landings.py [--track lemniscate] [--policies ours,ds,ours,ds] [--fault low_battery]
                                           [--drone d2] [--from 1] [--to 8] [--step 0.5] [--json F]
 
 Lockstep dry-runs of the shipped policies (cf2x_paper, their training profile; 3 laps, ground start)

@@ -1,6 +1,6 @@
 """Which opponent should a two-drone policy observe in an N-drone race? Races under each rule.
 
-    .venv/bin/python studies/opponent_rules.py [--races 50] [--seeds 1,2] [--lineups ours,ours,ds,ds;ours,ds,ss,dm]
+    .venv/bin/python studies/evaluation/opponent_rules.py [--races 50] [--seeds 1,2] [--lineups ours,ours,ds,ds;ours,ds,ss,dm]
                                                  [--track lemniscate] [--json FILE]
 
 For every lineup, opponent rule (cfrace.contract.observations.OPPONENT_RULES) and seed: the share of

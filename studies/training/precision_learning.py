@@ -1,6 +1,6 @@
 """Learning per sample with a bf16 update against float32: DS on the lemniscate, several seeds each.
 
-    python studies/precision_learning.py --out /tmp/prec --seeds 0 1 2 --steps 4000000
+    python studies/training/precision_learning.py --out /tmp/prec --seeds 0 1 2 --steps 4000000
 
 For every (precision, seed): `cfrace train --method ds --track lemniscate --precision P --steps N
 --keep-checkpoints --checkpoint-min C`, then every kept checkpoint flies the single-agent

@@ -2,7 +2,7 @@
 the /estimate (poses, 10-Hz drones and trails) and /setpoint (commands) records of a two-drone
 race, CPU time per call, p50 / p99 over 3000 ticks. Prints one line per record kind.
 
-    python studies/foxglove_scene_cost.py
+    python studies/flight_timing/foxglove_scene_cost.py
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """When and where two copies of one policy crash into each other in a field, and how far the
 policy's mean actions reach beyond the action range (what the action-bound loss would pull in).
 
-    .venv/bin/python studies/twin_crashes.py [--policy ours] [--field ours,ours,ds,ds] [--races 50] [--seed 100]
+    .venv/bin/python studies/evaluation/twin_crashes.py [--policy ours] [--field ours,ours,ds,ds] [--races 50] [--seed 100]
                                                 [--track lemniscate]
 
 Prints, for the field (cfrace.evaluate.field.race_field, gate starts, 3 laps): the crashes of the
