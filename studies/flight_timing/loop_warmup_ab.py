@@ -1,10 +1,10 @@
 """The flight loop's timing with and without the warm-up window, side by side, interleaved.
 
-    python benchmarks/loop_warmup_ab.py [--leads 0,1,3,5] [--rounds 3] [--seconds 8]
+    python studies/flight_timing/loop_warmup_ab.py [--leads 0,1,3,5] [--rounds 3] [--seconds 8]
                                         [--policies paper|shipped] [--loop-cpu off|auto|N]
                                         [--rt-priority 0|auto|N] [--json FILE]
 
-benchmarks/loop_ab.py with one setting per warm-up window (window 0 = off is the reference). Used
+studies/flight_timing/loop_ab.py with one setting per warm-up window (window 0 = off is the reference). Used
 for docs/benchmarks.md ("Warm-up window"; those runs predate pinning and SCHED_FIFO by default, so
 the defaults here are the loop unpinned at normal priority, as then).
 """

@@ -1,6 +1,6 @@
 """The flight loop's timing under several settings, side by side, interleaved.
 
-    python benchmarks/loop_ab.py [--configs NAME:KEY=V,...;NAME:...] [--rounds 3] [--seconds 8]
+    python studies/flight_timing/loop_ab.py [--configs NAME:KEY=V,...;NAME:...] [--rounds 3] [--seconds 8]
                                  [--policies paper|shipped] [--json FILE]
 
 Runs `cfrace bench loop` (cfrace.rehearsal.loop_timing.bench_loop: the unchanged fly code against a
@@ -11,7 +11,7 @@ rounds of each figure (ms), the spread (min..max over rounds) of the p99s, the g
 rounds, and the ratio of each median to the first setting's. Unset keys take bench_loop's defaults
 (the flight defaults: loop_cpu auto, rt_priority auto, 3-ms window). Default settings: the loop
 thread unpinned at normal priority, pinned to a CPU of its own, and the default (pinned, SCHED_FIFO
-where permitted) (docs/benchmarks.md, "Loop CPU and priority"); benchmarks/loop_warmup_ab.py compares warm-up
+where permitted) (docs/benchmarks.md, "Loop CPU and priority"); studies/flight_timing/loop_warmup_ab.py compares warm-up
 windows with it.
 """
 

@@ -1,9 +1,10 @@
 """The pose estimator's update (`PoseEstimator.update`, on every 100 Hz tick) of two commits, timed
 in one process, interleaved.
 
-    python benchmarks/estimator_ab.py OLD_REV [--rounds 40] [--block 200] [--cold-block 20] [--bodies 2] [--json FILE]
+    python studies/flight_timing/estimator_ab.py OLD_REV [--rounds 40] [--block 200] [--cold-block 20] [--bodies 2] [--json FILE]
 
-OLD_REV's `cfrace/flight/estimator.py` (and the modules it imports) is taken with `git archive`; the
+OLD_REV's estimator (`cfrace/flight/mocap/estimation.py`, `cfrace/flight/estimator.py` before
+the split by concern, and the modules it imports) is taken with `git archive`; the
 new side is this checkout. Both estimators get the same frames: ``bodies`` bodies on circles at
 100 Hz with one outlier every 50 frames, with the latency compensation on (``lead_s`` 10 ms, as
 `fly` flies). Each round times a block of updates of each side back to back, then a smaller one
@@ -28,16 +29,23 @@ from pathlib import Path
 
 import numpy as np
 
-from loop_commits_ab import REPO, tree
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from loop_commits_ab import REPO, tree  # noqa: E402  (the maintained tool's git archive of a revision)
+
+#: the estimator's module and the mocap types' module, by layout: since the split of flight/ by concern, before it
+LAYOUTS = (("cfrace.flight.mocap.estimation", "cfrace.flight.mocap.base"),
+           ("cfrace.flight.estimator", "cfrace.flight.mocap_base"))
 
 
 def load(src: Path):
-    """cfrace.flight.estimator and cfrace.flight.mocap_base of the checkout at ``src`` (fresh imports)."""
+    """The estimator's module and the mocap types' module of the checkout at ``src`` (fresh imports)."""
     for name in [m for m in sys.modules if m == "cfrace" or m.startswith("cfrace.")]:
         del sys.modules[name]
+    estimator, mocap_base = next(mods for mods in LAYOUTS
+                                 if (src / (mods[0].replace(".", "/") + ".py")).is_file())
     sys.path.insert(0, str(src))
     try:
-        return importlib.import_module("cfrace.flight.estimator"), importlib.import_module("cfrace.flight.mocap_base")
+        return importlib.import_module(estimator), importlib.import_module(mocap_base)
     finally:
         sys.path.remove(str(src))
 

@@ -1,6 +1,6 @@
 """Where the flight loop's late ticks come from, and the machine's own floor.
 
-    python benchmarks/loop_stalls.py [--seconds 8] [--rt-priority auto|0|N] [--loop-cpu auto] [--bare] [--runs 1]
+    python studies/flight_timing/loop_stalls.py [--seconds 8] [--rt-priority auto|0|N] [--loop-cpu auto] [--bare] [--runs 1]
                                      [--late-ms 0.5]
 
 Default: `cfrace bench loop` (cfrace.rehearsal.loop_timing.bench_loop, the unchanged fly code against a
