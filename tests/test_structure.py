@@ -95,6 +95,7 @@ LAYERS = [
     ("rehearsal", ["cfrace.rehearsal"]),
     ("sweeps", ["cfrace.sweep"]),
     ("evaluation", ["cfrace.evaluate"]),
+    ("reproduction", ["cfrace.reproduction"]),
     ("CLI", ["cfrace.cli", "cfrace.__main__"]),
 ]
 

@@ -2,7 +2,7 @@
 
 For each training seed S, RUNS/ds_true_sS and RUNS/ds_stand_sS hold the same DS training (equal env
 steps) on the true profile (cf21bl) and on the recovered one (calibration/cf21bl_stand.yaml), each
-with its checkpoint chosen on validation seed 100 (cfrace.evaluate.select.score_run, as
+with its checkpoint chosen on validation seed 100 (cfrace.reproduction.select.score_run, as
 policies/pipeline.yaml does) in chosen.onnx. Every chosen policy is evaluated on the TRUE profile
 on the test seeds (50 runs x 3 laps each, gate starts); the script prints one row per policy and
 the means over the training seeds with their spread. Usage:

@@ -4,7 +4,7 @@
 
 For every (precision, seed): `cfrace train --method ds --track lemniscate --precision P --steps N
 --keep-checkpoints --checkpoint-min C`, then every kept checkpoint flies the single-agent
-benchmark (`cfrace.evaluate.select.score_run`, --runs runs of 3 laps, seed 0). Writes OUT/scores.csv
+benchmark (`cfrace.reproduction.select.score_run`, --runs runs of 3 laps, seed 0). Writes OUT/scores.csv
 (precision, seed, iteration, env steps, success, TTC) and OUT/precision_learning.png (success
 against env steps, mean and spread over seeds per precision), and prints the first env-step count
 at which each run reached 100 %. Resumable: finished runs and scored checkpoints are kept.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfrace.evaluate.select import score_run
+from cfrace.reproduction.select import score_run
 
 
 def train(out: Path, precision: str, seed: int, steps: int, checkpoint_min: float) -> Path:

@@ -6,7 +6,7 @@ another (cfrace.sweep.local.run_local: finished stages are skipped, interrupted 
 `cfrace sweep policies/pipeline.yaml` runs the same file on Ray.
 
 A stage with a ``select`` block chooses its shipped checkpoint on validation races instead of taking
-the last one (cfrace.evaluate.select):
+the last one (cfrace.reproduction.select):
 
     select:
       against: ds        # race this shipped policy (short name, resolved for the stage's setting);
@@ -132,7 +132,7 @@ def first_own_iteration(opts: dict) -> int:
 
 def post_stage(run, out_dir: Path, echo=print, curves_dir: Path = POLICIES_DIR / "curves") -> None:
     """After a stage is done: choose and export its checkpoint (select), keep its training curve."""
-    from cfrace.evaluate.select import score_run
+    from cfrace.reproduction.select import score_run
     from cfrace.rl.curves import reduce_metrics
 
     opts = run.options

@@ -1,9 +1,9 @@
-"""The reproduction report's claims and its markdown (cfrace.evaluate.reproduce makes the data)."""
+"""The reproduction report's claims and its markdown (cfrace.reproduction.evidence makes the data)."""
 
 from __future__ import annotations
 
-from cfrace.evaluate import paper
-from cfrace.evaluate.paper import SETTINGS, setting_name
+from cfrace.reproduction import paper
+from cfrace.reproduction.paper import SETTINGS, setting_name
 
 
 def claims(report: dict) -> list[dict]:

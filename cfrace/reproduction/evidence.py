@@ -20,9 +20,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 from cfrace.errors import ConfigError, PolicyError
-from cfrace.evaluate import paper
-from cfrace.evaluate.paper import SCHEMES, SETTINGS, setting_name
-from cfrace.evaluate.report import claims, markdown
+from cfrace.reproduction import paper
+from cfrace.reproduction.paper import SCHEMES, SETTINGS, setting_name
+from cfrace.reproduction.report import claims, markdown
 from cfrace.paths import POLICIES_DIR
 
 CURVES_DIR = POLICIES_DIR / "curves"
