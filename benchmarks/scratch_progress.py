@@ -40,7 +40,7 @@ def spaced(ckpts: list[Path], rows: list[dict], every_s: float) -> list[Path]:
 
 
 def progress(run: Path, track: str, runs: int, seed: int, every_min: float, agent: str = "ego") -> list[dict]:
-    from cfrace.evaluate.select import kept_checkpoints, score_checkpoint
+    from cfrace.reproduction.select import kept_checkpoints, score_checkpoint
     from cfrace.rl.checkpoint import load_checkpoint
 
     rows = training_figures(run)

@@ -10,8 +10,10 @@ time): drone-steps per CPU-second, a steadier figure when other work competes fo
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
+from pathlib import Path
 
 MODES = ("c", "eager", "compiled")
 
@@ -55,8 +57,22 @@ def table(doc: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__":
-    for path in sys.argv[1:]:
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("files", nargs="+", help="`cfrace bench sim --json` files")
+    for path in ap.parse_args().files:
+        try:
+            doc = json.loads(Path(path).read_text())
+            text = table(doc)
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            print(f"sim_table: {path}: not a readable `cfrace bench sim --json` file ({type(e).__name__}: {e})",
+                  file=sys.stderr)
+            return 2
         print(f"<!-- {path} -->")
-        print(table(json.loads(open(path).read())))
+        print(text)
         print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -5,7 +5,7 @@
                                                 [--h2h ds [--h2h-seed 0] [--h2h-min 0.66]]
 
 Every kept checkpoint (``cfrace train --keep-checkpoints``) is exported and raced in the field
-``--against`` (``*`` = the checkpoint; cfrace.evaluate.select); prints one row per checkpoint and
+``--against`` (``*`` = the checkpoint; cfrace.reproduction.select); prints one row per checkpoint and
 the chosen one, writes RUN/checkpoints/scores.csv. With ``--h2h OPP`` every checkpoint also races
 OPP head to head (``--races`` races, seed ``--h2h-seed``: the head-to-head validation seed), and the
 choice is the highest field win rate among the checkpoints that win at least ``--h2h-min`` of those
@@ -21,7 +21,7 @@ import torch
 
 
 def main() -> None:
-    from cfrace.evaluate.select import score_checkpoint, score_run
+    from cfrace.reproduction.select import score_checkpoint, score_run
 
     ap = argparse.ArgumentParser()
     ap.add_argument("run")

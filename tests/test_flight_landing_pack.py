@@ -106,7 +106,7 @@ def _brake_side_by_side(profile: str, keep_apart: bool) -> dict:
 @pytest.mark.slow
 @pytest.mark.parametrize("profile", ["cf2x_paper", "cf21bl"])
 def test_drones_braking_in_contact_part_before_the_contact_crashes_them(profile):
-    """The 8-drone race end at 2.0 s on the complex track (studies/flight_swarm_landings.md, "Race ends
+    """The 8-drone race end at 2.0 s on the complex track (studies/flight/flight_swarm_landings.md, "Race ends
     in a field"): drones braking in contact crashed once the contact had lasted 0.3 s. Told of each other,
     they part."""
     alone = _brake_side_by_side(profile, keep_apart=False)
@@ -160,7 +160,7 @@ def test_after_the_race_a_drone_ahead_of_one_that_flies_through_does_not_brake_i
 
 @pytest.mark.slow
 def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
-    """The 8-drone race of studies/flight_swarm_landings.md, "Race ends in a field", ended at 2.0 s through
+    """The 8-drone race of studies/flight/flight_swarm_landings.md, "Race ends in a field", ended at 2.0 s through
     the whole flight stack (lockstep): six drones race in a column, 0.13 m apart (in contact) when the race
     ends. Before the separation push and the chain of fly-through, three of them crashed in their
     landings (two in contact while braking, one run into from behind); now every one lands."""

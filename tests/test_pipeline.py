@@ -1,5 +1,5 @@
 """The training pipeline file (policies/pipeline.yaml), `cfrace reproduce --train`, and choosing a
-stage's checkpoint on validation runs (cfrace.evaluate.select / pipeline.post_stage)."""
+stage's checkpoint on validation runs (cfrace.reproduction.select / pipeline.post_stage)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 
 from cfrace.cli.main import app
 from cfrace.errors import ConfigError
-from cfrace.evaluate.pipeline import load_pipeline, post_stage
-from cfrace.evaluate.select import choose
+from cfrace.reproduction.pipeline import load_pipeline, post_stage
+from cfrace.reproduction.select import choose
 from cfrace.paths import POLICIES_DIR
 from cfrace.rl.train import TrainConfig, train
 from cfrace.sweep.parse import parse_spec
@@ -90,7 +90,7 @@ def test_score_checkpoint_against_an_opponent_flies_it_alone_too(tmp_path, monke
     import cfrace.evaluate.single as single_mod
     import cfrace.export as export_mod
     import cfrace.rl.train as train_mod
-    from cfrace.evaluate.select import score_checkpoint
+    from cfrace.reproduction.select import score_checkpoint
 
     calls = []
     monkeypatch.setattr(export_mod, "export_checkpoint", lambda c, o, a: (o, {"train_steps": 7}, 0.0))
@@ -113,7 +113,7 @@ def test_reproduce_train_says_the_least_success_alone(tmp_path):
     spec = tmp_path / "p.yaml"
     spec.write_text("version: 1\nout: runs/x\nruns:\n  - {name: a, method: ours, track: complex, steps: 1, select: "
                     "{against: ds, alone_min: 0.9, export: policies/x.onnx}}\n")
-    from cfrace.evaluate.pipeline import describe
+    from cfrace.reproduction.pipeline import describe
 
     text = "\n".join(describe(load_pipeline(spec), tmp_path))
     assert "races against ds among those finishing >= 90% of the runs alone" in text
@@ -160,7 +160,7 @@ def test_a_warm_started_stage_chooses_only_among_its_own_actors():
     """Checkpoints taken during the critic warm-up hold the warm start's frozen actor: a stage that
     warm-starts chooses from iteration critic_warmup + 1 on (the pipeline's SS stage on the complex
     track had chosen its DS warm start at iteration 22 of a 40-iteration warm-up)."""
-    from cfrace.evaluate.pipeline import first_own_iteration
+    from cfrace.reproduction.pipeline import first_own_iteration
 
     spec = parse_spec({"version": 1, "out": "runs", "runs": [
         {"name": "a", "method": "ds", "track": "complex", "steps": 1},

@@ -7,9 +7,9 @@ import json
 from typer.testing import CliRunner
 
 from cfrace.cli.main import app
-from cfrace.evaluate import paper
-from cfrace.evaluate.report import claims, markdown
-from cfrace.evaluate.reproduce import shipped
+from cfrace.reproduction import paper
+from cfrace.reproduction.report import claims, markdown
+from cfrace.reproduction.evidence import shipped
 
 
 def test_paper_reference_figures():

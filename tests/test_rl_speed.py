@@ -52,7 +52,7 @@ def test_threads_with_one_shared_model_are_the_sequential_update():
 
 def test_compiled_loss_follows_the_eager_update(ppo_batch):
     """The compiled minibatch loss (traced by dynamo and AOT autograd; the aot_eager backend keeps the
-    test fast, the inductor code generation is timed in studies/update_compile.py) moves the
+    test fast, the inductor code generation is timed in studies/training/update_compile.py) moves the
     weights as the eager one, over minibatches of changing size."""
     from cfrace.rl.ippo import compiled_loss, make_optimizer, ppo_update
 

@@ -1,5 +1,5 @@
 """Settings tried on sparse runs from scratch (docs/training.md, "Sparse from scratch"; the runs in
-studies/sparse_from_scratch.md): the discount, the actor's initial std and the schedule of its cap
+studies/training/sparse_from_scratch.md): the discount, the actor's initial std and the schedule of its cap
 (--set gamma / init_std / std_final / std_anneal_iters); what the schedule does and that the exported policy records them."""
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The package's structure: no import cycles, no torch on the `fly` path, one policy contract."""
+"""The package's structure: no import cycles, ordered layers, no torch on the `fly` path, one policy contract,
+no folder of more than 16 modules."""
 
 from __future__ import annotations
 
@@ -94,6 +95,7 @@ LAYERS = [
     ("rehearsal", ["cfrace.rehearsal"]),
     ("sweeps", ["cfrace.sweep"]),
     ("evaluation", ["cfrace.evaluate"]),
+    ("reproduction", ["cfrace.reproduction"]),
     ("CLI", ["cfrace.cli", "cfrace.__main__"]),
 ]
 
@@ -225,6 +227,46 @@ def test_no_long_files_or_functions_beyond_the_justified_ones():
     assert set(LONG_FILES) <= long_files, f"no longer over 400 lines: {sorted(set(LONG_FILES) - long_files)}"
     assert set(LONG_FUNCTIONS) <= long_functions, \
         f"no longer over 60 lines: {sorted(set(LONG_FUNCTIONS) - long_functions)}"
+
+
+#: the most Python files one folder of the repository may hold (docs/architecture.md): a folder that outgrows
+#: it is split by concern, as flight/ was
+MAX_MODULES_PER_FOLDER = 16
+#: top-level folders whose Python files are not counted, each with its reason
+NOT_COUNTED = {"tests": "pytest's test files, one per concern, found by their names",
+               "runs": "training and sweep output (git-ignored), not code"}
+
+
+def module_trees() -> list[Path]:
+    """The repository's top-level folders of Python files that the folder rule covers (cfrace/ and the scripts)."""
+    return sorted(d for d in ROOT.parent.iterdir() if d.is_dir() and not d.name.startswith((".", "_"))
+                  and d.name not in NOT_COUNTED and not d.name.endswith(".egg-info") and any(d.rglob("*.py")))
+
+
+def modules_per_folder(top: Path) -> dict[str, int]:
+    """Each folder under ``top`` (``top`` included) that holds Python files -> how many lie directly in it."""
+    folders = [top, *(d for d in top.rglob("*") if d.is_dir() and "__pycache__" not in d.parts)]
+    counts = {d: sum(1 for f in d.glob("*.py") if f.is_file()) for d in folders}
+    return {d.relative_to(top.parent).as_posix(): n for d, n in counts.items() if n}
+
+
+def test_modules_per_folder_counts_each_folder_alone(tmp_path):
+    for k in range(3):
+        (tmp_path / "top" / "sub").mkdir(parents=True, exist_ok=True)
+        (tmp_path / "top" / f"m{k}.py").write_text("")
+        (tmp_path / "top" / "sub" / f"s{k}.py").write_text("")
+    (tmp_path / "top" / "sub" / "notes.md").write_text("")
+    (tmp_path / "top" / "empty").mkdir()
+    assert modules_per_folder(tmp_path / "top") == {"top": 3, "top/sub": 3}
+
+
+def test_no_folder_holds_more_than_16_modules():
+    trees = module_trees()
+    assert ROOT in trees and len(trees) >= 3          # the package and the two folders of scripts
+    counts = {k: n for top in trees for k, n in modules_per_folder(top).items()}
+    assert {"cfrace", "cfrace/flight/loop"} <= set(counts)
+    big = {k: n for k, n in sorted(counts.items()) if n > MAX_MODULES_PER_FOLDER}
+    assert not big, f"folders of more than {MAX_MODULES_PER_FOLDER} Python files (split them by concern): {big}"
 
 
 def test_the_readme_status_is_short():

@@ -1,5 +1,5 @@
 """`cfrace reproduce`: the paper's tables, matrices and figures measured on the shipped policies
-(cfrace.evaluate.reproduce), or with --train the training pipeline that makes those policies."""
+(cfrace.reproduction.evidence), or with --train the training pipeline that makes those policies."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def reproduce_cmd(
     """Write the reproduction report: Table I, the four head-to-head matrices, competition behaviour,
     training curves, each of the paper's claims beside the measured figure."""
     from cfrace.errors import ConfigError
-    from cfrace.evaluate.reproduce import ReproduceConfig, reproduce
+    from cfrace.reproduction.evidence import ReproduceConfig, reproduce
 
     if not train:
         for given, option in ((run, "--run"), (only is not None, "--only"), (runs_dir is not None, "--runs-dir")):
@@ -65,7 +65,7 @@ def reproduce_cmd(
 
 def _pipeline(run: bool, only: str | None, runs_dir: Path | None) -> None:
     """`reproduce --train [--run]`: the stages of policies/pipeline.yaml, printed or run."""
-    from cfrace.evaluate.pipeline import describe, load_pipeline, run_pipeline
+    from cfrace.reproduction.pipeline import describe, load_pipeline, run_pipeline
 
     sweep = load_pipeline(only=only)
     out_root = runs_dir or Path(sweep.out)

@@ -19,7 +19,7 @@ without the time other processes took the CPU), and per drone ``obs_s`` (the obs
 
 Warm-up window (``prewarm_s`` > 0, real time; 3 ms by default): code run after a sleep is slow
 on this machine (the paper-size actor: ~0.4 ms every 10 ms with sleeps in between against ~0.09
-ms back to back; studies/onnx_cold.py). So from ``prewarm_s`` before each deadline the clock
+ms back to back; studies/flight_timing/onnx_cold.py). So from ``prewarm_s`` before each deadline the clock
 calls ``prewarm`` over and over (RealClock.wait_next): the tick's pure parts on the newest data
 (TickCore.peek: estimator and race progress on copies of their state, the observation, policy and
 action map of the drone due on that tick, the safety check), outputs discarded; then it waits the

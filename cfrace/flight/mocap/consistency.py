@@ -17,7 +17,7 @@ up, never down, and turns it in no predictable way):
 Either above its limit for MISMATCH_TICKS ticks in a row is a mismatch: the drone is stopped
 (safety kind ``pose_mismatch``). Replayed or simulated poses of other drones, or two swapped mocap
 bodies, show rates and velocity changes that the commands do not explain. The limits were set
-against the shipped policies' races (`python studies/consistency_races.py`: docs/flight.md,
+against the shipped policies' races (`python studies/flight/consistency_races.py`: docs/flight.md,
 "Poses that do not belong to the drones").
 """
 

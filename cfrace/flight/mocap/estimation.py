@@ -92,7 +92,7 @@ PREDICTION = "commanded_always"   #: today's flights' rule
 class _Track:
     """One body's filter state, on plain floats (the 100 Hz tick runs this for every body: Python
     float arithmetic costs a fraction of numpy calls on 3-vectors, the more so with the caches cold
-    between ticks; `benchmarks/estimator_ab.py` times the update against another commit's)."""
+    between ticks; `studies/flight_timing/estimator_ab.py` times the update against another commit's)."""
     pos: tuple                     # (x, y, z) m
     quat: tuple                    # (w, x, y, z), unit
     t: float                       # frame clock of the last accepted pose
