@@ -50,7 +50,7 @@ from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import (ATTITUDE_I_LIMIT, FIRMWARE_RELEASE, PARAM_BY_NAME, PID_I_LIMIT, coerce_param,
                                  default_params, device_type_name)
 from cfrace.simcf.physics import crash_reason, make_physics
-from cfrace.simcf.supervisor import SupervisorClock
+from cfrace.simcf.supervisor import AccelerometerFilter, SupervisorClock, supervisor_tick
 from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
@@ -114,6 +114,7 @@ class DroneFirmware:
     vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
+    accel: AccelerometerFilter = field(default_factory=AccelerometerFilter)   #: the reading the firmware sees
     ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
     ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
     banner_told: bool = False                    #: the boot lines went to a client since this boot
@@ -608,12 +609,17 @@ class SimFleet:
         t = self.time
         acc = (self._vel - vel_before) / dt
         self._acc = acc
+        ms = round(dt * 1000.0)                  # stabilizer ticks of this chunk
+        start_ms = round(t * 1000.0) - ms
+        tap = supervisor_tick(start_ms, ms)
         for i, fw in enumerate(self._fw):
             p = fw.params
             fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
                                  p["kalman.pNPos"])
             fw.estimator.decks_measure(t, self._pos[i], self._vel[i], self._quat[i])
-            self._supervise(i, fw, t)
+            reading = fw.accel.run(self._body_acc_g(i), ms, tap)
+            if tap is not None:
+                self._supervise(i, fw, (start_ms + tap) / 1000.0, reading)
             b = self.battery
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
@@ -622,13 +628,15 @@ class SimFleet:
                 fw.vbat_ok_time = t
 
     def _body_acc_g(self, i: int) -> np.ndarray:
-        """The accelerometer: specific force in the body frame, g."""
+        """The specific force in the body frame over the last chunk, g (what the accelerometer
+        senses, before the firmware's low-pass: fw.accel)."""
         return quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
 
-    def _supervise(self, i: int, fw: DroneFirmware, t: float) -> None:
-        """supervisor.c, supervisorUpdate: tumble check, preflight and landing timeouts."""
+    def _supervise(self, i: int, fw: DroneFirmware, t: float, acc_g) -> None:
+        """supervisor.c, supervisorUpdate at its 25 Hz tick t: tumble check on the accelerometer
+        reading acc_g (body, g, low-passed), preflight and landing timeouts."""
         p = fw.params
-        fw.tumbled = bool(fw.clock.tumbled(t, self._body_acc_g(i)) and p["supervisor.tmblChckEn"])
+        fw.tumbled = bool(fw.clock.tumbled(t, acc_g) and p["supervisor.tmblChckEn"])
         if fw.emergency:
             return
         if fw.tumbled and fw.clock.is_flying(t) and fw.armed:
@@ -749,7 +757,7 @@ class SimFleet:
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
-            body_acc = self._body_acc_g(i)
+            body_acc = fw.accel.reading          # sensorData.acc, the low-passed reading the firmware logs
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()
