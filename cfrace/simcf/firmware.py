@@ -142,7 +142,7 @@ class SimFleet:
     def __init__(self, track: Track | str, profile: DroneProfile | str, drones: int, *,
                  body_names=None, start_positions=None, seed: int = 0, arming_required: bool = True,
                  obstacles: bool = True, crash_rules=None, backend: str = "auto", sim=None,
-                 decks=("lighthouse",), battery: BatteryModel | None = None):
+                 decks=("lighthouse",), battery: BatteryModel | None = None, params: dict | None = None):
         self.track = load_track(track) if isinstance(track, str) else track
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         if drones < 1:
@@ -159,6 +159,10 @@ class SimFleet:
             raise ConfigError(f"decks (--decks): {e}") from None
         self.battery = battery or BatteryModel()
         self.seed = int(seed)
+        unknown = [name for name in (params or {}) if name not in PARAM_BY_NAME or PARAM_BY_NAME[name].readonly]
+        if unknown:
+            raise ConfigError(f"simcf: {unknown[0]!r} is not a writable parameter of the simulated Crazyflie")
+        self.boot_params = dict(params or {})   #: {name: value} this fleet's drones boot with (as a build's defaults)
         floor_z = self.profile.collision_box[2] / 2.0
         pos, self._start_yaw = ground_start_positions(self.track, self.n, floor_z)
         if start_positions is not None:
@@ -211,13 +215,15 @@ class SimFleet:
 
     def param_defaults(self, i: int) -> dict:
         """{name: value} of the parameters whose boot value depends on this fleet: the thrust at
-        hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks."""
+        hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks, and
+        the fleet's boot_params (e.g. powerDist.idleThrust 7000, the Brushless build's)."""
         prof = self.profile
         hover = float(prof.thrust_curve.to_counts(prof.weight))
         out = {"posCtlPid.thrustBase": round(hover), "ctrlMel.mass": prof.mass, "ctrlMel.massThrust": hover / prof.weight}
         for axis, pid in (("roll", prof.pid_roll_pitch), ("pitch", prof.pid_roll_pitch), ("yaw", prof.pid_yaw)):
             out.update({f"pid_rate.{axis}_kp": pid.kp, f"pid_rate.{axis}_ki": pid.ki, f"pid_rate.{axis}_kd": pid.kd})
         out.update({DECK_PARAMS[d]: 1 for d in self.decks})
+        out.update(self.boot_params)
         return out
 
     def _boot(self, i: int) -> DroneFirmware:
