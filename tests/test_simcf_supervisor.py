@@ -94,6 +94,9 @@ def test_tmblchcken_is_a_parameter_of_the_supervisor():
         assert cf.param.get_value("supervisor.tmblChckEn") == "1"
         cf.param.set_value("supervisor.tmblChckEn", "0")
         assert wait_for(lambda: fleet.get_param(0, "supervisor.tmblChckEn") == 0)
+        assert float(cf.param.get_value("supervisor.crashDetectGs")) == 0.0     # the firmware's default: off
+        cf.param.set_value("supervisor.crashDetectGs", "4.0")
+        assert wait_for(lambda: fleet.get_param(0, "supervisor.crashDetectGs") == 4.0)
 
 
 def _sine_gain(hz: float) -> float:
@@ -139,3 +142,30 @@ def test_the_supervisor_runs_on_every_40th_tick_of_the_stabilizer_loop():
     assert fleet.status(0)["armed"]
     fleet.advance(0.02)
     assert not fleet.status(0)["armed"]                   # disarmed at the 25 Hz tick after the timeout
+
+
+def _into_the_floor(crash_gs: float) -> tuple[dict, list]:
+    """A hovering-thrust drone 0.3 m up, falling at 1.5 m/s onto the floor, crashDetectGs set."""
+    from test_flight_landing import rate_setpoint
+
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False, decks=())
+    for name, value in (("supervisor.crashDetectGs", crash_gs), ("flightmode.stabModeRoll", 0),
+                        ("flightmode.stabModePitch", 0)):
+        fleet.set_param(0, name, value)
+    fleet.handle_setpoint(0, 0, 0, 0, 0)
+    fleet.teleport(0, (0.0, 5.0, 0.3), (0.0, 0.0, -1.5))
+    for _ in range(60):
+        rate_setpoint(fleet, 0, (0.0, 0.0, 0.0), fleet.profile.weight)
+        fleet.advance(0.01)
+    return fleet.status(0), fleet._fw[0].events
+
+
+def test_crash_detection_reads_the_impact_when_crashdetectgs_is_set():
+    # isTumbledCheck: | |acc| - 1 g | above supervisor.crashDetectGs counts as tumbled; 0 (default): off
+    status, events = _into_the_floor(0.0)
+    assert not status["emergency_stopped"] and not [e for e in events if "crash" in e]
+    status, events = _into_the_floor(4.0)
+    assert status["emergency_reason"] == "tumbled"
+    crash = [e for e in events if e.startswith("SUP: crash detected @ ")]
+    assert len(crash) == 1 and crash[0].endswith("Gs (max 4.00)")
+    assert float(crash[0].split("@ ")[1].split(" ")[0]) > 5.0

@@ -50,7 +50,7 @@ from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import (ATTITUDE_I_LIMIT, FIRMWARE_RELEASE, PARAM_BY_NAME, PID_I_LIMIT, coerce_param,
                                  default_params, device_type_name)
 from cfrace.simcf.physics import crash_reason, make_physics
-from cfrace.simcf.supervisor import AccelerometerFilter, SupervisorClock, supervisor_tick
+from cfrace.simcf.supervisor import AccelerometerFilter, SupervisorClock, crash_g, supervisor_tick
 from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
@@ -642,7 +642,11 @@ class SimFleet:
         """supervisor.c, supervisorUpdate at its 25 Hz tick t: tumble check on the accelerometer
         reading acc_g (body, g, low-passed), preflight and landing timeouts."""
         p = fw.params
-        fw.tumbled = bool(fw.clock.tumbled(t, acc_g) and p["supervisor.tmblChckEn"])
+        crash = crash_g(acc_g, float(p["supervisor.crashDetectGs"]))
+        tumbled = bool((crash is not None or fw.clock.tumbled(t, acc_g)) and p["supervisor.tmblChckEn"])
+        if crash is not None and tumbled and not fw.tumbled:
+            fw.events.append(f"SUP: crash detected @ {crash:.2f} Gs (max {p['supervisor.crashDetectGs']:.2f})")
+        fw.tumbled = tumbled
         if fw.emergency:
             return
         if fw.tumbled and fw.clock.is_flying(t) and fw.armed:

@@ -121,6 +121,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("powerDist.idleThrust", "uint32_t", 0,
               doc="counts, least command of each armed motor (7000 on the Crazyflie 2.1 Brushless)"),
     ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble locks a flying drone (supervisor.c)"),
+    ParamSpec("supervisor.crashDetectGs", "float", 0.0,
+              doc="g, a crash: | |acc| - 1 g | above this counts as tumbled; 0: off (supervisor.c)"),
     ParamSpec("supervisor.prefltTimeout", "uint16_t", 30000, doc="ms armed without flying before disarming"),
     ParamSpec("supervisor.landedTimeout", "uint16_t", 3000, doc="ms after landing before disarming"),
     *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0), ("bcLedRing", 0)), readonly=True,

@@ -80,6 +80,13 @@ class AccelerometerFilter:
         return tapped
 
 
+def crash_g(acc_g, max_gs: float) -> float | None:
+    """isTumbledCheck's crash detection (``supervisor.crashDetectGs``, 0 = off, the default): the
+    accelerometer's norm (g) when it is more than max_gs from 1 g, else None."""
+    norm = math.sqrt(sum(float(v) * float(v) for v in acc_g))
+    return norm if max_gs > 0.0 and abs(norm - 1.0) > max_gs else None
+
+
 def supervisor_tick(start_ms: int, ms: int) -> int | None:
     """Of the ticks start_ms+1 .. start_ms+ms, the offset (1..ms) of the one where supervisorUpdate
     runs (a multiple of SUPERVISOR_TICKS), or None."""
