@@ -152,6 +152,14 @@ def test_the_room_yaml_example_flies_the_shipped_policies(tmp_path, capsys):
     assert not [e for e in r["safety_events"] if e["action"] != "none" and e["t"] <= finish + 0.05]
 
 
+
+def test_the_dry_run_banner_warns_of_the_idle_floor_the_policies_did_not_train_with(capsys):
+    _, out, err = run(["sim", "dry-run", *RACE, "--lockstep", "--timeout-s", "0.3"], capsys)
+    said = " ".join((out + err).split())
+    assert said.count("warning: ") == 2 and "without the idle floor of cf21bl" in said, said
+    _, out, err = run(["sim", "dry-run", *RACE, "--lockstep", "--timeout-s", "0.3", "--profile", "cf2x_paper"], capsys)
+    assert "warning: " not in out + err
+
 def test_a_speed_stop_prints_two_different_numbers(tmp_path, capsys):
     (tmp_path / "slow.yaml").write_text("safety: {speed_max_mps: 6.0}\n")
     code, out, _ = run(["sim", "dry-run", *RACE, "--lockstep", "--config", str(tmp_path / "slow.yaml"),

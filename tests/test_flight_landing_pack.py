@@ -163,7 +163,11 @@ def test_a_field_that_raced_in_a_pack_lands_without_a_crash():
     """The 8-drone race of studies/flight/flight_swarm_landings.md, "Race ends in a field", ended at 2.0 s through
     the whole flight stack (lockstep): six drones race in a column, 0.13 m apart (in contact) when the race
     ends. Before the separation push and the chain of fly-through, three of them crashed in their
-    landings (two in contact while braking, one run into from behind); now every one lands."""
+    landings (two in contact while braking, one run into from behind); now every one lands.
+    d4 flies at low thrust (accelerometer body z below 0.5 g) from 1.84 s and is knocked by d2
+    at 2.11 s (-0.43 g over 10 ms): the firmware's supervisor reads that knock through the 30 Hz
+    low-pass at its 25 Hz tick (-0.15 g at 2.12 s, above the -0.2 g of its upside-down rule), so d4
+    is not locked in the air as it was while the simulated supervisor read the raw value every 10 ms."""
     from cfrace.flight.config import FlightConfig
     from cfrace.rehearsal.dryrun import dry_run
     cfg = FlightConfig(track="complex", ego="ours", opp="ds", policies=("ours", "ds") * 4, profile="cf2x_paper",

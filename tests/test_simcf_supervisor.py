@@ -11,7 +11,7 @@ cflib = pytest.importorskip("cflib")
 import cflib.crtp  # noqa: E402
 
 from cfrace.simcf.firmware import SimFleet  # noqa: E402
-from cfrace.simcf.supervisor import SupervisorClock  # noqa: E402
+from cfrace.simcf.supervisor import AccelerometerFilter, SupervisorClock, supervisor_tick  # noqa: E402
 from cflibtools import served, wait_for  # noqa: E402
 
 cflib.crtp.init_drivers()
@@ -78,7 +78,7 @@ def test_preflight_and_landing_timeouts_disarm():
 
 def test_the_tumble_check_times_a_tilt_and_an_upside_down_and_free_fall_resets_it():
     # isTumbledCheck on the accelerometer (body frame, g): what a drone lying on its side or back
-    # reads (in the air the thrust keeps body z positive, so a flying drone never reads tumbled)
+    # reads, or one flying at low thrust (body z below 0.5 g) for a second
     c = SupervisorClock()
     assert not any(c.tumbled(t, (0.0, 0.9, 0.3)) for t in np.arange(0.0, 0.99, 0.01))   # 70 deg, < 1 s
     assert c.tumbled(1.02, (0.0, 0.9, 0.3))
@@ -94,3 +94,78 @@ def test_tmblchcken_is_a_parameter_of_the_supervisor():
         assert cf.param.get_value("supervisor.tmblChckEn") == "1"
         cf.param.set_value("supervisor.tmblChckEn", "0")
         assert wait_for(lambda: fleet.get_param(0, "supervisor.tmblChckEn") == 0)
+        assert float(cf.param.get_value("supervisor.crashDetectGs")) == 0.0     # the firmware's default: off
+        cf.param.set_value("supervisor.crashDetectGs", "4.0")
+        assert wait_for(lambda: fleet.get_param(0, "supervisor.crashDetectGs") == 4.0)
+
+
+def _sine_gain(hz: float) -> float:
+    """Peak output of the accelerometer filter for a unit sine on z, after 0.5 s of settling."""
+    f = AccelerometerFilter()
+    out = [f.run((0.0, 0.0, np.sin(2.0 * np.pi * hz * k / 1000.0)), 1, 1)[2] for k in range(1000)]
+    return max(abs(v) for v in out[500:])
+
+
+def test_the_accelerometer_reading_is_the_firmwares_30_hz_low_pass():
+    # sensors_bmi088_bmp3xx.c: filter.c's 2nd-order Butterworth at 30 Hz on the 1 kHz samples
+    assert _sine_gain(30.0) == pytest.approx(2 ** -0.5, abs=0.01)     # -3 dB at the cutoff
+    assert _sine_gain(5.0) > 0.98 and _sine_gain(200.0) < 0.05
+    f = AccelerometerFilter()
+    assert f.run((0.1, -0.2, 1.0), 5, 5) == pytest.approx((0.1, -0.2, 1.0))   # settled on its first sample
+
+
+def test_a_knock_while_flying_at_low_thrust_reaches_the_supervisor_low_passed():
+    """d4's knock in the 8-drone pack (tests/test_flight_landing_pack.py): 0.3 s at 0.37 g, then
+    -0.43 g for 10 ms. Raw, that reading is upside down (below -0.2 g) after more than 0.1 s tilted
+    and locks the drone; through the filter it reads -0.15 g at the knock's end, and dips below
+    -0.2 g for a few ms only, so one 25 Hz tick in several falls on it."""
+    f, c = AccelerometerFilter(), SupervisorClock()
+    f.run((0.0, 0.0, 0.37), 300)
+    assert not c.tumbled(0.0, f.reading)                                # tilted: its clock starts
+    knock = f.run((0.0, 0.0, -0.43), 10, 10)
+    assert -0.2 < knock[2] < 0.0 and not c.tumbled(0.31, knock)
+    after = [f.run((0.0, 0.0, 0.23), 1, 1)[2] for _ in range(20)]
+    below = [v for v in after if v < -0.2]
+    assert 0 < len(below) < 10                                           # ms below -0.2 g
+    raw = SupervisorClock()
+    assert not raw.tumbled(0.0, (0.0, 0.0, 0.37))
+    assert raw.tumbled(0.31, (0.0, 0.0, -0.43))                         # what the raw reading did
+
+
+def test_the_supervisor_runs_on_every_40th_tick_of_the_stabilizer_loop():
+    assert supervisor_tick(0, 10) is None and supervisor_tick(30, 10) == 10 and supervisor_tick(36, 10) == 4
+    assert supervisor_tick(38, 2) == 2 and supervisor_tick(40, 10) is None
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=True)
+    fleet.set_param(0, "supervisor.prefltTimeout", 100)
+    fleet.arm(0, True)
+    fleet.advance(0.11)                                   # 10 ms past the timeout, before the tick at 120 ms
+    assert fleet.status(0)["armed"]
+    fleet.advance(0.02)
+    assert not fleet.status(0)["armed"]                   # disarmed at the 25 Hz tick after the timeout
+
+
+def _into_the_floor(crash_gs: float) -> tuple[dict, list]:
+    """A hovering-thrust drone 0.3 m up, falling at 1.5 m/s onto the floor, crashDetectGs set."""
+    from test_flight_landing import rate_setpoint
+
+    fleet = SimFleet("lemniscate", "cf2x_paper", 1, arming_required=False, decks=())
+    for name, value in (("supervisor.crashDetectGs", crash_gs), ("flightmode.stabModeRoll", 0),
+                        ("flightmode.stabModePitch", 0)):
+        fleet.set_param(0, name, value)
+    fleet.handle_setpoint(0, 0, 0, 0, 0)
+    fleet.teleport(0, (0.0, 5.0, 0.3), (0.0, 0.0, -1.5))
+    for _ in range(60):
+        rate_setpoint(fleet, 0, (0.0, 0.0, 0.0), fleet.profile.weight)
+        fleet.advance(0.01)
+    return fleet.status(0), fleet._fw[0].events
+
+
+def test_crash_detection_reads_the_impact_when_crashdetectgs_is_set():
+    # isTumbledCheck: | |acc| - 1 g | above supervisor.crashDetectGs counts as tumbled; 0 (default): off
+    status, events = _into_the_floor(0.0)
+    assert not status["emergency_stopped"] and not [e for e in events if "crash" in e]
+    status, events = _into_the_floor(4.0)
+    assert status["emergency_reason"] == "tumbled"
+    crash = [e for e in events if e.startswith("SUP: crash detected @ ")]
+    assert len(crash) == 1 and crash[0].endswith("Gs (max 4.00)")
+    assert float(crash[0].split("@ ")[1].split(" ")[0]) > 5.0

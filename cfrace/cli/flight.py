@@ -164,6 +164,8 @@ def announce(meta: dict, con: Console = console) -> None:
     for (name, pol), uri, body in zip(meta["policies"].items(), meta["uris"], meta["bodies"]):
         con.print(f"{name}: {pol['method']} policy {pol['path']} ({pol['obs_layout']}) -> {uri}, mocap body {body}",
                   highlight=False)
+    for note in meta.get("notes", ()):
+        con.print(f"warning: {note}", highlight=False)
     f, s = meta["fence"], meta["safety"]
     con.print(f"fence x {f.lo[0]:.2f}..{f.hi[0]:.2f}, y {f.lo[1]:.2f}..{f.hi[1]:.2f}, z <= {f.hi[2]:.2f} m; "
               f"speed <= {s['speed_max_mps']:g} m/s, tilt <= {s['tilt_max_deg']:g} deg, "

@@ -124,6 +124,9 @@ def dry_run_cmd(
                                                                       "failsafes (off: motors off, they drop)."),
     pose_stream: bool = typer.Option(True, "--pose-stream/--no-pose-stream",
                                      help="Stream each drone's mocap pose to it (external position)."),
+    idle_thrust: Optional[int] = typer.Option(None, min=0, max=65535, help="powerDist.idleThrust (counts per motor) "
+                                              "the simulated drones boot with (default 0; a Crazyflie 2.1 Brushless "
+                                              "boots with 7000: rehearse with that)."),
 ):
     """Race 2 (--ego/--opp) or N (--policies, --drones) simulated Crazyflies through the whole flight stack
     (real cflib over UDP)."""
@@ -153,7 +156,8 @@ def dry_run_cmd(
     check_port(foxglove, "--foxglove")
     race_and_report(lambda say: dry_run(cfg, lockstep=lockstep, faults=faults, seed=seed, mocap_noise_m=mocap_noise_m,
                                         mocap_latency_s=mocap_latency_ms / 1e3, console=console,
-                                        setup=resolve_race(cfg, the_track), announce=say), rule, json_out)
+                                        setup=resolve_race(cfg, the_track), announce=say, idle_thrust=idle_thrust),
+                    rule, json_out)
 
 
 def _room(room: dict, config: Path | None, profile: str | None, obstacles: bool | None, track, ego: str):

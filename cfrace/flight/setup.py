@@ -24,6 +24,7 @@ from cfrace.flight.mocap.consistency import STILL_S
 from cfrace.flight.link.opener import link_factory, stop_log_path
 from cfrace.flight.mocap.sources import open_mocap
 from cfrace.flight.safety.check import CommandLimits, Fence
+from cfrace.loopmodel import IDLE_THRUST_COUNTS, idle_floor_w
 from cfrace.policy import OnnxPolicy, resolve_policy
 from cfrace.paths import CALIBRATION_DIR
 from cfrace.track import Track, ground_start_positions, load_track
@@ -49,6 +50,7 @@ class RaceSetup:
     policies: tuple[CheckedPolicy, ...]   #: one per drone, ego first (a repeated policy: the same object)
     fence: Fence
     limits: CommandLimits                 #: what a sent setpoint may hold (the profile's)
+    notes: tuple[str, ...] = ()           #: warnings for the start-up banner (idle_floor_notes)
 
 
 def check_policy(cfg: FlightConfig, track: Track, spec: str, profile: DroneProfile | None = None) -> CheckedPolicy:
@@ -87,7 +89,29 @@ def resolve_race(cfg: FlightConfig, track: Track | None = None) -> RaceSetup:
             loaded[spec] = check_policy(cfg, track, spec, profile)
     policies = tuple(loaded[spec] for spec in cfg.specs)
     return RaceSetup(cfg, track, profile, policies, Fence.from_track(track, cfg.safety.geofence_margin_m),
-                     CommandLimits.from_profile(profile))
+                     CommandLimits.from_profile(profile), idle_floor_notes(profile, dict(zip(cfg.names, policies))))
+
+
+def idle_floor_notes(profile: DroneProfile, policies: dict) -> tuple[str, ...]:
+    """One line per policy ({drone name: CheckedPolicy}) that did not train with the profile's idle
+    floor. An armed Crazyflie 2.1 Brushless floors every motor at powerDist.idleThrust, 7000 counts
+    in its build (power_distribution_quadrotor.c, powerDistributionCap: a floor, not an offset, so
+    commands above it pass unchanged and no thrust mapping can undo it; IDLE_THRUST_COUNTS). A
+    policy trained without it asks for less in its dives and gets the floor; one trained with
+    ``--span-profiles`` naming the profile met it (metadata drone_ranges)."""
+    floor = idle_floor_w(profile)
+    if floor <= 0.0:
+        return ()
+    notes = []
+    for name, p in policies.items():
+        meta = p.policy.meta
+        if profile.name in (meta.get("drone_ranges") or {}).get("profiles", ()):
+            continue
+        notes.append(f"{name}: {p.path.name} trained on {meta.get('drone_profile', 'another profile')} without the "
+                     f"idle floor of {profile.name} ({IDLE_THRUST_COUNTS[profile.name]:.0f} counts per motor, "
+                     f"{floor:.2f} of its weight): a real {profile.name} delivers at least that whatever the policy asks "
+                     f"(rehearse it: cfrace sim dry-run --idle-thrust {IDLE_THRUST_COUNTS[profile.name]:.0f})")
+    return tuple(notes)
 
 
 def training_profile(track: Track, ego: str, obstacles: bool, default: str = "cf21bl") -> str:

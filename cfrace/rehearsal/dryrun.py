@@ -109,10 +109,13 @@ def sim_race(setup: RaceSetup, fleet: SimFleet, *, lockstep: bool = True, uris=(
 
 def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = None, seed: int = 0,
             mocap_noise_m: float = 0.0, mocap_latency_s: float = 0.0, console=None,
-            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None, announce=None) -> RaceResult:
+            lockstep_warm_calls: int = 0, setup: RaceSetup | None = None, announce=None,
+            idle_thrust: int | None = None) -> RaceResult:
     """Race cfg's drones (cfg.ego against cfg.opp, or cfg.policies) on simulated drones, from the
     track's start grid; returns the run_race result plus sim info. ``setup``: the race resolved
-    already (the CLI's), else resolved here from cfg; ``announce``: as `fly`'s (the banner)."""
+    already (the CLI's), else resolved here from cfg; ``announce``: as `fly`'s (the banner);
+    ``idle_thrust``: the powerDist.idleThrust the simulated drones boot with (None: the simulator's
+    0; the Crazyflie 2.1 Brushless's firmware boots with 7000, docs/simcf.md)."""
     fault_list = parse_faults(faults, cfg.names)
     cfg = replace(cfg, mocap="sim")
     if cfg.latency_comp_s is None:    # make up for the simulated latency (the `sim` default is none)
@@ -121,7 +124,7 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
     # no positioning deck: the drones know where they are from the mocap poses the flight stack streams
     n = len(cfg.specs)
     fleet = SimFleet(setup.track, setup.profile, n, body_names=list(cfg.bodies), seed=seed, obstacles=cfg.obstacles,
-                     decks=())
+                     decks=(), params=None if idle_thrust is None else {"powerDist.idleThrust": int(idle_thrust)})
     injector = FaultInjector(fault_list, dict(zip(cfg.names, cfg.bodies))) if fault_list else None
     server, relays = None, {}
     mocap_options = {"noise_m": mocap_noise_m, "latency_s": mocap_latency_s, "seed": seed}
@@ -146,7 +149,8 @@ def dry_run(cfg: FlightConfig, *, lockstep: bool = False, faults: str | None = N
                     lockstep_warm_calls=lockstep_warm_calls)
         result = run_race(setup, io, settle=_settle(fleet, lockstep, cfg.dt), console=console, announce=announce,
                           extra_meta={"dry_run": True, "seed": seed, "faults": faults or "",
-                                      "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s})
+                                      "mocap_noise_m": mocap_noise_m, "mocap_latency_s": mocap_latency_s,
+                                      **({} if idle_thrust is None else {"idle_thrust": int(idle_thrust)})})
         if server is not None:
             result.sim = {"overruns": server.overruns, "lag_s": round(server.sim_lag, 3), "errors": server.errors}
         return result

@@ -50,7 +50,7 @@ from cfrace.simcf.memory import memories_of
 from cfrace.simcf.params import (ATTITUDE_I_LIMIT, FIRMWARE_RELEASE, PARAM_BY_NAME, PID_I_LIMIT, coerce_param,
                                  default_params, device_type_name)
 from cfrace.simcf.physics import crash_reason, make_physics
-from cfrace.simcf.supervisor import SupervisorClock
+from cfrace.simcf.supervisor import AccelerometerFilter, SupervisorClock, crash_g, supervisor_tick
 from cfrace.track import Track, ground_start_positions, load_track
 
 DT = PHYSICS_DT            #: s, physics step of the simulator (500 Hz)
@@ -114,6 +114,7 @@ class DroneFirmware:
     vbat_ok_time: float = 0.0                    #: s, the last time pm.vbat was at or above pm.lowVoltage
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
+    accel: AccelerometerFilter = field(default_factory=AccelerometerFilter)   #: the reading the firmware sees
     ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
     ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
     banner_told: bool = False                    #: the boot lines went to a client since this boot
@@ -141,7 +142,7 @@ class SimFleet:
     def __init__(self, track: Track | str, profile: DroneProfile | str, drones: int, *,
                  body_names=None, start_positions=None, seed: int = 0, arming_required: bool = True,
                  obstacles: bool = True, crash_rules=None, backend: str = "auto", sim=None,
-                 decks=("lighthouse",), battery: BatteryModel | None = None):
+                 decks=("lighthouse",), battery: BatteryModel | None = None, params: dict | None = None):
         self.track = load_track(track) if isinstance(track, str) else track
         self.profile = load_profile(profile) if isinstance(profile, str) else profile
         if drones < 1:
@@ -158,6 +159,10 @@ class SimFleet:
             raise ConfigError(f"decks (--decks): {e}") from None
         self.battery = battery or BatteryModel()
         self.seed = int(seed)
+        unknown = [name for name in (params or {}) if name not in PARAM_BY_NAME or PARAM_BY_NAME[name].readonly]
+        if unknown:
+            raise ConfigError(f"simcf: {unknown[0]!r} is not a writable parameter of the simulated Crazyflie")
+        self.boot_params = dict(params or {})   #: {name: value} this fleet's drones boot with (as a build's defaults)
         floor_z = self.profile.collision_box[2] / 2.0
         pos, self._start_yaw = ground_start_positions(self.track, self.n, floor_z)
         if start_positions is not None:
@@ -210,13 +215,15 @@ class SimFleet:
 
     def param_defaults(self, i: int) -> dict:
         """{name: value} of the parameters whose boot value depends on this fleet: the thrust at
-        hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks."""
+        hover of the profile (posCtlPid.thrustBase), the simulator's rate PID (pid_rate.*, deg), decks, and
+        the fleet's boot_params (e.g. powerDist.idleThrust 7000, the Brushless build's)."""
         prof = self.profile
         hover = float(prof.thrust_curve.to_counts(prof.weight))
         out = {"posCtlPid.thrustBase": round(hover), "ctrlMel.mass": prof.mass, "ctrlMel.massThrust": hover / prof.weight}
         for axis, pid in (("roll", prof.pid_roll_pitch), ("pitch", prof.pid_roll_pitch), ("yaw", prof.pid_yaw)):
             out.update({f"pid_rate.{axis}_kp": pid.kp, f"pid_rate.{axis}_ki": pid.ki, f"pid_rate.{axis}_kd": pid.kd})
         out.update({DECK_PARAMS[d]: 1 for d in self.decks})
+        out.update(self.boot_params)
         return out
 
     def _boot(self, i: int) -> DroneFirmware:
@@ -608,12 +615,17 @@ class SimFleet:
         t = self.time
         acc = (self._vel - vel_before) / dt
         self._acc = acc
+        ms = round(dt * 1000.0)                  # stabilizer ticks of this chunk
+        start_ms = round(t * 1000.0) - ms
+        tap = supervisor_tick(start_ms, ms)
         for i, fw in enumerate(self._fw):
             p = fw.params
             fw.estimator.predict(acc[i], dt, (p["kalman.pNAcc_xy"], p["kalman.pNAcc_z"]), p["kalman.pNVel"],
                                  p["kalman.pNPos"])
             fw.estimator.decks_measure(t, self._pos[i], self._vel[i], self._quat[i])
-            self._supervise(i, fw, t)
+            reading = fw.accel.run(self._body_acc_g(i), ms, tap)
+            if tap is not None:
+                self._supervise(i, fw, (start_ms + tap) / 1000.0, reading)
             b = self.battery
             load = self._cmd_thrust[i] / self.profile.max_collective_thrust
             fw.amps = b.idle_amps + b.full_amps * min(1.0, max(0.0, load)) ** 1.5
@@ -622,13 +634,19 @@ class SimFleet:
                 fw.vbat_ok_time = t
 
     def _body_acc_g(self, i: int) -> np.ndarray:
-        """The accelerometer: specific force in the body frame, g."""
+        """The specific force in the body frame over the last chunk, g (what the accelerometer
+        senses, before the firmware's low-pass: fw.accel)."""
         return quat_to_rot(self._quat[i]).T @ (self._acc[i] + np.array([0.0, 0.0, GRAVITY])) / GRAVITY
 
-    def _supervise(self, i: int, fw: DroneFirmware, t: float) -> None:
-        """supervisor.c, supervisorUpdate: tumble check, preflight and landing timeouts."""
+    def _supervise(self, i: int, fw: DroneFirmware, t: float, acc_g) -> None:
+        """supervisor.c, supervisorUpdate at its 25 Hz tick t: tumble check on the accelerometer
+        reading acc_g (body, g, low-passed), preflight and landing timeouts."""
         p = fw.params
-        fw.tumbled = bool(fw.clock.tumbled(t, self._body_acc_g(i)) and p["supervisor.tmblChckEn"])
+        crash = crash_g(acc_g, float(p["supervisor.crashDetectGs"]))
+        tumbled = bool((crash is not None or fw.clock.tumbled(t, acc_g)) and p["supervisor.tmblChckEn"])
+        if crash is not None and tumbled and not fw.tumbled:
+            fw.events.append(f"SUP: crash detected @ {crash:.2f} Gs (max {p['supervisor.crashDetectGs']:.2f})")
+        fw.tumbled = tumbled
         if fw.emergency:
             return
         if fw.tumbled and fw.clock.is_flying(t) and fw.armed:
@@ -749,7 +767,7 @@ class SimFleet:
             var_p, var_v = est.variances()
             info = self.supervisor_bitfield(i)
             acc_g = self._acc[i] / GRAVITY
-            body_acc = self._body_acc_g(i)
+            body_acc = fw.accel.reading          # sensorData.acc, the low-passed reading the firmware logs
             vbat = self.battery.volts(fw.charge, fw.amps)
             counts = self._thrust_counts(i)
             sp = fw.setpoint or Setpoint()

@@ -17,7 +17,6 @@ class ParamSpec:
 
 
 #: CRTP parameter type codes (firmware param.h; cflib ParamTocElement.types): ctype -> (code, struct)
-BRUSHLESS_IDLE_THRUST = 7000   #: counts per motor, the Crazyflie 2.1 Brushless's powerDist.idleThrust
 BRUSHLESS_LOW_VOLTAGE = 3.35   #: V, the Brushless's pm.lowVoltage
 #: The firmware release the simulated Crazyflie reports (platformservice.c: V_STAG) and its commit, whose
 #: first 12 hex digits are the read-only firmware.revision0 (8) and revision1 (4) (version.vtpl)
@@ -122,6 +121,8 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("powerDist.idleThrust", "uint32_t", 0,
               doc="counts, least command of each armed motor (7000 on the Crazyflie 2.1 Brushless)"),
     ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble locks a flying drone (supervisor.c)"),
+    ParamSpec("supervisor.crashDetectGs", "float", 0.0,
+              doc="g, a crash: | |acc| - 1 g | above this counts as tumbled; 0: off (supervisor.c)"),
     ParamSpec("supervisor.prefltTimeout", "uint16_t", 30000, doc="ms armed without flying before disarming"),
     ParamSpec("supervisor.landedTimeout", "uint16_t", 3000, doc="ms after landing before disarming"),
     *_group("deck", "uint8_t", (("bcLighthouse4", 0), ("bcFlow2", 0), ("bcLedRing", 0)), readonly=True,
@@ -152,8 +153,8 @@ def default_params(index: int, arming_required: bool, overrides: dict | None = N
     values["supervisor.armingReq"] = int(arming_required)
     # The platforms that need arming are the Brushless ones, whose firmware boots with
     # CONFIG_MOTORS_DEFAULT_IDLE_THRUST 7000. The simulator boots with 0 (docs/simcf.md, "Idle
-    # thrust"): with the idle floor the shipped policies trip the speed limit of the room example on
-    # cf21bl. Setting the parameter to BRUSHLESS_IDLE_THRUST flies as the Brushless does.
+    # thrust"): the floor cannot be undone from the ground, and the shipped policies, trained
+    # without it, fly other lines with it. A fleet's params (SimFleet, dry-run --idle-thrust) set it.
     values["powerDist.idleThrust"] = 0
     if arming_required:
         values["pm.lowVoltage"] = coerce_param(PARAM_BY_NAME["pm.lowVoltage"], BRUSHLESS_LOW_VOLTAGE)

@@ -203,6 +203,7 @@ class RaceRun:
                      "timeout_s": cfg.timeout_s, "landing": cfg.landing, "start": cfg.start,
                      "policies": {n: {"path": str(p.path), **p.policy.meta}
                                   for n, p in zip(cfg.names, setup.policies)},
+                     **({"notes": list(setup.notes)} if setup.notes else {}),
                      **(extra_meta or {})}
 
     def run(self) -> RaceResult:
