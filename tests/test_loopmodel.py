@@ -253,3 +253,14 @@ def test_the_robustness_grid_flies_through_the_lockstep_stack_and_writes_its_tab
         r = run(*bad, "--out", str(tmp_path / "bad"))
         assert r.returncode == 2 and word in r.stderr and "Traceback" not in r.stderr, r.stderr
         assert not (tmp_path / "bad" / "robustness.json").exists()
+
+
+def test_the_grid_flies_each_profile_at_its_firmwares_idle_thrust_when_asked():
+    """--firmware-idle: the Brushless boots with powerDist.idleThrust 7000, a brushed drone with 0;
+    without it the simulator's default (None reaches the dry-run); the table names the idle."""
+    from cfrace.evaluate.robustness import Grid, _idle, _profile_label
+    on, off = Grid(firmware_idle=True), Grid()
+    assert (_idle(on, "cf21bl"), _idle(on, "cf2x_paper"), _idle(off, "cf21bl")) == (7000, 0, None)
+    assert _profile_label({"firmware_idle": True}, "cf21bl") == "cf21bl (idle 7000)"
+    assert _profile_label({"firmware_idle": True}, "cf2x_paper") == "cf2x_paper"
+    assert _profile_label({}, "cf21bl") == "cf21bl"

@@ -263,6 +263,8 @@ def robustness_cmd(
     alone: bool = typer.Option(True, "--alone/--no-alone", help="Also fly each policy alone (the other stopped)."),
     comp_ms: Optional[float] = typer.Option(None, "--comp-ms", help="Latency compensation of the estimator (ms); "
                                                                      "default: as much as the latency (the dry-run's)."),
+    firmware_idle: bool = typer.Option(False, "--firmware-idle", help="Each profile at its firmware's idle thrust "
+                                                                      "(the Brushless: 7000 counts; default: the simulator's 0)."),
     out_dir: Path = typer.Option(Path("robustness"), "--out", help="Folder of robustness.json / .md / .png."),
     quick: bool = typer.Option(False, "--quick", help="A small grid: latencies 0,20, noise 1 mm, seed 1, 1 lap, "
                                                       "1 race (CI size)."),
@@ -283,7 +285,8 @@ def robustness_cmd(
             raise ConfigError(f"{option}: {exc}") from None
     kw = dict(latencies_ms=_numbers("--latencies-ms", latencies_ms), profiles=tuple(x.strip() for x in profiles.split(",") if x.strip()),
               noise_mm=_numbers("--noise-mm", noise_mm), seeds=_numbers("--seeds", seeds, int), laps=laps, duels=duels)
-    grid = Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, **kw).check()   # what was typed
+    grid = Grid(track=track, ego=ego, opp=opp, alone=alone, comp_ms=comp_ms, firmware_idle=firmware_idle,
+                **kw).check()   # what was typed
     if quick:
         grid = grid.quick().check()
     check_writable(out_dir / "robustness.json", "--out")

@@ -9,7 +9,7 @@ lockstep dry-run that `cfrace sim dry-run --lockstep` and `cfrace fly` run (cfra
 - head to head: the two race each other, slots swapped every other race: who wins.
 
 The estimator's forward prediction follows the dry-run's default (as much as the simulated latency)
-unless ``comp_ms`` fixes it. The result (rows, per-cell summaries) goes to JSON, a markdown table
+unless ``comp_ms`` fixes it; ``firmware_idle`` flies each profile at its firmware's idle thrust. The result (rows, per-cell summaries) goes to JSON, a markdown table
 and a heat map; `cfrace reproduce` puts a grid of it in its report.
 """
 
@@ -41,6 +41,9 @@ class Grid:
     alone: bool = True
     comp_ms: float | None = None   #: latency compensation; None: the dry-run's default (= the latency)
     timeout_s: float = 60.0
+    #: each profile flies with its firmware's powerDist.idleThrust (cfrace.loopmodel.IDLE_THRUST_COUNTS:
+    #: the Brushless 7000 counts); off: the simulator's default (0, docs/simcf.md "Idle thrust")
+    firmware_idle: bool = False
 
     def check(self) -> "Grid":
         from cfrace.drone import load_profile
@@ -79,11 +82,17 @@ def _config(grid: Grid, ego: str, opp: str, profile: str, latency_ms: float):
                         rt_priority=0, loop_cpu="off", latency_comp_s=comp / 1e3, timeout_s=grid.timeout_s)
 
 
+def _idle(grid: Grid, profile: str) -> int | None:
+    """The idle thrust (counts) the grid's drones of ``profile`` boot with; None: the simulator's default."""
+    from cfrace.loopmodel import IDLE_THRUST_COUNTS
+    return int(IDLE_THRUST_COUNTS.get(profile, 0)) if grid.firmware_idle else None
+
+
 def alone_run(grid: Grid, policy: str, other: str, latency_ms: float, profile: str, noise_mm: float, seed: int) -> dict:
     """``policy`` alone (the other stopped at once) through the lockstep stack."""
     from cfrace.rehearsal.dryrun import dry_run
     res = dry_run(_config(grid, policy, other, profile, latency_ms), lockstep=True, faults=STOP_AT_ONCE, seed=seed,
-                  mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3).to_json()
+                  mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3, idle_thrust=_idle(grid, profile)).to_json()
     d = res["drones"][0]
     laps = int(d["laps"])
     times = res["lap_times"].get("ego") or []
@@ -98,7 +107,7 @@ def duel_run(grid: Grid, k: int, latency_ms: float, profile: str, noise_mm: floa
     from cfrace.rehearsal.dryrun import dry_run
     first, second = (grid.ego, grid.opp) if k % 2 == 0 else (grid.opp, grid.ego)
     res = dry_run(_config(grid, first, second, profile, latency_ms), lockstep=True, seed=seed * 1000 + k,
-                  mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3).to_json()
+                  mocap_noise_m=noise_mm / 1e3, mocap_latency_s=latency_ms / 1e3, idle_thrust=_idle(grid, profile)).to_json()
     names = {"ego": first, "opp": second}
     winner = names.get(res["winner"]) if res["winner"] else None
     return {"kind": "duel", "latency_ms": latency_ms, "profile": profile, "noise_mm": noise_mm, "seed": seed,
@@ -150,6 +159,13 @@ def run_grid(grid: Grid, on_progress=None) -> dict:
             "wall_s": round(time.perf_counter() - t0, 1)}
 
 
+def _profile_label(g: dict, profile: str) -> str:
+    """The profile's name, with its idle thrust when the grid flew the firmware's."""
+    from cfrace.loopmodel import IDLE_THRUST_COUNTS
+    idle = IDLE_THRUST_COUNTS.get(profile) if g.get("firmware_idle") else None
+    return f"{profile} (idle {idle:.0f})" if idle else profile
+
+
 def markdown_table(result: dict) -> str:
     """One line per cell: laps flown alone per policy (with failures) and the ego's win share."""
     g = result["grid"]
@@ -171,7 +187,7 @@ def markdown_table(result: dict) -> str:
     for c in result["cells"]:
         d = c.get("duel")
         win = f"{d['ego_wins']}/{d['races']}" if d else "-"
-        lines.append(f"| {c['latency_ms']:g} | {c['profile']} | {c['noise_mm']:g} | {laps(c, ego)} | {laps(c, opp)} | "
+        lines.append(f"| {c['latency_ms']:g} | {_profile_label(g, c['profile'])} | {c['noise_mm']:g} | {laps(c, ego)} | {laps(c, opp)} | "
                      f"{lap_s(c, ego)} | {lap_s(c, opp)} | {win} |")
     return "\n".join(lines) + "\n"
 
