@@ -165,7 +165,35 @@ def test_crash_detection_reads_the_impact_when_crashdetectgs_is_set():
     status, events = _into_the_floor(0.0)
     assert not status["emergency_stopped"] and not [e for e in events if "crash" in e]
     status, events = _into_the_floor(4.0)
-    assert status["emergency_reason"] == "tumbled"
+    assert status["supervisor_crashed"] and not status["emergency_stopped"] and status["thrust"] == 0.0
     crash = [e for e in events if e.startswith("SUP: crash detected @ ")]
     assert len(crash) == 1 and crash[0].endswith("Gs (max 4.00)")
     assert float(crash[0].split("@ ")[1].split(" ")[0]) > 5.0
+
+
+def test_a_drone_that_tumbles_in_flight_is_crashed_until_a_recovery_request_through_cflib():
+    """supervisor_state_machine.c: Flying -> Crashed on a tumble (motors off, disarmed; not Locked,
+    no reboot needed); cflib's send_crash_recovery_request leaves it once it no longer reads
+    tumbled, and it can be armed again."""
+    fleet = SimFleet("lemniscate", "cf21bl", 1, arming_required=True, decks=())
+    for name, value in (("supervisor.crashDetectGs", 4.0), ("flightmode.stabModeRoll", 0),
+                        ("flightmode.stabModePitch", 0)):
+        fleet.set_param(0, name, value)
+    hover = int(fleet.profile.thrust_curve.to_counts(fleet.profile.weight))
+    with served(fleet) as cf:
+        cf.supervisor.send_arming_request(True)
+        assert wait_for(lambda: fleet.status(0)["armed"])
+        cf.commander.send_setpoint(0.0, 0.0, 0.0, 0)
+        fleet.teleport(0, (0.0, 5.0, 0.3), (0.0, 0.0, -1.5))          # falling onto the floor
+        t_end = time.monotonic() + 0.6
+        while time.monotonic() < t_end:
+            cf.commander.send_setpoint(0.0, 0.0, 0.0, hover)
+            time.sleep(0.01)
+        assert wait_for(lambda: cf.supervisor.is_crashed)
+        assert not cf.supervisor.is_locked and not cf.supervisor.can_fly and not cf.supervisor.is_armed
+        assert fleet.status(0)["thrust"] == 0.0
+        cf.supervisor.send_crash_recovery_request()
+        assert wait_for(lambda: not fleet.status(0)["supervisor_crashed"])
+        assert wait_for(lambda: cf.supervisor.can_be_armed)
+        cf.supervisor.send_arming_request(True)
+        assert wait_for(lambda: fleet.status(0)["armed"])

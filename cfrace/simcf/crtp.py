@@ -121,8 +121,8 @@ class CrtpEndpoint:
                 ok = self.fleet.arm(self.index, bool(payload[1]) if len(payload) > 1 else False)
                 return [packet(PLATFORM, 0, bytes([cmd, int(ok), int(self.fleet.status(self.index)["armed"])]))]
             if cmd == 2:                                   # legacy crash recovery
-                crashed = self.fleet.status(self.index)["crashed"]
-                return [packet(PLATFORM, 0, bytes([cmd, int(not crashed), int(not crashed)]))]
+                ok = self.fleet.recover(self.index)
+                return [packet(PLATFORM, 0, bytes([cmd, int(ok), int(ok)]))]
             if cmd == 3:                                   # user notification: empty answer
                 return [packet(PLATFORM, 0)]
             return [packet(PLATFORM, 0, payload)]          # continuous wave etc.: echoed
@@ -346,9 +346,9 @@ class CrtpEndpoint:
                 ok = self.fleet.arm(self.index, bool(payload[1]))
                 armed = self.fleet.status(self.index)["armed"]
                 return [packet(SUPERVISOR, 1, bytes([0x81, int(ok), int(armed)]))]
-            if cmd == 2:
-                crashed = self.fleet.status(self.index)["crashed"]
-                return [packet(SUPERVISOR, 1, bytes([0x82, int(not crashed), int(not crashed)]))]
+            if cmd == 2:                                   # crash recovery request
+                ok = self.fleet.recover(self.index)
+                return [packet(SUPERVISOR, 1, bytes([0x82, int(ok), int(ok)]))]
             if cmd == 3:
                 self.fleet.emergency_stop(self.index, "supervisor emergency stop")
             elif cmd == 4:

@@ -115,6 +115,7 @@ class DroneFirmware:
     clock: SupervisorClock = field(default_factory=SupervisorClock)   #: is-flying, timeouts, tumble
     tumbled: bool = False                        #: the supervisor's tumble condition (tmblChckEn on)
     accel: AccelerometerFilter = field(default_factory=AccelerometerFilter)   #: the reading the firmware sees
+    crashed: bool = False                        #: the supervisor's Crashed state: tumbled in flight, recovery required
     ext_pos: np.ndarray = field(default_factory=lambda: np.zeros(3))    #: m, ext_pos.X/Y/Z: the last position
     ext_pose: np.ndarray = field(default_factory=lambda: np.zeros(7))   #: locSrv.x y z qx qy qz qw: the last pose
     banner_told: bool = False                    #: the boot lines went to a client since this boot
@@ -122,6 +123,10 @@ class DroneFirmware:
 
     def __post_init__(self):
         self.armed = self.auto_armed
+
+    def halted(self) -> bool:
+        """Motors not allowed whatever is asked: locked (emergency) or crashed (supervisor.c)."""
+        return bool(self.emergency or self.crashed)
 
 
 def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
@@ -341,7 +346,7 @@ class SimFleet:
             if command == "stop":
                 fw.planner.stop()
                 return 0
-            if fw.emergency or not fw.armed:
+            if fw.halted() or not fw.armed:
                 fw.events.append(f"HL: {command} refused, the drone cannot fly (arm it first)")
                 return errno.EBUSY
             t = self.time
@@ -368,7 +373,7 @@ class SimFleet:
     def _high_level_setpoint(self, i: int) -> None:
         """Each control tick while the drone can fly: the planner's setpoint, if its priority allows."""
         fw = self._fw[i]
-        if fw.emergency or not fw.armed:
+        if fw.halted() or not fw.armed:
             return
         goal = fw.planner.evaluate(self.time)
         if fw.priority > PRIORITY_HIGHLEVEL:
@@ -472,7 +477,7 @@ class SimFleet:
             fw = self._fw[self._check(i)]
             if fw.auto_armed:
                 return True
-            if armed and fw.emergency:
+            if armed and fw.halted():
                 return False
             if armed and fw.tumbled:
                 return False          # supervisor.c: tumbled, the pre-flight checks do not pass
@@ -482,6 +487,18 @@ class SimFleet:
                     fw.clock.armed_at = self.time
             fw.armed = bool(armed)
             return True
+
+    def recover(self, i: int) -> bool:
+        """Supervisor CMD_RECOVER_SYSTEM (supervisor.c, supervisorRequestCrashRecovery): leaves the
+        Crashed state unless still tumbled; False also for a drone the simulator froze in a crash."""
+        with self.lock:
+            fw = self._fw[self._check(i)]
+            if fw.crashed and fw.tumbled:
+                return False
+            if fw.crashed:
+                fw.crashed = False
+                fw.events.append("SUP: crash recovery")
+            return not self._crashed[i]
 
     def emergency_stop(self, i: int, reason: str = "emergency stop request") -> None:
         with self.lock:
@@ -520,7 +537,7 @@ class SimFleet:
         elif age > WDT_LEVEL + 1e-9 and fw.watchdog == "ok":
             fw.watchdog = "level"
             # supervisor.c isFlyingCheck: flying while a motor ran above idle within the last 2 s
-            fw.flying_at_level = bool(fw.armed and not fw.emergency and fw.clock.is_flying(t))
+            fw.flying_at_level = bool(fw.armed and not fw.halted() and fw.clock.is_flying(t))
             fw.events.append("CMD: no setpoint for 500 ms, levelling out")
 
     def _next_deadline(self, t: float) -> float:
@@ -538,7 +555,7 @@ class SimFleet:
 
     def _gated(self, fw: DroneFirmware) -> bool:
         """Motors off whatever the setpoint: emergency, disarmed, no setpoint yet, watchdog shutdown."""
-        return bool(fw.emergency or not fw.armed or fw.setpoint is None or fw.watchdog in ("idle", "shutdown"))
+        return bool(fw.halted() or not fw.armed or fw.setpoint is None or fw.watchdog in ("idle", "shutdown"))
 
     def _command(self, i: int) -> tuple[float, np.ndarray]:
         """(thrust N, body rates rad/s (3,)) drone i commands now (no controller update: for status)."""
@@ -572,7 +589,7 @@ class SimFleet:
         """N, the collective thrust of every motor at powerDist.idleThrust counts while the motors may
         run (armed, not stopped: supervisorAreMotorsAllowedToRun); 0 otherwise or with no idle thrust."""
         idle = float(fw.params["powerDist.idleThrust"])
-        if idle <= 0.0 or fw.emergency or not fw.armed:
+        if idle <= 0.0 or fw.halted() or not fw.armed:
             return 0.0
         return float(self.profile.thrust_curve.to_newtons(idle))
 
@@ -647,10 +664,14 @@ class SimFleet:
         if crash is not None and tumbled and not fw.tumbled:
             fw.events.append(f"SUP: crash detected @ {crash:.2f} Gs (max {p['supervisor.crashDetectGs']:.2f})")
         fw.tumbled = tumbled
-        if fw.emergency:
+        if fw.halted():
             return
         if fw.tumbled and fw.clock.is_flying(t) and fw.armed:
-            self._emergency(fw, "tumbled")               # Flying -> ExceptFreeFall -> Locked
+            # supervisor_state_machine.c: Flying -> Crashed (motors off, disarmed), left only by a
+            # crash recovery request while no longer tumbled (supervisorRequestCrashRecovery)
+            fw.crashed = True
+            fw.armed = fw.auto_armed
+            fw.events.append("SUP: tumbled while flying: crashed, recovery required")
         elif fw.auto_armed:
             return
         elif fw.tumbled and fw.armed:
@@ -710,6 +731,7 @@ class SimFleet:
             age = None if fw.last_setpoint_time is None else self.time - fw.last_setpoint_time
             return {"armed": fw.armed, "locked": fw.thrust_locked, "watchdog": fw.watchdog,
                     "emergency_stopped": bool(fw.emergency), "emergency_reason": fw.emergency,
+                    "supervisor_crashed": fw.crashed,
                     "crashed": bool(self._crashed[i]), "crash_reason": crash_reason(int(self._reason[i])),
                     "setpoint_age": age,
                     "setpoints_received": fw.setpoints_received, "packets_received": fw.packets_received,
@@ -735,16 +757,16 @@ class SimFleet:
         with self.lock:
             fw = self._fw[self._check(i)]
             # supervisor.c updateLogData: flying = state Flying or WarningLevelOut (the 2 s hysteresis)
-            flying = bool(fw.armed and not fw.emergency and fw.clock.is_flying(self.time))
+            flying = bool(fw.armed and not fw.halted() and fw.clock.is_flying(self.time))
             bits = 0
-            bits |= int(not fw.armed and not fw.emergency and not fw.tumbled) << 0   # can be armed
+            bits |= int(not fw.armed and not fw.halted() and not fw.tumbled) << 0   # can be armed
             bits |= int(fw.armed) << 1
             bits |= int(fw.auto_armed) << 2
-            bits |= int(fw.armed and not fw.emergency) << 3           # can fly
+            bits |= int(fw.armed and not fw.halted()) << 3           # can fly
             bits |= int(flying) << 4
             bits |= int(self._tumbled(i)) << 5
             bits |= int(bool(fw.emergency)) << 6                      # locked, reboot required
-            bits |= int(bool(self._crashed[i])) << 7
+            bits |= int(bool(self._crashed[i]) or fw.crashed) << 7   # crashed: the supervisor's, or the simulator's
             state = fw.planner.state
             bits |= int(state in (hl.FLYING, hl.LANDING)) << 8        # high-level commander active
             bits |= int(state == hl.FLYING and fw.planner.finished(self.time)) << 9   # its move finished

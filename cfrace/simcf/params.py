@@ -120,7 +120,7 @@ PARAMS: tuple[ParamSpec, ...] = (
     ParamSpec("pm.criticalLowVoltage", "float", 3.0, doc="V, critically low battery"),
     ParamSpec("powerDist.idleThrust", "uint32_t", 0,
               doc="counts, least command of each armed motor (7000 on the Crazyflie 2.1 Brushless)"),
-    ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble locks a flying drone (supervisor.c)"),
+    ParamSpec("supervisor.tmblChckEn", "uint8_t", 1, doc="nonzero: a tumble crashes a flying drone (supervisor.c)"),
     ParamSpec("supervisor.crashDetectGs", "float", 0.0,
               doc="g, a crash: | |acc| - 1 g | above this counts as tumbled; 0: off (supervisor.c)"),
     ParamSpec("supervisor.prefltTimeout", "uint16_t", 30000, doc="ms armed without flying before disarming"),

@@ -9,10 +9,13 @@
 * supervisorIsLandingTimeout: ``supervisor.landedTimeout`` ms (3 s) after it stopped flying -> the
   supervisor resets and disarms (Landed -> Reset).
 * isTumbledCheck: the accelerometer's body z below 0.5 g (60 deg tilt) for 1 s, or below -0.2 g
-  (upside down) for 0.1 s; free fall (every axis under 0.1 g) resets the clock. With
-  ``supervisor.tmblChckEn`` set, a tumble while flying locks the drone, before take-off it disarms.
+  (upside down) for 0.1 s; free fall (every axis under 0.1 g) resets the clock; with
+  ``supervisor.crashDetectGs`` above 0, a reading whose norm is further than that from 1 g counts
+  as tumbled at once (crash_g). With ``supervisor.tmblChckEn`` set, a tumble while flying crashes
+  the drone (supervisor_state_machine.c: Flying -> Crashed, motors off until a crash recovery
+  request while no longer tumbled), before take-off it disarms.
 
-The platforms without arming (Crazyflie 2.1) re-arm by themselves, so only the tumble lock shows.
+The platforms without arming (Crazyflie 2.1) re-arm by themselves, so only the crash shows.
 
 What the supervisor reads and how often (stabilizer.c, supervisorUpdate; stabilizer_types.h,
 RATE_SUPERVISOR): it runs at 25 Hz, every 40th tick of the 1 kHz stabilizer loop, on the
