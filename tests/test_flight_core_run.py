@@ -119,6 +119,30 @@ def test_replay_detects_a_different_flight(lockstep_run, tmp_path):
     assert not r["identical"] and r["mismatched"] > 100
 
 
+def test_replay_flies_the_logs_prediction_rule(lockstep_run, monkeypatch):
+    """A replay predicts as its log's latency_prediction says: the same log replayed with the rule of
+    older logs ("velocity") no longer matches, and a rule the estimator does not know is one
+    LogError line, not a traceback."""
+    from cfrace.errors import LogError
+    from cfrace.rehearsal import replay as rp
+
+    _, log = lockstep_run
+    real = rp.read_log
+
+    def with_rule(rule):
+        def read(path):
+            data = real(path)
+            data.meta["latency_prediction"] = rule
+            return data
+        return read
+    monkeypatch.setattr(rp, "read_log", with_rule("velocity"))
+    r = replay_log(log)
+    assert not r["identical"] and r["mismatched"] > 0
+    monkeypatch.setattr(rp, "read_log", with_rule("telepathy"))
+    with pytest.raises(LogError, match="latency_prediction 'telepathy'"):
+        replay_log(log)
+
+
 def test_real_time_dry_run_through_cflib(pols, tmp_path):
     import gc
 

@@ -22,7 +22,7 @@ from cfrace.contract.observations import LAYOUTS
 from cfrace.errors import LogError
 from cfrace.flight.loop.clock import Tick
 from cfrace.flight.config import SafetyConfig
-from cfrace.flight.mocap.estimation import PoseEstimator
+from cfrace.flight.mocap.estimation import PREDICTIONS, PoseEstimator
 from cfrace.flight.log.writer import read_log
 from cfrace.flight.link.protocol import RecordingLink
 from cfrace.flight.loop.flight_loop import FlownDrone, FlightLoop, ObservationBuilder
@@ -137,6 +137,8 @@ def _read(path: str | Path, data) -> _Logged:
         for (t, m) in data.messages("/timing"):
             m["t"] = t
         frames = {int(m["k"]): frame_from_msg(m) for _, m in data.messages("/mocap/pose")}
+        if meta.get("latency_prediction", "velocity") not in PREDICTIONS:
+            raise ValueError(f"latency_prediction {meta['latency_prediction']!r} is none of {', '.join(PREDICTIONS)}")
     except (KeyError, TypeError, ValueError) as exc:
         raise LogError(f"{path}: cannot replay this log ({type(exc).__name__}: {exc})") from None
     if any(m.get("now") is None for m in ticks):
