@@ -102,3 +102,4 @@ def test_platform_and_firmware_release_are_reported_as_the_drone_does(profile, a
     console = "".join(text)
     assert f"{device} is up and running" in console
     assert console.count("simulated") == 1, console
+    assert ("powerDist.idleThrust boots at 0, not the Brushless firmware's 7000" in console) == arming, console

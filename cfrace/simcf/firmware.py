@@ -40,6 +40,7 @@ import numpy as np
 
 from cfrace.drone import GRAVITY, DroneProfile, load_profile
 from cfrace.errors import ConfigError
+from cfrace.loopmodel import IDLE_THRUST_COUNTS
 from cfrace.rotations import quat_to_rot
 from cfrace.sim.dynamics import PHYSICS_DT
 from cfrace.simcf import planner as hl
@@ -446,6 +447,9 @@ class SimFleet:
                                  f"SYS: Build {FIRMWARE_RELEASE}",
                                  "SIMCF: a simulated Crazyflie (cfrace.simcf), not a drone; where it differs "
                                  "from the firmware: docs/simcf.md"]
+                if self.arming_required and not fw.params["powerDist.idleThrust"]:   # the one default that differs
+                    fw.events.insert(3, f"SIMCF: powerDist.idleThrust boots at 0, not the Brushless firmware's "
+                                        f"{IDLE_THRUST_COUNTS['cf21bl']:.0f} (docs/simcf.md, Idle thrust)")
 
     def set_param(self, i: int, name: str, value) -> float | int:
         """Write a parameter; returns the value as stored. KeyError for unknown, PermissionError RO."""
