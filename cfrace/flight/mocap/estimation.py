@@ -126,6 +126,8 @@ class PoseEstimator:
         if prediction not in PREDICTIONS:
             raise ValueError(f"prediction must be one of {', '.join(PREDICTIONS)}, got {prediction!r}")
         self.prediction = prediction   #: a PREDICTIONS rule (replays fly the one of their log's meta)
+        #: whether a body's last command predicts its estimate (the rule, decided once)
+        self._by_command = prediction == "commanded_always" or (prediction == "commanded" and self.lead_s > 0.0)
         self.bodies = list(bodies)
         self.alpha, self.max_speed_mps, self.max_jump_m = alpha, max_speed_mps, max_jump_m
         self.stale_after_s = stale_after_s
@@ -270,9 +272,7 @@ class PoseEstimator:
         if self.lead_s > 0.0:
             h += self.lead_s
             quat = _rotate_body(quat, tr.omega, h)
-        rule = self.prediction
-        on = rule == "commanded_always" or (rule == "commanded" and self.lead_s > 0.0)
-        acc = self._commands.get(body) if on and tr.samples > 1 else None
+        acc = self._commands.get(body) if self._by_command and tr.samples > 1 else None
         if acc is not None:
             lag = tr.dt * (1.0 / self.alpha - 0.5)
             (x, y, z), (vx, vy, vz) = _predict_commanded((x, y, z), (vx, vy, vz), tr.quat, acc, h, lag)
