@@ -52,13 +52,16 @@ class RaceEnv(LabLoop):
                  compile: bool = False, start: str = "mixed", rewards: RewardScales = RewardScales(),
                  rules: CrashRules = CrashRules(), random_phase: bool = False, flight_obs: bool = False,
                  drones: int | None = None, opponent_rule: str = DEFAULT_OPPONENT_RULE,
-                 loop: LoopRanges | None = None, drone: DroneRanges | None = None):
+                 loop: LoopRanges | None = None, drone: DroneRanges | None = None, parked_frac: float = 0.0):
         if method not in MULTI_AGENT:
             raise ValueError(f"unknown method {method!r}")
         if drones is not None and (drones < 2 or not MULTI_AGENT[method]):
             raise ValueError(f"drones: at least 2, and only for the multi-agent methods (got {drones} for {method})")
         if opponent_rule not in OPPONENT_RULES:
             raise ValueError(f"unknown opponent rule {opponent_rule!r} (choose from {', '.join(OPPONENT_RULES)})")
+        if not 0.0 <= parked_frac < 1.0 or (parked_frac > 0 and not MULTI_AGENT[method]):
+            raise ValueError(f"parked_frac: in [0, 1), and only for the multi-agent methods (got {parked_frac} for "
+                             f"{method})")
         self.track, self.profile, self.method = track, profile, method
         self.obstacles = obstacles and bool(track.obstacles)
         self.num_envs = num_envs
@@ -75,6 +78,10 @@ class RaceEnv(LabLoop):
         # flight estimator's rules, late setpoints; implies flight_obs. drone: drone-model randomisation
         # (replaces the paper's ranges)
         self.loop, self.drone = loop, drone
+        # parked_frac: share of the races whose last drone starts crashed, at rest on the floor below its
+        # start slot (what a policy flying alone sees of its stopped opponent in the flight stack's
+        # dry-run and in cfrace.evaluate.rollout.parked_opponents): the other drones race nobody
+        self.parked_frac = float(parked_frac)
         self.flight_obs = bool(flight_obs) or loop is not None
         self.min_thrust_n = float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
         self.max_steps = int(round(episode_s / POLICY_DT))
@@ -97,6 +104,7 @@ class RaceEnv(LabLoop):
         self.ep_return = torch.zeros(e, a, device=dev)
         self.ep_lead = torch.zeros(e, a, device=dev)
         self.ep_first_lap = torch.full((e, a), -1.0, device=dev)
+        self.parked = torch.zeros(e, a, dtype=torch.bool, device=dev)   #: drones parked at their world's reset
         self._stats: dict[str, list] = {}
         self._extra: tuple[str, ...] = ()
         self._init_lab(e, a, dev)
@@ -220,7 +228,13 @@ class RaceEnv(LabLoop):
         if n == 0:
             return
         pos, quat, gate_idx = self.spawn(n)
+        parked = torch.zeros(n, a, dtype=torch.bool, device=self.device)
+        if self.parked_frac > 0:   # no draw otherwise: runs without parked opponents keep their random stream
+            parked[:, -1] = self._rand(n) < self.parked_frac
+            pos[..., 2] = torch.where(parked, torch.full_like(pos[..., 2], self.sim.z_rest), pos[..., 2])
         self.sim.reset(ids, pos, quat=quat, target=gate_idx.unsqueeze(-1).expand(n, a))
+        self.sim.race.crashed[ids] = parked
+        self.parked[ids] = parked
         u = lambda lo, hi, *shape: (lo + (hi - lo) * self._rand(n, a, *shape))
         if self.drone is not None:
             self._reset_drone(ids, u)
@@ -303,7 +317,7 @@ class RaceEnv(LabLoop):
 
     # ------------------------------------------------------------------ checkpoints (exact resume)
     _COUNTERS = ("steps", "start_gate", "laps_paid", "prev_pos", "prev_track_pos", "ep_return", "ep_lead",
-                 "ep_first_lap", "mid_pos")
+                 "ep_first_lap", "mid_pos", "parked")
 
     def state_dict(self) -> dict:
         s = self.sim
@@ -334,7 +348,8 @@ class RaceEnv(LabLoop):
             "episode_return": self.ep_return[done].mean().item(),
             "gates_per_s": (r.gates_passed[done].float() / (steps.unsqueeze(-1) * POLICY_DT)).mean().item(),
             "success": (r.laps[done] >= 1).float().mean().item(),
-            "crash_rate": r.crashed[done].float().mean().item(),
+            "crash_rate": (r.crashed[done].float().mean().item() if not self.parked_frac else   # of those that flew
+                           (r.crashed[done] & ~self.parked[done]).sum().item() / max(1, int((~self.parked[done]).sum()))),
             "episode_s": (steps * POLICY_DT).mean().item(),
         }
         if self.obstacle_curriculum:

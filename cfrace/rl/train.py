@@ -70,6 +70,7 @@ class TrainConfig:
     rewards: tuple = ()             #: ((RewardScales field, value), ...) over the paper's reward weights (--reward)
     loop: dict | None = None        #: the lab's loop in training: cfrace.loopmodel.LoopRanges fields (--lab-loop)
     span_profiles: tuple = ()       #: drone-model randomisation spanning these profiles too (--span-profiles)
+    parked_opponent_frac: float = 0.0  #: share of the races whose last drone starts parked (RaceEnv.parked_frac)
 
     def ippo(self) -> IPPOConfig:
         return preset(self.preset, self.method in MULTI_AGENT_METHODS, tuple(map(tuple, self.overrides)),
@@ -121,7 +122,8 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
     env = RaceEnv(track, profile, num_envs=num_envs, method=cfg.method, obstacles=cfg.obstacles,
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
-                  opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards), loop=loop, drone=drone)
+                  opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards), loop=loop, drone=drone,
+                  parked_frac=getattr(cfg, "parked_opponent_frac", 0.0))
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -135,6 +137,8 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
+            **({"parked_opponent_frac": float(cfg.parked_opponent_frac)}
+               if getattr(cfg, "parked_opponent_frac", 0.0) else {}),
             **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {}),
             **({"rewards": {str(k): float(v) for k, v in cfg.rewards}} if cfg.rewards else {}),
             **({"loop": env.loop.to_meta()} if getattr(env, "loop", None) is not None else {}),

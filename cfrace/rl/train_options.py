@@ -95,6 +95,10 @@ def train_parameters(
                                                 help="randomise the drone model to span these drone profiles "
                                                      "as well as --profile (e.g. cf21bl): thrust, motor time "
                                                      "constant, thrust limit and idle, drag, rate gains"),
+    parked_opponent_frac: float = typer.Option(0.0, "--parked-opponent-frac",
+                                               help="share of the races whose last drone starts crashed on the "
+                                                    "floor below its start slot: the others race nobody, as a "
+                                                    "policy flying alone does (default 0)"),
 ) -> dict:
     """`cfrace train`'s options by parameter name (the signature is what counts: see takes_train_options)."""
     return dict(locals())
@@ -112,7 +116,7 @@ def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, se
                    fixed_opponent, fixed_opponent_frac, fixed_opponent_drones, init_critic, critic_warmup_lr,
                    precision, ground_start_prob, keep_checkpoints, drones, opponent_rule, obstacle_curriculum,
                    update_workers, compile_, flight_obs, lab_loop=False, loop_latency_ms=None, loop_noise_mm=None,
-                   span_profiles=None, sources: bool = True):
+                   span_profiles=None, parked_opponent_frac=0.0, sources: bool = True):
     """The TrainConfig of `cfrace train`'s options (its parameters), checked as the command checks it
     before its banner (cfrace.rl.inputs.check_inputs; ``sources``: also load the files it names);
     ConfigError (one line) else. `cfrace sweep` checks its runs with it (check_train_argv)."""
@@ -154,7 +158,8 @@ def checked_config(*, method, track, obstacles, preset, envs, minutes, steps, se
                           opponent_rule=opponent_rule or TrainConfig.opponent_rule,
                           obstacle_curriculum=obstacle_curriculum, rewards=rewards,
                           loop=loop_ranges(lab_loop, loop_latency_ms, loop_noise_mm),
-                          span_profiles=tuple(x.strip() for x in (span_profiles or "").split(",") if x.strip()))
+                          span_profiles=tuple(x.strip() for x in (span_profiles or "").split(",") if x.strip()),
+                          parked_opponent_frac=parked_opponent_frac)
     from cfrace.rl.inputs import check_inputs
     check_inputs(cfg, sources=sources, warm_start=resume is None)
     return cfg
