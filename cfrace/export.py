@@ -182,10 +182,9 @@ def export_checkpoint(checkpoint: str | Path, path: str | Path, agent: str = "be
         meta["opponent_rule"] = str(meta0["opponent_rule"])
     if meta0.get("flight_obs"):  # trained on the flight stack's velocity estimate (--flight-obs)
         meta["flight_obs"] = True
-    if meta0.get("ground_start_prob") is not None:  # a start-mix curriculum (--ground-start-prob)
-        meta["ground_start_prob"] = float(meta0["ground_start_prob"])
-    if meta0.get("parked_opponent_frac"):  # part of the races flown with the opponent down (--parked-opponent-frac)
-        meta["parked_opponent_frac"] = float(meta0["parked_opponent_frac"])
+    for key in ("ground_start_prob", "parked_opponent_frac"):  # start mix, races with the opponent down (options)
+        if meta0.get(key) is not None:
+            meta[key] = float(meta0[key])
     if meta0.get("loop"):  # trained through the lab loop's model (--lab-loop, cfrace/loopmodel.py)
         meta["loop"] = dict(meta0["loop"])
     if meta0.get("drone_ranges"):  # drone-model ranges spanning other profiles (--span-profiles)

@@ -46,6 +46,15 @@ class StepResult:
     stats: dict[str, float] = field(default_factory=dict)
 
 
+def _parked_share(method: str, frac: float) -> float:
+    """RaceEnv's ``parked_frac``, checked: the share of the races whose last drone starts crashed, at
+    rest on the floor below its start slot (what a policy flying alone sees of its stopped opponent in
+    the flight stack's dry-run and in cfrace.evaluate.rollout.parked_opponents): the others race nobody."""
+    if not 0.0 <= frac < 1.0 or (frac > 0 and not MULTI_AGENT[method]):
+        raise ValueError(f"parked_frac: in [0, 1), and only for the multi-agent methods (got {frac} for {method})")
+    return float(frac)
+
+
 class RaceEnv(LabLoop):
     def __init__(self, track: Track, profile: DroneProfile, *, num_envs: int, method: str, obstacles: bool,
                  device: str | torch.device = "cpu", seed: int = 0, randomize: bool = True, episode_s: float = 30.0,
@@ -59,9 +68,6 @@ class RaceEnv(LabLoop):
             raise ValueError(f"drones: at least 2, and only for the multi-agent methods (got {drones} for {method})")
         if opponent_rule not in OPPONENT_RULES:
             raise ValueError(f"unknown opponent rule {opponent_rule!r} (choose from {', '.join(OPPONENT_RULES)})")
-        if not 0.0 <= parked_frac < 1.0 or (parked_frac > 0 and not MULTI_AGENT[method]):
-            raise ValueError(f"parked_frac: in [0, 1), and only for the multi-agent methods (got {parked_frac} for "
-                             f"{method})")
         self.track, self.profile, self.method = track, profile, method
         self.obstacles = obstacles and bool(track.obstacles)
         self.num_envs = num_envs
@@ -78,10 +84,7 @@ class RaceEnv(LabLoop):
         # flight estimator's rules, late setpoints; implies flight_obs. drone: drone-model randomisation
         # (replaces the paper's ranges)
         self.loop, self.drone = loop, drone
-        # parked_frac: share of the races whose last drone starts crashed, at rest on the floor below its
-        # start slot (what a policy flying alone sees of its stopped opponent in the flight stack's
-        # dry-run and in cfrace.evaluate.rollout.parked_opponents): the other drones race nobody
-        self.parked_frac = float(parked_frac)
+        self.parked_frac = _parked_share(method, parked_frac)
         self.flight_obs = bool(flight_obs) or loop is not None
         self.min_thrust_n = float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
         self.max_steps = int(round(episode_s / POLICY_DT))
