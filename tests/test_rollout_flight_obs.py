@@ -28,10 +28,10 @@ class _Falling:
         return act
 
 
-def _fly(flight_obs: bool, steps: int = 10):
+def _fly(flight_obs: bool, steps: int = 10, loop: bool = False):
     track, profile = load_track("lemniscate"), load_profile("cf2x_paper")
     ds = load_entrant("ds", track, obstacles=False)
-    stand_in = _Falling({**ds.meta, "flight_obs": flight_obs})
+    stand_in = _Falling({**ds.meta, "flight_obs": flight_obs, **({"loop": {"comp": 0.8}} if loop else {})})
     entrant = replace(ds, policy=stand_in)
     starts = start_poses(track, profile, 2, 1, obstacles=False, seed=3)   # in the air before a gate, at rest
     rec = rollout(track, profile, False, [entrant], np.zeros((2, 1), np.int64), starts, laps=1,
@@ -62,3 +62,18 @@ def test_a_flight_obs_policy_keeps_the_firmwares_least_thrust_and_others_do_not(
     slower = rec_exact.speed[9] - rec_flight.speed[9]
     expected = floor_n / profile.mass * t
     assert np.all(slower > 0.5 * expected) and np.all(slower < 1.5 * expected + 1e-3), (slower, expected)
+
+
+def test_a_lab_loop_policy_sees_the_difference_brought_to_the_poses_time_by_the_last_command():
+    """Metadata ``loop`` (`cfrace train --lab-loop`): the lab loop at zero latency and the flight
+    stack's estimator correct the 10 ms difference by the last command (cfrace.loopmodel.
+    predict_commanded over half the frame gap); the batched races give it the same."""
+    seen_flight, _, _ = _fly(True)
+    seen_loop, rec_loop, _ = _fly(True, loop=True)
+    assert np.all(np.linalg.norm(seen_loop[0][:, :3], axis=-1) == 0.0)   # no command yet: nothing to add
+    k = 6
+    v_flight = np.linalg.norm(seen_flight[k][:, :3], axis=-1)
+    v_loop = np.linalg.norm(seen_loop[k][:, :3], axis=-1)
+    # the falling policy commands no thrust: the command's acceleration is -g, over 5 ms (the floor
+    # of the delivered thrust is not part of the command); the drones fall the same way
+    assert np.allclose(v_loop - v_flight, G * 0.005, atol=2e-3), v_loop - v_flight

@@ -27,6 +27,7 @@ from cfrace.drone import DroneProfile
 from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.contract.observations import DEFAULT_OPPONENT_RULE, build_observation, choose_opponents, polyline, track_position
 from cfrace.env.race_env import MOCAP_DT, RaceEnv
+from cfrace.loopmodel import predict_commanded
 from cfrace.sim.collisions import CONTACT_MARGIN
 from cfrace.errors import ConfigError
 from cfrace.evaluate.entrants import Entrant
@@ -177,25 +178,32 @@ def _new_recording(n_steps: int, w: int, d: int, record: tuple[int, ...], laps: 
                      pair_contacts=np.zeros((w, d, d), np.int64), crash_partner=np.full((w, d), -1, np.int64))
 
 
-def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray,
-              mid_pos: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every slot's command for the next step: thrust (W, D) N, body rates (W, D, 3) deg/s; one
-    onnxruntime call per policy for all its slots; non-finite actions become motors off (counted in
-    ``nan_actions`` (W, D)). An entrant trained on the flight stack's path (metadata flight_obs) sees
-    velocities as the pose difference since ``mid_pos`` (10 ms ago) and its thrust floored at the
-    firmware's least non-zero command, as RaceEnv gave them in its training."""
+def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray, mid_pos: torch.Tensor | None = None,
+              last_acc: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every slot's command for the next step: thrust (W, D) N, body rates (W, D, 3) deg/s and the
+    collective acceleration it asks (W, D) m/s^2 (before the thrust floor); one onnxruntime call per
+    policy for all its slots; non-finite actions become motors off (counted in ``nan_actions`` (W, D)).
+    An entrant trained on the flight stack's path (metadata flight_obs) sees velocities as the pose
+    difference since ``mid_pos`` (10 ms ago) and its thrust floored at the firmware's least non-zero
+    command, as RaceEnv gave them in its training; one trained through the lab loop (metadata loop)
+    sees that difference brought to the pose's time by the last command ``last_acc``, as the loop at
+    zero latency and the flight stack's estimator give it (cfrace.loopmodel.predict_commanded)."""
     w, d = sim.pos.shape[:2]
     off = np.asarray(OFF_ACTION, np.float32)
     thrust = np.full((w, d), f.off_thrust, np.float32)
+    acc = np.full((w, d), f.off_thrust / f.profile.mass, np.float32)
     rates = np.zeros((w, d, 3), np.float32)
     pos, rot, target = sim.pos, sim.rot(), sim.race.target
     vel_exact = sim.vel
     vel_flight = (pos - mid_pos) / MOCAP_DT if mid_pos is not None else vel_exact
+    vel_loop = vel_flight
+    if last_acc is not None and mid_pos is not None and any(e.meta.get("loop") for e, *_ in f.groups):
+        _, vel_loop = predict_commanded(pos, vel_flight, sim.quat, last_acc.unsqueeze(-1), 0.0, MOCAP_DT / 2)
     tpos = track_position(f.gates, f.cum, f.lap_len, f.start_gate, sim.race.gates_passed, target, pos)
     opp = {rule: choose_opponents(pos, tpos, ~sim.race.crashed, rule) for rule in f.rules}
     for e, iw, idr, tw, td in f.groups:
         flight = bool(e.meta.get("flight_obs"))
-        vel = vel_flight if flight else vel_exact
+        vel = (vel_loop if e.meta.get("loop") else vel_flight) if flight else vel_exact
         opp_pos = opp_vel = None
         if e.layout.opponent:
             if d > 2:
@@ -213,10 +221,11 @@ def _commands(f: _Setup, sim: Simulator, nan_actions: np.ndarray,
             act[bad] = off
             np.add.at(nan_actions, (iw[bad], idr[bad]), 1)
         th, rt = action_to_command(act, f.profile.mass, e.meta["max_thrust_weights"], e.meta["max_rates_deg"])
+        acc[iw, idr] = th / f.profile.mass
         if flight:   # motors off (a non-finite action) stays off
             th = np.where(bad, th, np.maximum(th, f.min_thrust))
         thrust[iw, idr], rates[iw, idr] = th, rt
-    return torch.from_numpy(thrust), torch.from_numpy(rates)
+    return torch.from_numpy(thrust), torch.from_numpy(rates), torch.from_numpy(acc)
 
 
 def _record(r: Recording, step: int, f: _Setup, sim: Simulator, ev, active: torch.Tensor,
@@ -268,12 +277,13 @@ def rollout(track: Track, profile: DroneProfile, obstacles: bool, entrants: list
     finished = torch.zeros(w, d, dtype=torch.bool)
     over = torch.zeros(w, dtype=torch.bool)
     mid_pos = sim.pos.clone() if f.flight else None   # the pose 10 ms before the step's end (flight_obs)
+    last_acc = None                                   # the last command's collective acceleration (loop)
     t0 = time.perf_counter()
     step = 0
     with torch.no_grad():
         for step in range(n_steps):
             active = ~sim.race.crashed & ~finished & ~over.unsqueeze(-1)
-            cmd = _commands(f, sim, r.nan_actions, mid_pos)
+            *cmd, last_acc = _commands(f, sim, r.nan_actions, mid_pos, last_acc)
             if f.flight:   # RaceEnv.step's two halves
                 first = sim.step(*cmd, SUBSTEPS // 2)
                 mid_pos = sim.pos.clone()
