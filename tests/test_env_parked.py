@@ -14,6 +14,7 @@ import torch
 
 from cfrace.drone import load_profile
 from cfrace.env.race_env import RaceEnv
+from cfrace.errors import ConfigError
 from cfrace.track import load_track
 
 CFRACE = Path(sys.executable).with_name("cfrace")
@@ -69,9 +70,9 @@ def test_no_parking_keeps_the_random_stream_of_runs_before_it():
 
 
 def test_parked_frac_is_refused_out_of_range_or_for_one_drone():
-    with pytest.raises(ValueError, match="parked_frac"):
+    with pytest.raises(ConfigError, match=r"\[0, 1\)"):
         _env(1.0)
-    with pytest.raises(ValueError, match="multi-agent"):
+    with pytest.raises(ConfigError, match="multi-agent"):
         RaceEnv(load_track("lemniscate"), load_profile("cf2x_paper"), num_envs=2, method="ds", obstacles=False,
                 parked_frac=0.3)
 

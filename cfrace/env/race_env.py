@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from cfrace.contract import POLICY_DT
+from cfrace.contract import MULTI_AGENT_METHODS, POLICY_DT
 from cfrace.drone import DroneProfile
 from cfrace.contract.actions import FIRMWARE_MIN_THRUST_COUNTS, action_to_command
 from cfrace.contract.observations import (DEFAULT_OPPONENT_RULE, OPPONENT_RULES, build_observations, choose_opponents,
@@ -46,12 +46,16 @@ class StepResult:
     stats: dict[str, float] = field(default_factory=dict)
 
 
-def _parked_share(method: str, frac: float) -> float:
-    """RaceEnv's ``parked_frac``, checked: the share of the races whose last drone starts crashed, at
-    rest on the floor below its start slot (what a policy flying alone sees of its stopped opponent in
-    the flight stack's dry-run and in cfrace.evaluate.rollout.parked_opponents): the others race nobody."""
-    if not 0.0 <= frac < 1.0 or (frac > 0 and not MULTI_AGENT[method]):
-        raise ValueError(f"parked_frac: in [0, 1), and only for the multi-agent methods (got {frac} for {method})")
+def parked_share(method: str, frac: float) -> float:
+    """RaceEnv's ``parked_frac`` (`cfrace train --parked-opponent-frac`), checked (ConfigError, one
+    line): the share of the races whose last drone starts crashed, at rest on the floor below its start
+    slot (what a policy flying alone sees of its stopped opponent in the flight stack's dry-run and in
+    cfrace.evaluate.rollout.parked_opponents): the others race nobody."""
+    if not 0.0 <= frac < 1.0:
+        raise ConfigError(f"--parked-opponent-frac must be in [0, 1), got {frac}")
+    if frac > 0 and not MULTI_AGENT[method]:
+        raise ConfigError(f"--parked-opponent-frac needs a multi-agent method "
+                          f"({', '.join(MULTI_AGENT_METHODS)}), not {method}")
     return float(frac)
 
 
@@ -84,7 +88,7 @@ class RaceEnv(LabLoop):
         # flight estimator's rules, late setpoints; implies flight_obs. drone: drone-model randomisation
         # (replaces the paper's ranges)
         self.loop, self.drone = loop, drone
-        self.parked_frac = _parked_share(method, parked_frac)
+        self.parked_frac = parked_share(method, parked_frac)
         self.flight_obs = bool(flight_obs) or loop is not None
         self.min_thrust_n = float(profile.thrust_curve.to_newtons(FIRMWARE_MIN_THRUST_COUNTS))
         self.max_steps = int(round(episode_s / POLICY_DT))

@@ -39,12 +39,8 @@ def check_inputs(cfg, sources: bool = True, warm_start: bool = True) -> tuple:
         raise ConfigError(f"--episode-s (episode_s) must be > 0 s, got {cfg.episode_s}")
     if cfg.ground_start_prob is not None and not 0.0 <= cfg.ground_start_prob <= 1.0:
         raise ConfigError(f"--ground-start-prob must be in [0, 1], got {cfg.ground_start_prob}")
-    parked = getattr(cfg, "parked_opponent_frac", 0.0)
-    if not 0.0 <= parked < 1.0:
-        raise ConfigError(f"--parked-opponent-frac must be in [0, 1), got {parked}")
-    if parked and cfg.method not in MULTI_AGENT_METHODS:
-        raise ConfigError(f"--parked-opponent-frac needs a multi-agent method ({', '.join(MULTI_AGENT_METHODS)}), "
-                          f"not {cfg.method}")
+    from cfrace.env.race_env import parked_share
+    parked_share(cfg.method, getattr(cfg, "parked_opponent_frac", 0.0))
     from cfrace.rl.precision import check_precision
     from cfrace.rl.warmstart import check_source
 

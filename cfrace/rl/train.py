@@ -123,7 +123,7 @@ def make_env(cfg: TrainConfig, device: torch.device, num_envs: int):
                   device=str(device), seed=cfg.seed, randomize=True, episode_s=cfg.episode_s,
                   random_phase=cfg.random_phase, flight_obs=cfg.flight_obs, drones=cfg.drones,
                   opponent_rule=cfg.opponent_rule, rewards=reward_scales(cfg.rewards), loop=loop, drone=drone,
-                  parked_frac=getattr(cfg, "parked_opponent_frac", 0.0))
+                  parked_frac=cfg.parked_opponent_frac)
     return env, env_meta(cfg, env, track.name, profile)
 
 
@@ -137,8 +137,7 @@ def env_meta(cfg: TrainConfig, env, track_name: str, profile) -> dict:
             "flight_obs": bool(getattr(env, "flight_obs", False)),
             **({"opponent_rule": getattr(env, "opponent_rule", cfg.opponent_rule)} if int(env.num_agents) > 2 else {}),
             **({"ground_start_prob": cfg.ground_start_prob} if cfg.ground_start_prob is not None else {}),
-            **({"parked_opponent_frac": float(cfg.parked_opponent_frac)}
-               if getattr(cfg, "parked_opponent_frac", 0.0) else {}),
+            **({"parked_opponent_frac": float(cfg.parked_opponent_frac)} if cfg.parked_opponent_frac else {}),
             **({"obstacle_curriculum": int(cfg.obstacle_curriculum)} if cfg.obstacle_curriculum else {}),
             **({"rewards": {str(k): float(v) for k, v in cfg.rewards}} if cfg.rewards else {}),
             **({"loop": env.loop.to_meta()} if getattr(env, "loop", None) is not None else {}),
